@@ -1,0 +1,1 @@
+"""User-facing jobs: demo, Monte Carlo ablations (local process pool or Dask), figures, report."""

@@ -1,0 +1,516 @@
+"""Typed scenario model, loaded from TOML and validated (DESIGN.md sections 3 and 5).
+
+A scenario is everything needed to build a scene, trace it and run the filter on it:
+geometry (BS, buildings, scatterers, optional ground, vehicles and their motion), time grid,
+carrier frequency, the sensor model and the filter / fusion / evaluation parameters.
+
+Global frame: x east, y north, z up, metres; angles in radians; times in seconds.
+
+Only :func:`load_scenario` / :func:`load_preset` / :func:`resolve_scenario` create scenarios
+from user input; every error they raise is a :class:`~mmslam.errors.ConfigError` whose message
+names the file, the key and what is expected.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mmslam.errors import ConfigError
+
+MATERIALS = ("concrete", "metal", "brick", "wood", "glass", "marble", "plasterboard", "ceiling_board",
+             "floorboard", "chipboard", "very_dry_ground")
+"""ITU-R P.2040 materials valid at 28 GHz that scenario files may name (Sionna's ``itu_*``).
+
+``medium_dry_ground`` and ``wet_ground`` are deliberately absent: they are only defined up to
+10 GHz in ITU-R P.2040 and Sionna rejects them at 28 GHz.
+"""
+
+
+@dataclass(frozen=True)
+class Building:
+    """An axis-aligned box building (walls are its faces). ``min``/``max`` corners in m."""
+
+    name: str
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    material: str = "concrete"
+
+
+@dataclass(frozen=True)
+class Scatterer:
+    """A small static scatter object (SP). ``position`` is its reference point (centre), m.
+
+    ``shape`` is ``box`` (cube of edge ``size``) or ``cylinder`` (diameter and height ``size``).
+    """
+
+    name: str
+    position: tuple[float, float, float]
+    size: float = 1.0
+    shape: str = "box"
+    material: str = "metal"
+    scattering_coefficient: float = 0.7
+
+
+@dataclass(frozen=True)
+class Ground:
+    """A horizontal ground plane at height ``z`` (m), ``extent`` m square around the origin."""
+
+    z: float = 0.0
+    extent: float = 400.0
+    material: str = "concrete"
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """A car with a roof antenna.
+
+    ``initial_state = [x, y, z, heading, speed, turn_rate, clock_bias]`` (m, m, m, rad, m/s,
+    rad/s, m). The antenna is at ``(x, y, z)``; the car body is a ``length x width x height``
+    box whose roof is ``roof_gap`` m below the antenna. ``motion`` is ``ct`` (coordinated turn
+    from the initial state) or ``waypoints`` (constant ``speed`` along the ``waypoints``
+    polyline, starting at the first waypoint).
+    """
+
+    name: str
+    initial_state: tuple[float, ...]
+    motion: str = "ct"
+    waypoints: tuple[tuple[float, float], ...] = ()
+    length: float = 4.5
+    width: float = 1.8
+    height: float = 1.5
+    roof_gap: float = 0.05
+    material: str = "metal"
+    scattering_coefficient: float = 0.5
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Sensor model (per Monte Carlo run): noise, detection, FOV, clutter, clock bias.
+
+    Std's in m (TOA) and rad (angles). ``clutter_toa_max`` bounds the uniform clutter TOA (m).
+    ``fov_range`` is the SP/VS visibility radius (m); BS and VAs are always in the FOV.
+    ``vehicle_noise_std`` is the process noise std of ``[x, y, z, heading, speed, turn, bias]``;
+    the true clock bias follows a random walk with its last entry. ``true_process_noise`` adds
+    the other entries to the true trajectory too (off: the traced trajectory is the truth).
+    """
+
+    toa_std: float = 0.1
+    angle_std: float = 0.01
+    p_detect: float = 0.95
+    fov_range: float = 50.0
+    clutter_mean: float = 1.0
+    clutter_toa_max: float = 200.0
+    vehicle_noise_std: tuple[float, ...] = (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2)
+    true_process_noise: bool = False
+    emit_other: bool = False
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """MM-PHD-SLAM parameters (TWC2020 values for ``paper``)."""
+
+    particles: int = 300
+    r_scale: float = 9.0
+    prior_std: tuple[float, ...] = (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3)
+    p_survival: float = 0.99
+    birth_weight: float = 1.5e-5
+    prune: float = 1e-4
+    merge: float = 49.0
+    max_gaussians: int = 50
+    max_trace: float = 50.0
+    threshold_va: float = 0.7
+    threshold_sp: float = 0.55
+    threshold_vs: float = 0.55
+    resample_ess: float = 0.5
+    vs_process_std: tuple[float, ...] = (1.0, 1.0, 0.1, 3.0, 3.0, 0.1, 0.05)
+    vs_birth_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09)
+    vs_birth_turn_std: float = math.pi / 2
+    vs_dither: tuple[float, ...] = (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18)
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Map fusion at the BS: schedule (steps) and thresholds."""
+
+    period: int = 2
+    start: tuple[int, ...] = (5, 6)
+    msm_position: float = 20.0
+    msm_velocity: float = 20.0
+    beta_inside_fov: float = 0.25
+    average_prune: float = 0.1
+    gamma_detect: float = 0.9
+
+
+@dataclass(frozen=True)
+class EvalParams:
+    """GOSPA parameters (p, c in m, alpha)."""
+
+    gospa_p: float = 2.0
+    gospa_c: float = 20.0
+    gospa_alpha: float = 2.0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A complete scenario. See module docstring for frames and units."""
+
+    name: str
+    bs: tuple[float, float, float]
+    vehicles: tuple[Vehicle, ...]
+    buildings: tuple[Building, ...] = ()
+    scatterers: tuple[Scatterer, ...] = ()
+    ground: Ground | None = None
+    dt: float = 0.5
+    steps: int = 40
+    frequency_hz: float = 28e9
+    seed: int = 0
+    xml_scene: str | None = None
+    sensor: SensorParams = field(default_factory=SensorParams)
+    filter: FilterParams = field(default_factory=FilterParams)
+    fusion: FusionParams = field(default_factory=FusionParams)
+    evaluation: EvalParams = field(default_factory=EvalParams)
+    source_file: str = "<memory>"
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def bs_array(self) -> np.ndarray:
+        """BS position ``(3,)``, m."""
+        return np.asarray(self.bs, dtype=float)
+
+    @property
+    def vehicle_names(self) -> list[str]:
+        return [v.name for v in self.vehicles]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON-serialisable dict that :func:`scenario_from_dict` reads back exactly."""
+        d = dataclasses.asdict(self)
+        d.pop("source_file", None)
+        return json.loads(json.dumps(d))
+
+    def geometry_hash(self) -> str:
+        """SHA-256 (hex, 16 chars) of everything that changes traced paths.
+
+        Covers BS, buildings, scatterers, ground, vehicles, dt, frequency, xml scene and the FOV
+        range; not ``steps`` (a longer trace extends a shorter one), nor sensor noise, filter,
+        fusion or evaluation parameters (they act after the cache).
+        """
+        d = self.to_dict()
+        keep = {k: d[k] for k in ("bs", "vehicles", "buildings", "scatterers", "ground", "dt",
+                                  "frequency_hz", "xml_scene")}
+        keep["fov_range"] = d["sensor"]["fov_range"]
+        blob = json.dumps(keep, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+# ====================================================================== loading
+_TOP_KEYS = {"name", "bs", "vehicles", "buildings", "scatterers", "ground", "dt", "steps",
+             "frequency_hz", "seed", "xml_scene", "sensor", "filter", "fusion", "evaluation"}
+
+
+def _err(src: str, key: str, expected: str) -> ConfigError:
+    return ConfigError(f"{src}: key '{key}': {expected}")
+
+
+def _check_keys(src: str, where: str, table: dict, allowed: set[str]) -> None:
+    for k in table:
+        if k not in allowed:
+            raise _err(src, f"{where}{k}", f"unknown key; expected one of {sorted(allowed)}")
+
+
+def _num(src: str, key: str, v: Any, *, lo: float | None = None, hi: float | None = None,
+         lo_open: bool = False, integer: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _err(src, key, f"expected a {'integer' if integer else 'number'}, got {v!r}")
+    if integer and not float(v).is_integer():
+        raise _err(src, key, f"expected an integer, got {v!r}")
+    if not math.isfinite(float(v)):
+        raise _err(src, key, f"expected a finite number, got {v!r}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise _err(src, key, f"expected a value {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise _err(src, key, f"expected a value <= {hi}, got {v!r}")
+    return int(v) if integer else float(v)
+
+
+def _vec(src: str, key: str, v: Any, n: int | tuple[int, ...]) -> tuple[float, ...]:
+    lens = (n,) if isinstance(n, int) else n
+    if not isinstance(v, list) or len(v) not in lens:
+        raise _err(src, key, f"expected a list of {' or '.join(map(str, lens))} numbers, got {v!r}")
+    return tuple(_num(src, f"{key}[{i}]", x) for i, x in enumerate(v))
+
+
+def _str(src: str, key: str, v: Any, choices: tuple[str, ...] | None = None) -> str:
+    if not isinstance(v, str):
+        raise _err(src, key, f"expected a string, got {v!r}")
+    if choices is not None and v not in choices:
+        raise _err(src, key, f"expected one of {list(choices)}, got {v!r}")
+    return v
+
+
+def _name(src: str, key: str, v: Any) -> str:
+    s = _str(src, key, v)
+    if not s or not all(c.isalnum() or c in "_-" for c in s):
+        raise _err(src, key, f"expected a non-empty name of letters, digits, '_' or '-', got {v!r}")
+    return s
+
+
+def _params(src: str, section: str, cls: type, table: Any) -> Any:
+    """Fill a flat parameter dataclass from a TOML table, checking names and types."""
+    if table is None:
+        return cls()
+    if not isinstance(table, dict):
+        raise _err(src, section, "expected a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    _check_keys(src, f"{section}.", table, set(fields))
+    defaults = cls()
+    kw: dict[str, Any] = {}
+    for k, v in table.items():
+        key = f"{section}.{k}"
+        dv = getattr(defaults, k)
+        if isinstance(dv, bool):
+            if not isinstance(v, bool):
+                raise _err(src, key, f"expected true or false, got {v!r}")
+            kw[k] = v
+        elif isinstance(dv, tuple):
+            if k == "start":
+                if not isinstance(v, list) or not v:
+                    raise _err(src, key, f"expected a non-empty list of integers, got {v!r}")
+                kw[k] = tuple(_num(src, f"{key}[{i}]", x, lo=0, integer=True) for i, x in enumerate(v))
+            else:
+                vals = _vec(src, key, v, len(dv))
+                if any(x < 0 for x in vals):
+                    raise _err(src, key, f"expected non-negative values, got {v!r}")
+                kw[k] = vals
+        elif isinstance(dv, int):
+            kw[k] = _num(src, key, v, lo=1, integer=True)
+        else:
+            kw[k] = _num(src, key, v, lo=0.0)
+    out = cls(**kw)
+    for k in ("p_detect", "p_survival", "resample_ess", "gamma_detect", "beta_inside_fov"):
+        if hasattr(out, k) and not 0.0 <= getattr(out, k) <= 1.0:
+            raise _err(src, f"{section}.{k}", f"expected a probability in [0, 1], got {getattr(out, k)!r}")
+    return out
+
+
+def _material(src: str, key: str, v: Any) -> str:
+    return _str(src, key, v, MATERIALS)
+
+
+def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
+                       seed_override: int | None = None) -> Scenario:
+    """Build and validate a :class:`Scenario` from a parsed TOML/JSON dict.
+
+    Scatterers may give ``z_range = [lo, hi]`` instead of a z coordinate (``position = [x, y]``):
+    z is then drawn once, uniformly, from ``numpy.random.default_rng(seed)`` in file order.
+    """
+    src = source
+    if not isinstance(data, dict):
+        raise ConfigError(f"{src}: expected a TOML table at top level")
+    _check_keys(src, "", data, _TOP_KEYS)
+    for req in ("name", "bs", "vehicles"):
+        if req not in data:
+            raise _err(src, req, "required key is missing")
+    name = _name(src, "name", data["name"])
+    seed = _num(src, "seed", data.get("seed", 0), lo=0, integer=True)
+    if seed_override is not None:
+        seed = seed_override
+    rng = np.random.default_rng(seed)
+    bs = _vec(src, "bs", data["bs"], 3)
+    dt = _num(src, "dt", data.get("dt", 0.5), lo=0.0, lo_open=True)
+    steps = _num(src, "steps", data.get("steps", 40), lo=1, integer=True)
+    freq = _num(src, "frequency_hz", data.get("frequency_hz", 28e9), lo=1e8, hi=3e11)
+    xml_scene = data.get("xml_scene")
+    if xml_scene is not None:
+        xml_scene = _str(src, "xml_scene", xml_scene)
+
+    buildings = []
+    raw_b = data.get("buildings", [])
+    if not isinstance(raw_b, list):
+        raise _err(src, "buildings", "expected an array of tables [[buildings]]")
+    for i, b in enumerate(raw_b):
+        w = f"buildings[{i}]."
+        if not isinstance(b, dict):
+            raise _err(src, f"buildings[{i}]", "expected a table")
+        _check_keys(src, w, b, {"name", "min", "max", "material"})
+        for req in ("name", "min", "max"):
+            if req not in b:
+                raise _err(src, w + req, "required key is missing")
+        lo = _vec(src, w + "min", b["min"], 3)
+        hi = _vec(src, w + "max", b["max"], 3)
+        if any(h <= l for l, h in zip(lo, hi)):
+            raise _err(src, w + "max", f"expected max > min on every axis, got min={list(lo)} max={list(hi)}")
+        buildings.append(Building(_name(src, w + "name", b["name"]), lo, hi,
+                                  _material(src, w + "material", b.get("material", "concrete"))))
+
+    scatterers = []
+    raw_s = data.get("scatterers", [])
+    if not isinstance(raw_s, list):
+        raise _err(src, "scatterers", "expected an array of tables [[scatterers]]")
+    for i, s in enumerate(raw_s):
+        w = f"scatterers[{i}]."
+        if not isinstance(s, dict):
+            raise _err(src, f"scatterers[{i}]", "expected a table")
+        _check_keys(src, w, s, {"name", "position", "z_range", "size", "shape", "material",
+                                "scattering_coefficient"})
+        for req in ("name", "position"):
+            if req not in s:
+                raise _err(src, w + req, "required key is missing")
+        if "z_range" in s:
+            xy = _vec(src, w + "position", s["position"], 2)
+            zr = _vec(src, w + "z_range", s["z_range"], 2)
+            if zr[1] < zr[0]:
+                raise _err(src, w + "z_range", f"expected [lo, hi] with lo <= hi, got {list(zr)}")
+            pos = (xy[0], xy[1], float(rng.uniform(zr[0], zr[1])))
+        else:
+            pos = _vec(src, w + "position", s["position"], 3)
+        scatterers.append(Scatterer(
+            _name(src, w + "name", s["name"]), pos,
+            _num(src, w + "size", s.get("size", 1.0), lo=0.0, lo_open=True, hi=10.0),
+            _str(src, w + "shape", s.get("shape", "box"), ("box", "cylinder")),
+            _material(src, w + "material", s.get("material", "metal")),
+            _num(src, w + "scattering_coefficient", s.get("scattering_coefficient", 0.7), lo=0.0,
+                 lo_open=True, hi=1.0)))
+
+    ground = None
+    if "ground" in data:
+        g = data["ground"]
+        if not isinstance(g, dict):
+            raise _err(src, "ground", "expected a table")
+        _check_keys(src, "ground.", g, {"z", "extent", "material"})
+        ground = Ground(_num(src, "ground.z", g.get("z", 0.0)),
+                        _num(src, "ground.extent", g.get("extent", 400.0), lo=1.0),
+                        _material(src, "ground.material", g.get("material", "concrete")))
+
+    vehicles = []
+    raw_v = data["vehicles"]
+    if not isinstance(raw_v, list):
+        raise _err(src, "vehicles", "expected an array of tables [[vehicles]]")
+    if not raw_v:
+        raise _err(src, "vehicles", "expected at least one [[vehicles]] entry; a scene needs a receiver")
+    vkeys = {f.name for f in dataclasses.fields(Vehicle)}
+    for i, v in enumerate(raw_v):
+        w = f"vehicles[{i}]."
+        if not isinstance(v, dict):
+            raise _err(src, f"vehicles[{i}]", "expected a table")
+        _check_keys(src, w, v, vkeys)
+        for req in ("name", "initial_state"):
+            if req not in v:
+                raise _err(src, w + req, "required key is missing")
+        st = _vec(src, w + "initial_state", v["initial_state"], 7)
+        if st[4] < 0:
+            raise _err(src, w + "initial_state[4]", f"expected speed >= 0, got {st[4]}")
+        motion = _str(src, w + "motion", v.get("motion", "ct"), ("ct", "waypoints"))
+        wps: tuple[tuple[float, float], ...] = ()
+        if motion == "waypoints":
+            raw_w = v.get("waypoints")
+            if not isinstance(raw_w, list) or len(raw_w) < 2:
+                raise _err(src, w + "waypoints", "expected at least two [x, y] points for motion = 'waypoints'")
+            wps = tuple(_vec(src, f"{w}waypoints[{j}]", p, 2) for j, p in enumerate(raw_w))  # type: ignore[misc]
+            if st[4] <= 0:
+                raise _err(src, w + "initial_state[4]", "expected speed > 0 for motion = 'waypoints'")
+            if abs(st[0] - wps[0][0]) > 1e-6 or abs(st[1] - wps[0][1]) > 1e-6:
+                raise _err(src, w + "initial_state", f"expected x, y equal to the first waypoint "
+                           f"{list(wps[0])} for motion = 'waypoints', got {list(st[:2])}")
+        elif "waypoints" in v:
+            raise _err(src, w + "waypoints", "only allowed with motion = 'waypoints'")
+        veh = Vehicle(
+            _name(src, w + "name", v["name"]), st, motion, wps,
+            _num(src, w + "length", v.get("length", 4.5), lo=0.5, hi=20.0),
+            _num(src, w + "width", v.get("width", 1.8), lo=0.5, hi=5.0),
+            _num(src, w + "height", v.get("height", 1.5), lo=0.5, hi=5.0),
+            _num(src, w + "roof_gap", v.get("roof_gap", 0.05), lo=0.01, hi=1.0),
+            _material(src, w + "material", v.get("material", "metal")),
+            _num(src, w + "scattering_coefficient", v.get("scattering_coefficient", 0.5), lo=0.0, hi=1.0))
+        start = wps[0] if wps else st[:2]
+        for b in buildings:
+            if b.min[0] < start[0] < b.max[0] and b.min[1] < start[1] < b.max[1] and b.min[2] < st[2] < b.max[2] + 1e-9:
+                raise _err(src, w + "initial_state", f"vehicle '{veh.name}' starts inside building "
+                           f"'{b.name}'; move it outside [{list(b.min)}, {list(b.max)}]")
+        vehicles.append(veh)
+
+    names = [o.name for o in (*buildings, *scatterers, *vehicles)]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise _err(src, "name", f"object names must be unique; duplicated: {dup}")
+
+    sensor = _params(src, "sensor", SensorParams, data.get("sensor"))
+    filt = _params(src, "filter", FilterParams, data.get("filter"))
+    fusion = _params(src, "fusion", FusionParams, data.get("fusion"))
+    if len(fusion.start) not in (1, len(vehicles)):
+        raise _err(src, "fusion.start", f"expected 1 or {len(vehicles)} start steps (one per vehicle), "
+                   f"got {len(fusion.start)}")
+    ev = _params(src, "evaluation", EvalParams, data.get("evaluation"))
+    return Scenario(name=name, bs=bs, vehicles=tuple(vehicles), buildings=tuple(buildings),
+                    scatterers=tuple(scatterers), ground=ground, dt=dt, steps=steps,
+                    frequency_hz=freq, seed=seed, xml_scene=xml_scene, sensor=sensor, filter=filt,
+                    fusion=fusion, evaluation=ev, source_file=src)
+
+
+def dict_from_resolved(d: dict[str, Any]) -> dict[str, Any]:
+    """Turn :meth:`Scenario.to_dict` output back into loader input (no random draws left)."""
+    d = json.loads(json.dumps(d))
+    if d.get("ground") is None:
+        d.pop("ground", None)
+    if d.get("xml_scene") is None:
+        d.pop("xml_scene", None)
+    for v in d["vehicles"]:
+        if v.get("motion") != "waypoints":
+            v.pop("waypoints", None)
+    return d
+
+
+def scenario_from_resolved(d: dict[str, Any], source: str = "<manifest>") -> Scenario:
+    """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache)."""
+    return scenario_from_dict(dict_from_resolved(d), source)
+
+
+def load_scenario(path: str | Path, seed_override: int | None = None) -> Scenario:
+    """Load and validate a scenario TOML file."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: scenario file not found; give a preset name ({', '.join(list_presets())}) "
+                          "or an existing .toml file")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML ({e}); fix the syntax") from None
+    return scenario_from_dict(data, str(p), seed_override)
+
+
+def list_presets() -> list[str]:
+    """Names of the scenario presets shipped with the package."""
+    root = resources.files("mmslam.scenes") / "presets"
+    return sorted(f.name[:-5] for f in root.iterdir() if f.name.endswith(".toml"))
+
+
+def preset_path(name: str) -> Path:
+    root = resources.files("mmslam.scenes") / "presets"
+    return Path(str(root / f"{name}.toml"))
+
+
+def load_preset(name: str) -> Scenario:
+    """Load a shipped preset by name (``paper``, ``street``, ...)."""
+    if name not in list_presets():
+        raise ConfigError(f"unknown scenario '{name}'; expected a preset ({', '.join(list_presets())}) "
+                          "or a path to a .toml file")
+    s = load_scenario(preset_path(name))
+    return dataclasses.replace(s, source_file=f"preset:{name}")
+
+
+def resolve_scenario(spec: str | Path | Scenario) -> Scenario:
+    """A preset name, a TOML path or a Scenario -> Scenario."""
+    if isinstance(spec, Scenario):
+        return spec
+    s = str(spec)
+    if s.endswith(".toml") or Path(s).is_file():
+        return load_scenario(s)
+    return load_preset(s)

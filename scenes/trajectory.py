@@ -1,0 +1,89 @@
+"""Ground-truth vehicle trajectories (DESIGN.md section 3).
+
+``ct`` vehicles follow the polar coordinated turn exactly (noise-free by default).
+``waypoints`` vehicles move at constant speed along a polyline; per step the heading, speed and
+turn rate are set so that the CT model maps the position at step k exactly onto the position at
+step k+1 (a circular arc whose chord is the true displacement), so the filter's known inputs
+(speed, turn rate) are consistent with the truth. Heading may jump by half the chord-direction
+change at polyline corners; on straight legs the motion is exact.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmslam.scenes.scenario import Scenario, Vehicle
+from mmslam.slam.dynamics import vehicle_ct, wrap_angle
+
+
+def _ct_trajectory(v: Vehicle, steps: int, dt: float, rng: np.random.Generator | None,
+                   noise_std: np.ndarray | None) -> np.ndarray:
+    s = np.empty((steps, 7))
+    s[0] = v.initial_state
+    for k in range(1, steps):
+        s[k] = vehicle_ct(s[k - 1], dt)
+        if rng is not None and noise_std is not None:
+            s[k] += rng.standard_normal(7) * noise_std
+    return s
+
+
+def _polyline_positions(wps: np.ndarray, speed: float, times: np.ndarray) -> np.ndarray:
+    seg = np.diff(wps, axis=0)
+    seg_len = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    dist = np.minimum(speed * times, cum[-1])  # stop at the last waypoint
+    i = np.clip(np.searchsorted(cum, dist, side="right") - 1, 0, len(seg) - 1)
+    frac = np.where(seg_len[i] > 0, (dist - cum[i]) / np.where(seg_len[i] > 0, seg_len[i], 1.0), 0.0)
+    return wps[i] + frac[:, None] * seg[i]
+
+
+def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
+    wps = np.asarray(v.waypoints, dtype=float)
+    t = np.arange(steps + 1) * dt
+    xy = _polyline_positions(wps, v.initial_state[4], t)
+    d = np.diff(xy, axis=0)  # (steps, 2) chord of each step
+    chord = np.linalg.norm(d, axis=1)
+    moving = chord > 1e-9
+    direc = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), np.nan)
+    # carry the last known direction over stopped steps (and the initial heading before motion)
+    last = v.initial_state[3]
+    for k in range(steps):
+        if np.isnan(direc[k]):
+            direc[k] = last
+        last = direc[k]
+    turn = np.zeros(steps)
+    turn[1:] = wrap_angle(np.diff(direc)) / dt
+    heading = direc - turn * dt / 2.0
+    half = turn * dt / 2.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        speed = np.where(np.abs(half) > 1e-12, chord * half / np.sin(half) / dt, chord / dt)
+    s = np.zeros((steps, 7))
+    s[:, 0:2] = xy[:-1]
+    s[:, 2] = v.initial_state[2]
+    s[:, 3] = heading
+    s[:, 4] = speed
+    s[:, 5] = turn
+    s[:, 6] = v.initial_state[6]
+    return s
+
+
+def vehicle_trajectories(scn: Scenario, steps: int | None = None,
+                         rng: np.random.Generator | None = None) -> np.ndarray:
+    """True vehicle states per step, shape ``(steps, n_vehicles, 7)``, global frame.
+
+    Columns ``[x, y, z, heading, speed, turn_rate, clock_bias]`` (m, m, m, rad, m/s, rad/s, m);
+    the clock bias column holds the initial bias (the sensor model draws its random walk).
+    With ``rng`` given, ``ct`` vehicles get process noise ``scn.sensor.vehicle_noise_std``
+    (except on the clock bias); without it the trajectory is noise-free and deterministic.
+    """
+    n = scn.steps if steps is None else steps
+    noise = None
+    if rng is not None:
+        noise = np.asarray(scn.sensor.vehicle_noise_std, float).copy()
+        noise[6] = 0.0
+    out = np.empty((n, len(scn.vehicles), 7))
+    for i, v in enumerate(scn.vehicles):
+        if v.motion == "ct":
+            out[:, i] = _ct_trajectory(v, n, scn.dt, rng, noise)
+        else:
+            out[:, i] = _waypoint_trajectory(v, n, scn.dt)
+    return out

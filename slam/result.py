@@ -1,0 +1,101 @@
+"""The result of one filter run (one variant, one seed) and its on-disk form.
+
+:class:`Result` holds three column tables (dicts of equal-length NumPy arrays) and ``meta``:
+
+``vehicles`` (one row per step and vehicle)
+    step int32, vehicle int16, x, y, z [m], heading [rad], bias [m] (posterior-mean estimates),
+    true_x, true_y, true_z [m], true_heading [rad], true_bias [m], pos_err [m] (3-D),
+    heading_err [rad] (wrapped), bias_err [m]
+
+``metrics`` (one row per step, map and landmark type)
+    step int32, map string (a vehicle name for its local averaged map, or "fused" for the BS
+    map), type string ("VA" | "SP" | "VS"), gospa, loc, missed, false [m] (GOSPA p=2, c, alpha=2,
+    with its localisation / missed / false parts; gospa**2 = loc + missed + false),
+    n_est int32, n_true int32
+
+``landmarks`` (estimated landmarks, one row per step, map, type and estimate)
+    step int32, map string, type string, x, y, z [m], weight float64
+
+``meta``: variant, particles, seed, scenario, cache (config hash), source, steps, vehicle_names,
+wall_time_s, mmslam version.
+
+Saved as ``vehicles.parquet``, ``metrics.parquet``, ``landmarks.parquet`` and ``meta.json`` in
+one directory, written to a temporary sibling and renamed (atomic).
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mmslam.errors import CacheError
+
+TABLES = ("vehicles", "metrics", "landmarks")
+
+
+@dataclass
+class Result:
+    vehicles: dict[str, np.ndarray]
+    metrics: dict[str, np.ndarray]
+    landmarks: dict[str, np.ndarray]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def save(self, out_dir: str | Path) -> Path:
+        """Write atomically to ``out_dir`` (replaced if it exists). Returns the path."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        out = Path(out_dir)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        try:
+            for name in TABLES:
+                cols = getattr(self, name)
+                table = pa.table({k: pa.array(np.asarray(v).tolist() if np.asarray(v).dtype == object
+                                              else np.asarray(v)) for k, v in cols.items()})
+                pq.write_table(table, tmp / f"{name}.parquet")
+            (tmp / "meta.json").write_text(json.dumps(self.meta, indent=2, default=_jsonable))
+            if out.exists():
+                old = out.with_name(f".{out.name}.old")
+                shutil.rmtree(old, ignore_errors=True)
+                os.replace(out, old)
+                os.replace(tmp, out)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return out
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Result":
+        """Read a result directory written by :meth:`save`."""
+        import pyarrow.parquet as pq
+
+        p = Path(path)
+        if not (p / "meta.json").is_file():
+            raise CacheError(f"{p}: not a result directory (no meta.json); run 'mmslam slam' to create it")
+        try:
+            meta = json.loads((p / "meta.json").read_text())
+            tabs = {}
+            for name in TABLES:
+                t = pq.read_table(p / f"{name}.parquet")
+                tabs[name] = {c: t.column(c).to_numpy(zero_copy_only=False) for c in t.column_names}
+        except Exception as e:  # corrupt / truncated files
+            raise CacheError(f"{p}: unreadable result ({type(e).__name__}: {e}); delete it and re-run") from None
+        return cls(tabs["vehicles"], tabs["metrics"], tabs["landmarks"], meta)
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
