@@ -103,3 +103,20 @@ def import_mitsuba():
     if mi.variant() != variant:
         mi.set_variant(variant)
     return mi
+
+
+def _main(argv: list[str]) -> int:
+    """``python -m mmslam.backend --check``: exit 0 and print the libLLVM path if usable, else 1."""
+    if argv[:1] == ["--check"]:
+        lib = os.environ.get("DRJIT_LIBLLVM_PATH") or find_libllvm()
+        if lib and os.path.isfile(lib):
+            print(lib)
+            return 0
+        print(f"no libLLVM >= {MIN_LLVM} found; {INSTALL_HINT}", file=sys.stderr)
+        return 1
+    print(select_variant())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main(sys.argv[1:]))

@@ -445,6 +445,9 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
     sensor = _params(src, "sensor", SensorParams, data.get("sensor"))
     filt = _params(src, "filter", FilterParams, data.get("filter"))
     fusion = _params(src, "fusion", FusionParams, data.get("fusion"))
+    if not (isinstance(data.get("fusion"), dict) and "start" in data["fusion"]):
+        # default schedule: vehicle i first talks to the BS at step 5 + i (paper: 5 and 6)
+        fusion = dataclasses.replace(fusion, start=tuple(5 + i for i in range(len(vehicles))))
     if len(fusion.start) not in (1, len(vehicles)):
         raise _err(src, "fusion.start", f"expected 1 or {len(vehicles)} start steps (one per vehicle), "
                    f"got {len(fusion.start)}")

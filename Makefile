@@ -1,0 +1,46 @@
+# mmslam: every target does its own set-up (venv, editable install, LLVM for Sionna RT on the CPU).
+#   make demo   set up, then run the main job on the built-in default scenario
+#   make test   set up, then run the whole test suite (slow end-to-end tests included)
+#   make bench  set up, then run the benchmarks
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.mmslam-installed
+DEMO_ARGS ?=
+
+.PHONY: setup llvm demo test test-fast bench clean
+
+setup: $(STAMP) llvm
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+# Sionna RT (Dr.Jit) on the CPU needs libLLVM >= 16; Debian 12's default libLLVM-15 aborts.
+llvm: $(STAMP)
+	@if $(PY) -m mmslam.backend --check >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing libllvm19 (Sionna RT on the CPU needs LLVM >= 16)"; \
+	  (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || \
+	   (apt-get update -qq && apt-get install -y -qq libllvm19)) && $(PY) -m mmslam.backend --check >/dev/null; \
+	else \
+	  echo "error: no libLLVM >= 16 found; run: sudo apt-get install -y libllvm19 (or set DRJIT_LIBLLVM_PATH)" >&2; exit 1; \
+	fi
+
+demo: setup
+	$(VENV)/bin/mmslam demo $(DEMO_ARGS)
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+bench: setup
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) out .pytest_cache build *.egg-info

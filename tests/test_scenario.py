@@ -1,0 +1,151 @@
+"""Scenario model: the paper preset's geometry and every validation error's message."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmslam.errors import ConfigError
+from mmslam.scenes.landmarks import reflecting_faces, sp_truth, va_truth
+from mmslam.scenes.scenario import (list_presets, load_preset, load_scenario, preset_path,
+                                    scenario_from_resolved)
+from mmslam.scenes.trajectory import vehicle_trajectories
+
+
+def test_presets_listed():
+    assert {"paper", "street"} <= set(list_presets())
+
+
+def test_paper_vehicle1_circle_radius_and_return():
+    scn = load_preset("paper")
+    s = vehicle_trajectories(scn, steps=41)
+    v1 = scn.vehicles[0].initial_state
+    # turn radius zeta / xi and the circle centred on the BS footprint
+    assert v1[4] / v1[5] == pytest.approx(70.73, abs=2e-3)
+    r = np.hypot(s[:, 0, 0], s[:, 0, 1])
+    assert np.allclose(r, 70.73, atol=4e-3)  # CT centre is 1.5 mm off the BS (22.22 m/s is rounded)
+    # 40 steps of 0.5 s at pi/10 rad/s is exactly one lap
+    assert np.linalg.norm(s[40, 0, :3] - s[0, 0, :3]) < 1e-6
+    assert s[40, 0, 3] == pytest.approx(s[0, 0, 3] + 2 * math.pi)
+
+
+def test_paper_vehicles_parallel_same_bearing():
+    scn = load_preset("paper")
+    s = vehicle_trajectories(scn)
+    bearing = np.arctan2(s[:, :, 1], s[:, :, 0])
+    diff = np.angle(np.exp(1j * (bearing[:, 0] - bearing[:, 1])))
+    assert np.max(np.abs(diff)) < 1e-4
+    assert np.allclose(s[:, 0, 3], s[:, 1, 3])  # same heading at every step
+    # and 10 m apart radially
+    assert np.allclose(np.hypot(s[:, 0, 0], s[:, 0, 1]) - np.hypot(s[:, 1, 0], s[:, 1, 1]), 10.0, atol=1.5e-2)
+
+
+def test_paper_vas_and_sps():
+    scn = load_preset("paper")
+    vas = va_truth(scn)
+    got = sorted(tuple(np.round(v, 9)) for v in vas.values())
+    assert got == sorted([(200.0, 0.0, 40.0), (-200.0, 0.0, 40.0), (0.0, 200.0, 40.0), (0.0, -200.0, 40.0)])
+    sps = sp_truth(scn)
+    assert len(sps) == 4
+    for p in sps.values():
+        assert abs(abs(p[0]) - 55) < 1e-12 and abs(abs(p[1]) - 55) < 1e-12 and 0 <= p[2] <= 40
+    # drawn once from the scenario seed: the same every load, different z per SP
+    assert [p.position for p in load_preset("paper").scatterers] == [p.position for p in scn.scatterers]
+    assert len({p[2] for p in sps.values()}) == 4
+
+
+def test_paper_reflecting_faces_are_inner_walls():
+    faces = {f.id for f in reflecting_faces(load_preset("paper"))}
+    assert faces == {"wall_east:-x", "wall_west:+x", "wall_north:-y", "wall_south:+y"}
+
+
+def test_street_preset_shape():
+    scn = load_preset("street")
+    assert scn.ground is not None and len(scn.buildings) >= 6 and len(scn.scatterers) == 4
+    assert len({b.max[2] for b in scn.buildings}) == len(scn.buildings)  # all heights differ
+    assert len(scn.vehicles) == 3 and scn.steps == 60
+    s = vehicle_trajectories(scn)
+    # car_a drives east, car_b north at first: not parallel
+    assert abs(math.cos(s[0, 0, 3] - s[0, 1, 3])) < 1e-9
+    # waypoint motion: the CT model with the stored inputs reproduces the next position exactly
+    from mmslam.slam.dynamics import vehicle_ct
+
+    pred = vehicle_ct(s[:-1], scn.dt)
+    assert np.allclose(pred[..., :2], s[1:, :, :2], atol=1e-9)
+
+
+def test_resolved_roundtrip():
+    scn = load_preset("paper")
+    back = scenario_from_resolved(scn.to_dict())
+    assert back.to_dict() == scn.to_dict()
+    assert back.geometry_hash() == scn.geometry_hash()
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return p
+
+
+BASE = """
+name = "t"
+bs = [0, 0, 10]
+[[buildings]]
+name = "b1"
+min = [10, -5, 0]
+max = [20, 5, 10]
+[[vehicles]]
+name = "v1"
+initial_state = [0, 0, 1.6, 0, 5, 0, 0]
+"""
+
+
+@pytest.mark.parametrize("mutate, key, expect", [
+    (lambda t: "colour = 3\n" + t, "colour", "unknown key"),
+    (lambda t: t.replace('bs = [0, 0, 10]', 'bs = [0, 10]'), "bs", "list of 3 numbers"),
+    (lambda t: t.replace('bs = [0, 0, 10]', 'bs = "origin"'), "bs", "list of 3 numbers"),
+    (lambda t: "dt = -1\n" + t, "dt", "> 0.0"),
+    (lambda t: "steps = 2.5\n" + t, "steps", "integer"),
+    (lambda t: t.replace("initial_state = [0, 0, 1.6, 0, 5, 0, 0]", "initial_state = [15, 0, 1.6, 0, 5, 0, 0]"),
+     "vehicles[0].initial_state", "starts inside building 'b1'"),
+    (lambda t: t + '\n[sensor]\np_detect = 1.5\n', "sensor.p_detect", "probability in [0, 1]"),
+    (lambda t: t + '\n[sensor]\nnoise = 1\n', "sensor.noise", "unknown key"),
+    (lambda t: t.replace('max = [20, 5, 10]', 'max = [20, 5, 10]\nmaterial = "medium_dry_ground"'),
+     "buildings[0].material", "expected one of"),
+    (lambda t: t.replace('max = [20, 5, 10]', 'max = [5, 5, 10]'), "buildings[0].max", "max > min"),
+    (lambda t: t.replace('name = "v1"', 'name = "b1"'), "name", "unique"),
+    (lambda t: t.replace('name = "v1"', 'name = "v1"\nmotion = "teleport"'), "vehicles[0].motion", "expected one of"),
+    (lambda t: t.replace('name = "v1"', 'name = "v1"\nmotion = "waypoints"\nwaypoints = [[0, 0]]'),
+     "vehicles[0].waypoints", "at least two"),
+])
+def test_validation_errors(tmp_path, mutate, key, expect):
+    p = _write(tmp_path, mutate(BASE))
+    with pytest.raises(ConfigError) as e:
+        load_scenario(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}: key '{key}'") and expect in msg and "\n" not in msg
+
+
+def test_no_vehicles_rejected(tmp_path):
+    text = "vehicles = []\n" + BASE.split("[[vehicles]]")[0]
+    with pytest.raises(ConfigError, match=r"key 'vehicles': expected at least one"):
+        load_scenario(_write(tmp_path, text))
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="scenario file not found"):
+        load_scenario(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_scenario(_write(tmp_path, "name = [\n"))
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match=r"unknown scenario 'nope'; expected a preset \(paper, street"):
+        load_preset("nope")
+
+
+def test_valid_base_loads(tmp_path):
+    scn = load_scenario(_write(tmp_path, BASE))
+    assert scn.vehicles[0].name == "v1" and scn.steps == 40 and preset_path("paper").is_file()
