@@ -1,0 +1,316 @@
+"""The resumable Parquet path cache (DESIGN.md section 7, tables in :mod:`mmslam.raytrace.schema`).
+
+A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
+
+- ``manifest.json``: ``schema_version``, ``scenario`` (name), ``geometry_hash``, ``config_hash``
+  (SHA-256 of geometry hash, source name and source settings), ``source``, ``versions``
+  (library versions), ``settings`` (solver settings), ``resolved_scenario``
+  (:meth:`Scenario.to_dict`), ``vehicle_names``, ``dt`` [s], ``steps_completed``,
+  ``steps_requested``, ``chunks`` (list of ``{index, step_start, step_stop, files: {vehicles,
+  paths}, sha256: {vehicles, paths}, rows: {vehicles, paths}}``, ``step_stop`` exclusive);
+- per chunk of consecutive steps, ``vehicles-NNNNN.parquet`` and ``paths-NNNNN.parquet``.
+
+Every file is written to a temporary name in the same directory and renamed into place
+(:func:`atomic_write_bytes`); the manifest is rewritten (atomically) after each chunk, so a
+killed trace loses at most the chunk in progress. :func:`load_cache` validates everything it
+reads and raises a one-line :class:`~mmslam.errors.CacheError` (CLI exit code 2) otherwise.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from mmslam.errors import CacheError, MmslamError
+from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS, sort_paths
+from mmslam.scenes.scenario import Scenario, scenario_from_resolved
+from mmslam.slam.measurement import BS, OTHER
+
+MANIFEST = "manifest.json"
+FORCE_HINT = "re-run `mmslam trace ... --force` to rebuild it"
+
+# Numeric path columns that may hold NaN, and for which rows (None: any row).
+_NAN_ALLOWED: dict[str, int | None] = {
+    "bounce_x": BS, "bounce_y": BS, "bounce_z": BS,
+    "lm_x": OTHER, "lm_y": OTHER, "lm_z": OTHER,
+    "power_db": None,
+}
+
+
+# ====================================================================== hashing / naming
+def config_hash(scn: Scenario, source_name: str, settings: dict) -> str:
+    """SHA-256 (hex, 16 chars) of the geometry hash, the source name and its solver settings."""
+    blob = json.dumps({"geometry": scn.geometry_hash(), "source": source_name, "settings": settings},
+                      sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def cache_dir_for(root: str | Path, scn: Scenario, source: Any) -> Path:
+    """The cache directory of ``scn`` traced by ``source``: ``root/<name>-<source>-<confighash>``.
+
+    Any change to the traced geometry, the source or its settings changes the directory, so a
+    different configuration never reads a stale cache.
+    """
+    return Path(root) / f"{scn.name}-{source.name}-{config_hash(scn, source.name, source.settings())}"
+
+
+def sha256_file(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ====================================================================== atomic writes
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same directory + fsync + ``os.replace``."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def write_manifest(cache_dir: Path, manifest: dict) -> None:
+    """Atomically (re)write ``manifest.json``."""
+    atomic_write_bytes(Path(cache_dir) / MANIFEST,
+                       (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())
+
+
+def remove_temp_files(cache_dir: Path) -> None:
+    """Delete leftovers of interrupted atomic writes (``.*.tmp``) in ``cache_dir``."""
+    for p in Path(cache_dir).glob(".*.tmp"):
+        p.unlink(missing_ok=True)
+
+
+def _to_table(cols: dict[str, np.ndarray], schema: dict[str, str]) -> pa.Table:
+    arrays = {}
+    for k, t in schema.items():
+        v = np.asarray(cols[k])
+        arrays[k] = pa.array(v.astype(str).tolist() if t == "string" else v.astype(t),
+                             type=pa.string() if t == "string" else pa.from_numpy_dtype(np.dtype(t)))
+    return pa.table(arrays)
+
+
+def table_bytes(cols: dict[str, np.ndarray], schema: dict[str, str]) -> bytes:
+    """Serialise columns to Parquet bytes (deterministic: same columns, same bytes)."""
+    buf = io.BytesIO()
+    pq.write_table(_to_table(cols, schema), buf, compression="zstd", write_statistics=False)
+    return buf.getvalue()
+
+
+def vehicle_columns(states: np.ndarray, step_start: int, dt: float) -> dict[str, np.ndarray]:
+    """``vehicles`` table columns from states ``(n_steps, n_veh, 7)`` starting at ``step_start``."""
+    ns, nv = states.shape[:2]
+    step = np.repeat(np.arange(step_start, step_start + ns), nv)
+    return {
+        "step": step.astype(np.int32), "t": step * dt, "vehicle": np.tile(np.arange(nv), ns).astype(np.int16),
+        "x": states[:, :, 0].ravel(), "y": states[:, :, 1].ravel(), "z": states[:, :, 2].ravel(),
+        "heading": states[:, :, 3].ravel(), "speed": states[:, :, 4].ravel(),
+        "turn_rate": states[:, :, 5].ravel(),
+    }
+
+
+def write_chunk(cache_dir: Path, index: int, step_start: int, vehicles: dict[str, np.ndarray],
+                paths: dict[str, np.ndarray]) -> dict:
+    """Write one chunk's two Parquet files atomically; return its manifest entry."""
+    entry: dict[str, Any] = {"index": index, "step_start": step_start,
+                             "step_stop": step_start + len(np.unique(vehicles["step"])),
+                             "files": {}, "sha256": {}, "rows": {}}
+    for table, cols, schema in (("vehicles", vehicles, VEHICLE_COLUMNS), ("paths", paths, PATH_COLUMNS)):
+        name = f"{table}-{index:05d}.parquet"
+        data = table_bytes(cols, schema)
+        atomic_write_bytes(Path(cache_dir) / name, data)
+        entry["files"][table] = name
+        entry["sha256"][table] = hashlib.sha256(data).hexdigest()
+        entry["rows"][table] = len(cols["step"])
+    return entry
+
+
+# ====================================================================== reading
+@dataclass
+class PathCache:
+    """A loaded, validated path cache.
+
+    Attributes:
+        path: the cache directory.
+        manifest: the parsed ``manifest.json``.
+        scenario: the resolved scenario the cache was traced from.
+        vehicle_names: receiver / vehicle names (index = ``vehicle`` / ``rx`` column).
+        states: ``(steps, n_veh, 7)`` true states ``[x, y, z, heading, speed, turn_rate, bias]``
+            (m, m, m, rad, m/s, rad/s, m); ``bias`` is each vehicle's initial clock bias.
+        vehicles: ``vehicles`` table columns (all chunks, sorted by step, vehicle).
+        paths: ``paths`` table columns (all chunks, sorted by step, rx, type, landmark_id;
+            ``landmark_id`` an object array of ``str``).
+        steps: number of completed steps.
+    """
+
+    path: Path
+    manifest: dict
+    scenario: Scenario
+    vehicle_names: list[str]
+    states: np.ndarray
+    vehicles: dict[str, np.ndarray]
+    paths: dict[str, np.ndarray]
+    steps: int
+
+
+def find_cache_dir(path: str | Path) -> Path:
+    """``path`` itself if it holds a manifest, else its only sub-directory that does."""
+    p = Path(path)
+    if not p.is_dir():
+        raise CacheError(f"{p}: no such cache directory; run `mmslam trace <scenario> --out {p}` first")
+    if (p / MANIFEST).is_file():
+        return p
+    cands = sorted(d for d in p.iterdir() if (d / MANIFEST).is_file())
+    if len(cands) == 1:
+        return cands[0]
+    if not cands:
+        raise CacheError(f"{p}: no {MANIFEST} here or in its sub-directories; run `mmslam trace` to create a cache")
+    raise CacheError(f"{p}: holds {len(cands)} caches ({', '.join(c.name for c in cands)}); give one of them")
+
+
+def read_manifest(cache_dir: Path) -> dict:
+    """Parse and check ``manifest.json`` (schema version, required keys)."""
+    mp = Path(cache_dir) / MANIFEST
+    if not mp.is_file():
+        raise CacheError(f"{mp}: missing; {FORCE_HINT}")
+    try:
+        m = json.loads(mp.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CacheError(f"{mp}: not valid JSON ({e.__class__.__name__}); {FORCE_HINT}") from None
+    if not isinstance(m, dict):
+        raise CacheError(f"{mp}: not a JSON object; {FORCE_HINT}")
+    if m.get("schema_version") != SCHEMA_VERSION:
+        raise CacheError(f"{mp}: schema_version {m.get('schema_version')!r}, this mmslam reads "
+                         f"{SCHEMA_VERSION}; {FORCE_HINT}")
+    need = ("scenario", "config_hash", "source", "resolved_scenario", "vehicle_names", "dt",
+            "steps_completed", "chunks")
+    miss = [k for k in need if k not in m]
+    if miss:
+        raise CacheError(f"{mp}: missing keys {miss}; {FORCE_HINT}")
+    return m
+
+
+def _read_table(path: Path, expect_sha: str, schema: dict[str, str]) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise CacheError(f"{path}: chunk file missing; {FORCE_HINT}")
+    data = path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != expect_sha:
+        raise CacheError(f"{path}: sha256 mismatch (truncated or modified); {FORCE_HINT}")
+    try:
+        tbl = pq.read_table(pa.BufferReader(data))
+    except Exception as e:  # pyarrow raises several types for corrupt files
+        raise CacheError(f"{path}: unreadable Parquet ({e.__class__.__name__}); {FORCE_HINT}") from None
+    if tbl.column_names != list(schema):
+        raise CacheError(f"{path}: columns {tbl.column_names} differ from the schema {list(schema)}; {FORCE_HINT}")
+    out = {}
+    for k, t in schema.items():
+        col = tbl.column(k)
+        if t == "string":
+            out[k] = np.array(col.to_pylist(), dtype=object)
+        else:
+            arr = col.to_numpy()
+            if arr.dtype != np.dtype(t):
+                raise CacheError(f"{path}: column '{k}' has dtype {arr.dtype}, expected {t}; {FORCE_HINT}")
+            out[k] = arr
+    return out
+
+
+def _concat(parts: list[dict[str, np.ndarray]], schema: dict[str, str]) -> dict[str, np.ndarray]:
+    if not parts:
+        return {k: np.empty(0, dtype=object if t == "string" else np.dtype(t)) for k, t in schema.items()}
+    return {k: np.concatenate([p[k] for p in parts]) for k in schema}
+
+
+def check_paths_finite(paths: dict[str, np.ndarray], where: str) -> None:
+    """Raise :class:`CacheError` naming the column and step of the first forbidden NaN / inf."""
+    typ = paths["type"]
+    for k, t in PATH_COLUMNS.items():
+        if t in ("string", "bool") or not np.issubdtype(np.dtype(t), np.floating):
+            continue
+        v = paths[k]
+        if k not in _NAN_ALLOWED:
+            bad = ~np.isfinite(v)
+        elif _NAN_ALLOWED[k] is None:
+            bad = np.isinf(v)
+        else:
+            bad = np.isinf(v) | (np.isnan(v) & (typ != _NAN_ALLOWED[k]))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise CacheError(f"{where}: column '{k}' is {v[i]} at step {int(paths['step'][i])} "
+                             f"(rx {int(paths['rx'][i])}, landmark '{paths['landmark_id'][i]}'); {FORCE_HINT}")
+
+
+def load_cache(path: str | Path) -> PathCache:
+    """Load and validate a path cache.
+
+    Args:
+        path: a cache directory, or a root directory holding exactly one cache.
+
+    Raises:
+        CacheError: missing directory / manifest, other schema version, missing, truncated or
+            modified chunk files, columns off-schema, non-contiguous steps, or a NaN in a path
+            column where none is allowed (``bounce_*`` only for LOS, ``lm_*`` only for OTHER,
+            ``power_db`` anywhere).
+    """
+    d = find_cache_dir(path)
+    m = read_manifest(d)
+    mp = d / MANIFEST
+    try:
+        scn = scenario_from_resolved(m["resolved_scenario"], source=str(mp))
+    except MmslamError as e:
+        raise CacheError(f"{mp}: resolved_scenario invalid ({e}); {FORCE_HINT}") from None
+    names = list(m["vehicle_names"])
+    n_done = int(m["steps_completed"])
+    vparts, pparts = [], []
+    expect = 0
+    for c in m["chunks"]:
+        if c["step_start"] != expect:
+            raise CacheError(f"{mp}: chunk {c['index']} starts at step {c['step_start']}, expected "
+                             f"{expect}; {FORCE_HINT}")
+        expect = c["step_stop"]
+        vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], VEHICLE_COLUMNS))
+        pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], PATH_COLUMNS))
+    if expect != n_done:
+        raise CacheError(f"{mp}: chunks cover {expect} steps but steps_completed is {n_done}; {FORCE_HINT}")
+    veh = _concat(vparts, VEHICLE_COLUMNS)
+    paths = sort_paths(_concat(pparts, PATH_COLUMNS))
+    nv = len(names)
+    if len(veh["step"]) != n_done * nv:
+        raise CacheError(f"{mp}: vehicles table has {len(veh['step'])} rows, expected {n_done} steps x "
+                         f"{nv} vehicles; {FORCE_HINT}")
+    order = np.lexsort((veh["vehicle"], veh["step"]))
+    veh = {k: v[order] for k, v in veh.items()}
+    for k in ("t", "x", "y", "z", "heading", "speed", "turn_rate"):
+        bad = ~np.isfinite(veh[k])
+        if bad.any():
+            raise CacheError(f"{d}: vehicles column '{k}' is not finite at step "
+                             f"{int(veh['step'][np.argmax(bad)])}; {FORCE_HINT}")
+    check_paths_finite(paths, str(d))
+    states = np.empty((n_done, nv, 7))
+    for j, k in enumerate(("x", "y", "z", "heading", "speed", "turn_rate")):
+        states[:, :, j] = veh[k].reshape(n_done, nv)
+    states[:, :, 6] = np.array([v.initial_state[6] for v in scn.vehicles])[None, :nv]
+    return PathCache(path=d, manifest=m, scenario=scn, vehicle_names=names, states=states,
+                     vehicles=veh, paths=paths, steps=n_done)
