@@ -243,8 +243,11 @@ def _concat(parts: list[dict[str, np.ndarray]], schema: dict[str, str]) -> dict[
     return {k: np.concatenate([p[k] for p in parts]) for k in schema}
 
 
-def check_paths_finite(paths: dict[str, np.ndarray], where: str) -> None:
-    """Raise :class:`CacheError` naming the column and step of the first forbidden NaN / inf."""
+def check_paths_finite(paths: dict[str, np.ndarray], where: str, hint: str = FORCE_HINT) -> None:
+    """Raise :class:`CacheError` naming the column and step of the first forbidden NaN / inf.
+
+    Allowed NaN: ``bounce_*`` on LOS rows, ``lm_*`` on OTHER rows, ``power_db`` anywhere.
+    """
     typ = paths["type"]
     for k, t in PATH_COLUMNS.items():
         if t in ("string", "bool") or not np.issubdtype(np.dtype(t), np.floating):
@@ -259,7 +262,7 @@ def check_paths_finite(paths: dict[str, np.ndarray], where: str) -> None:
         if bad.any():
             i = int(np.argmax(bad))
             raise CacheError(f"{where}: column '{k}' is {v[i]} at step {int(paths['step'][i])} "
-                             f"(rx {int(paths['rx'][i])}, landmark '{paths['landmark_id'][i]}'); {FORCE_HINT}")
+                             f"(rx {int(paths['rx'][i])}, landmark '{paths['landmark_id'][i]}'); {hint}")
 
 
 def load_cache(path: str | Path) -> PathCache:

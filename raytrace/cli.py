@@ -1,8 +1,118 @@
-"""CLI commands of this subpackage (registered on the top-level ``mmslam`` app)."""
+"""CLI commands of this subpackage: ``mmslam trace`` and ``mmslam paths``."""
 from __future__ import annotations
 
+import io
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
 import typer
+
+from mmslam.errors import ConfigError
+
+_TYPE_LABELS = ("BS", "VA", "SP", "VS", "OTHER")
+_TYPE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:gray")
+
+
+def path_counts(paths: dict[str, np.ndarray], steps: int, n_rx: int) -> np.ndarray:
+    """Number of path rows per (step, rx, type) as an ``(steps, n_rx, 5)`` int array."""
+    key = (paths["step"].astype(np.int64) * n_rx + paths["rx"]) * len(_TYPE_LABELS) + paths["type"]
+    return np.bincount(key, minlength=steps * n_rx * len(_TYPE_LABELS)).reshape(steps, n_rx, -1)
+
+
+def plot_toa(cache, out: Path) -> None:
+    """PNG of TOA (m, no clock bias) vs step, one colour per landmark type, one marker per receiver."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mmslam.raytrace.cache import atomic_write_bytes
+
+    p = cache.paths
+    markers = "o^sDvP*X"
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for r, name in enumerate(cache.vehicle_names):
+        for t, (lab, col) in enumerate(zip(_TYPE_LABELS, _TYPE_COLORS)):
+            sel = (p["rx"] == r) & (p["type"] == t)
+            if sel.any():
+                ax.scatter(p["step"][sel], p["toa_m"][sel], s=14, c=col, marker=markers[r % len(markers)],
+                           label=f"{lab} (rx {name})", alpha=0.8)
+    ax.set_xlabel(f"step (dt = {cache.scenario.dt:g} s)")
+    ax.set_ylabel("TOA (m, delay x c, no clock bias)")
+    ax.set_title(f"{cache.manifest['scenario']} - {cache.manifest['source']} paths")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    atomic_write_bytes(out, buf.getvalue())
 
 
 def register(app: typer.Typer) -> None:
     """Add this subpackage's commands to ``app``."""
+
+    @app.command("trace")
+    def trace_cmd(
+        scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
+        source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
+        out: Path = typer.Option(Path("cache"), "--out", help="Cache root directory."),
+        steps: Optional[int] = typer.Option(None, "--steps", help="Steps to trace (default: the scenario's)."),
+        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path (1..3)."),
+        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source."),
+        seed: int = typer.Option(0, "--seed", help="Sionna ray-sampling seed."),
+        chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk."),
+        force: bool = typer.Option(False, "--force", help="Delete an existing cache and trace anew."),
+        quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+    ) -> None:
+        """Trace a scenario into a resumable path cache; prints the cache directory."""
+        from mmslam.raytrace.trace import SOURCES, make_source, trace_scenario
+        from mmslam.scenes.scenario import resolve_scenario
+
+        if source not in SOURCES:
+            raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
+        if not 1 <= max_depth <= 3:
+            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+        if steps is not None and steps < 1:
+            raise ConfigError(f"--steps {steps}: expected a positive number of steps")
+        if samples < 1:
+            raise ConfigError(f"--samples {samples}: expected a positive number of rays per source")
+        if chunk_steps < 1:
+            raise ConfigError(f"--chunk-steps {chunk_steps}: expected >= 1")
+        scn = resolve_scenario(scenario)
+        src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+        d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
+                           progress=not quiet)
+        typer.echo(str(d))
+
+    @app.command("paths")
+    def paths_cmd(
+        cache_dir: Path = typer.Argument(..., help="A cache directory (or a root holding one cache)."),
+        plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG of TOA vs step to this file."),
+    ) -> None:
+        """Print the number of paths per type, step and receiver of a path cache."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from mmslam.raytrace.cache import load_cache
+
+        c = load_cache(cache_dir)
+        names = c.vehicle_names
+        counts = path_counts(c.paths, c.steps, len(names))
+        tbl = Table(title=f"{c.path.name}: {c.steps} steps, {len(c.paths['rx'])} paths "
+                          f"(source {c.manifest['source']})")
+        tbl.add_column("step", justify="right")
+        tbl.add_column("rx")
+        for lab in _TYPE_LABELS:
+            tbl.add_column(lab, justify="right")
+        tbl.add_column("total", justify="right")
+        for k in range(c.steps):
+            for r, name in enumerate(names):
+                row = counts[k, r]
+                tbl.add_row(str(k), name, *map(str, row.tolist()), str(int(row.sum())))
+        tot = counts.sum(axis=(0, 1))
+        tbl.add_row("all", "all", *map(str, tot.tolist()), str(int(tot.sum())), style="bold")
+        Console(width=100).print(tbl)
+        if plot is not None:
+            plot_toa(c, plot)
+            typer.echo(f"wrote {plot}")

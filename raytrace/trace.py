@@ -21,7 +21,7 @@ import numpy as np
 from mmslam.errors import BackendError, CacheError, ConfigError
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
-    FORCE_HINT, MANIFEST, cache_dir_for, config_hash, read_manifest, remove_temp_files, sha256_file,
+    FORCE_HINT, MANIFEST, cache_dir_for, check_paths_finite, config_hash, read_manifest, remove_temp_files, sha256_file,
     vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, sort_paths
@@ -189,6 +189,8 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
                 if bar is not None:
                     bar.update(task, advance=1, rate=n_rows / max(time.perf_counter() - t0, 1e-9))
             paths = sort_paths({c: np.concatenate([p[c] for p in parts]) for c in PATH_COLUMNS})
+            check_paths_finite(paths, f"source '{source.name}' output",
+                               hint="nothing was written for these steps; fix the source")
             entry = write_chunk(cache_dir, len(m["chunks"]), start,
                                 vehicle_columns(states[start:stop], start, scn.dt), paths)
             m["chunks"].append(entry)
