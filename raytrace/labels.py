@@ -1,0 +1,274 @@
+"""Label traced paths as BS / VA / SP / VS / OTHER and reduce diffuse clusters (pure NumPy).
+
+Input: per-path arrays from a ray tracer (one row per traced path and receiver), with the
+objects hit per bounce given as indices into a list of object names. Output: the ``paths``
+table columns of :mod:`mmslam.raytrace.schema` (global frame, metres, radians).
+
+Rules (``D`` = number of non-empty bounce slots of a path):
+
+- any bounce on the receiving vehicle's own car body: path dropped;
+- ``D == 0``: BS (line of sight), landmark the BS position, id ``bs``;
+- ``D == 1`` specular on a scenario building: VA, face chosen as the box face whose plane is
+  nearest the bounce point, id ``<building>:<face>`` (e.g. ``wall_east:-x``), landmark the BS
+  mirrored in that face plane;
+- ``D == 1`` specular on the ground: VA ``ground:+z``;
+- ``D == 1`` specular on a static object of an external XML scene (no box known): VA by the
+  plane through the bounce point with the hit triangle's normal; id
+  ``<object>:plane(<nx>,<ny>,<nz>,<d>)`` with the normal (oriented towards the BS) rounded to
+  1e-3 and the plane offset ``d = n . p`` rounded to 1 cm; landmark the BS mirrored in the plane;
+- ``D == 1`` (specular or diffuse) on a scatterer: SP, id its name, landmark its reference point;
+- ``D == 1`` (specular or diffuse) on another vehicle: VS, id that vehicle's name, landmark
+  that vehicle's antenna position at this step;
+- anything else (``D >= 2``, a diffuse bounce on a static object, refraction, an unknown
+  object): OTHER, id the ``+``-joined object names, landmark NaN.
+
+Paths sharing (receiver, type, landmark id) are one resolvable landmark: the row keeps the
+strongest path (highest power; ties: shortest TOA) with ``n_paths`` and ``delay_spread_m``
+(max - min TOA) of the cluster.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, sort_paths
+from mmslam.scenes.landmarks import FACES
+from mmslam.scenes.scenario import Scenario
+from mmslam.slam.measurement import BS, OTHER, SP, VA, VS, mirror_point
+
+# interaction codes (Sionna's InteractionType bit values)
+NONE, SPECULAR, DIFFUSE = 0, 1, 2
+
+# object kinds
+K_BUILDING, K_GROUND, K_SCATTERER, K_VEHICLE, K_STATIC = 0, 1, 2, 3, 4
+
+_FACE_TAGS = list(FACES)  # "+x", "-x", "+y", "-y", "+z", "-z"
+_NORMAL_Q = 1e3  # normal quantization (1e-3)
+_OFFSET_Q = 1e2  # plane offset quantization (1 cm)
+
+
+@dataclass(frozen=True)
+class SceneIndex:
+    """What the labeller needs to know about every object name the tracer can report.
+
+    ``names[i]`` is object ``i``; ``kind[i]`` its kind (building, ground, scatterer, vehicle,
+    other static); ``box_lo/box_hi`` the building boxes (NaN otherwise); ``ref[i]`` the
+    scatterer reference point (NaN otherwise); ``vehicle[i]`` the vehicle index (-1 otherwise).
+    ``ground_z`` the ground height (NaN if none). ``bs`` the BS position (m).
+    """
+
+    names: tuple[str, ...]
+    kind: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    ref: np.ndarray
+    vehicle: np.ndarray
+    ground_z: float
+    bs: np.ndarray
+
+    @classmethod
+    def from_scenario(cls, scn: Scenario, extra_static: list[str] | tuple[str, ...] = ()) -> "SceneIndex":
+        """Index of a scenario's objects plus ``extra_static`` names (objects of an external XML)."""
+        names: list[str] = []
+        kind, lo, hi, ref, veh = [], [], [], [], []
+        nan3 = np.full(3, np.nan)
+        for b in scn.buildings:
+            names.append(b.name); kind.append(K_BUILDING)
+            lo.append(np.asarray(b.min, float)); hi.append(np.asarray(b.max, float)); ref.append(nan3); veh.append(-1)
+        for s in scn.scatterers:
+            names.append(s.name); kind.append(K_SCATTERER)
+            lo.append(nan3); hi.append(nan3); ref.append(np.asarray(s.position, float)); veh.append(-1)
+        if scn.ground is not None:
+            names.append("ground"); kind.append(K_GROUND)
+            lo.append(nan3); hi.append(nan3); ref.append(nan3); veh.append(-1)
+        for i, v in enumerate(scn.vehicles):
+            names.append(v.name); kind.append(K_VEHICLE)
+            lo.append(nan3); hi.append(nan3); ref.append(nan3); veh.append(i)
+        for n in extra_static:
+            if n in names:
+                continue
+            names.append(n); kind.append(K_STATIC)
+            lo.append(nan3); hi.append(nan3); ref.append(nan3); veh.append(-1)
+        return cls(tuple(names), np.asarray(kind, np.int64), np.asarray(lo).reshape(-1, 3),
+                   np.asarray(hi).reshape(-1, 3), np.asarray(ref).reshape(-1, 3), np.asarray(veh, np.int64),
+                   float(scn.ground.z) if scn.ground is not None else float("nan"), scn.bs_array)
+
+    def index_of(self, names: list[str] | np.ndarray) -> np.ndarray:
+        """Object names -> indices (-1 for names not in the index)."""
+        lut = {n: i for i, n in enumerate(self.names)}
+        return np.asarray([lut.get(str(n), -1) for n in names], np.int64)
+
+
+def _box_face(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Index into ``FACES`` of the box face whose plane is nearest each point ``p (n, 3)``."""
+    d = np.stack([np.abs(p[:, 0] - hi[:, 0]), np.abs(p[:, 0] - lo[:, 0]),
+                  np.abs(p[:, 1] - hi[:, 1]), np.abs(p[:, 1] - lo[:, 1]),
+                  np.abs(p[:, 2] - hi[:, 2]), np.abs(p[:, 2] - lo[:, 2])], axis=1)
+    return np.argmin(d, axis=1)
+
+
+def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np.ndarray,
+                verts: np.ndarray, toa_m: np.ndarray, angles: np.ndarray, power_db: np.ndarray,
+                antennas: np.ndarray, normals: np.ndarray | None = None, step: int = 0) -> dict[str, np.ndarray]:
+    """Label traced paths and keep the strongest path per (receiver, landmark).
+
+    Args:
+        index: the scene's objects (:class:`SceneIndex`).
+        rx: ``(n,)`` receiving vehicle index per path.
+        obj: ``(n, D)`` object index per bounce slot (-1: no interaction in that slot).
+        itype: ``(n, D)`` interaction type per slot (0 none, 1 specular, 2 diffuse, other: OTHER).
+        verts: ``(n, D, 3)`` interaction points, m, global frame.
+        toa_m: ``(n,)`` path length (delay x c), m.
+        angles: ``(n, 4)`` ``[aod_az, aod_el, aoa_az, aoa_el]``, rad, global frame.
+        power_db: ``(n,)`` path power, dB (NaN if unknown).
+        antennas: ``(n_vehicles, 3)`` antenna positions at this step, m.
+        normals: ``(n, D, 3)`` unit normals of the hit triangles (needed only for static
+            objects of kind "other static"; NaN elsewhere is fine).
+        step: time index written to the ``step`` column.
+
+    Returns:
+        The ``paths`` columns (all of :data:`~mmslam.raytrace.schema.PATH_COLUMNS`), sorted.
+    """
+    rx = np.asarray(rx, np.int64)
+    n = rx.shape[0]
+    if n == 0:
+        out = empty_paths()
+        return out
+    obj = np.asarray(obj, np.int64).reshape(n, -1)
+    itype = np.asarray(itype, np.int64).reshape(n, -1)
+    verts = np.asarray(verts, float).reshape(n, -1, 3)
+    toa = np.asarray(toa_m, float).reshape(n)
+    angles = np.asarray(angles, float).reshape(n, 4)
+    power = np.asarray(power_db, float).reshape(n)
+    antennas = np.asarray(antennas, float).reshape(-1, 3)
+    if not (np.all(np.isfinite(toa)) and np.all(np.isfinite(angles))):
+        bad = int(np.sum(~np.isfinite(toa)) + np.sum(~np.all(np.isfinite(angles), axis=1)))
+        raise ValueError(f"label_paths: {bad} traced paths have non-finite TOA or angles")
+    D = obj.shape[1]
+    used = itype != NONE
+    obj = np.where(used, obj, -1)
+    depth = used.sum(axis=1)
+    nobj = len(index.names)
+    safe = np.clip(obj, 0, max(nobj - 1, 0))
+    okind = np.where(obj >= 0, index.kind[safe] if nobj else -1, -1)
+    oveh = np.where(obj >= 0, index.vehicle[safe] if nobj else -1, -1)
+
+    # drop paths touching the receiving vehicle's own body
+    own = np.any((okind == K_VEHICLE) & (oveh == rx[:, None]), axis=1)
+    keep = ~own
+    rx, obj, itype, verts, toa, angles, power = rx[keep], obj[keep], itype[keep], verts[keep], toa[keep], angles[keep], power[keep]
+    depth, okind, oveh = depth[keep], okind[keep], oveh[keep]
+    nrm = None if normals is None else np.asarray(normals, float).reshape(n, D, 3)[keep]
+    n = rx.shape[0]
+    if n == 0:
+        return empty_paths()
+
+    o0, k0, t0, p0 = obj[:, 0], okind[:, 0], itype[:, 0], verts[:, 0]
+    single = depth == 1
+    first_known = o0 >= 0
+    typ = np.full(n, OTHER, np.int64)
+    typ[depth == 0] = BS
+    is_va_box = single & first_known & (t0 == SPECULAR) & (k0 == K_BUILDING)
+    is_va_ground = single & first_known & (t0 == SPECULAR) & (k0 == K_GROUND)
+    is_va_plane = single & first_known & (t0 == SPECULAR) & (k0 == K_STATIC)
+    if nrm is not None:
+        is_va_plane &= np.all(np.isfinite(nrm[:, 0]), axis=1)
+    else:
+        is_va_plane[:] = False
+    is_sp = single & first_known & ((t0 == SPECULAR) | (t0 == DIFFUSE)) & (k0 == K_SCATTERER)
+    is_vs = single & first_known & ((t0 == SPECULAR) | (t0 == DIFFUSE)) & (k0 == K_VEHICLE)
+    typ[is_va_box | is_va_ground | is_va_plane] = VA
+    typ[is_sp] = SP
+    typ[is_vs] = VS
+
+    # ---------------------------------------------------------------- landmarks and sub-keys
+    bs = index.bs
+    lm = np.full((n, 3), np.nan)
+    sub = np.zeros((n, 4), np.int64)  # face index / quantized plane
+    lm[typ == BS] = bs
+    if np.any(is_va_box):
+        s0 = np.clip(o0[is_va_box], 0, None)
+        lo, hi = index.box_lo[s0], index.box_hi[s0]
+        f = _box_face(p0[is_va_box], lo, hi)
+        ax = np.array([FACES[t][0] for t in _FACE_TAGS])[f]
+        sg = np.array([FACES[t][1] for t in _FACE_TAGS])[f]
+        nv = np.zeros((f.size, 3))
+        nv[np.arange(f.size), ax] = sg
+        pp = np.where(sg[:, None] > 0, hi, lo)
+        lm[is_va_box] = mirror_point(bs, pp, nv)
+        sub[is_va_box, 0] = f
+    if np.any(is_va_ground):
+        lm[is_va_ground] = mirror_point(bs, np.array([0.0, 0.0, index.ground_z]), np.array([0.0, 0.0, 1.0]))
+        sub[is_va_ground, 0] = _FACE_TAGS.index("+z")
+    if np.any(is_va_plane):
+        nn = nrm[is_va_plane, 0]
+        nn = nn / np.linalg.norm(nn, axis=1, keepdims=True)
+        pp = p0[is_va_plane]
+        sgn = np.where(np.sum((bs - pp) * nn, axis=1) < 0, -1.0, 1.0)
+        nn = nn * sgn[:, None]
+        dd = np.sum(nn * pp, axis=1)
+        lm[is_va_plane] = mirror_point(bs, pp, nn)
+        sub[is_va_plane, 0:3] = np.round(nn * _NORMAL_Q).astype(np.int64)
+        sub[is_va_plane, 3] = np.round(dd * _OFFSET_Q).astype(np.int64)
+    if np.any(is_sp):
+        lm[is_sp] = index.ref[o0[is_sp]]
+    if np.any(is_vs):
+        lm[is_vs] = antennas[oveh[is_vs, 0]]
+
+    # ---------------------------------------------------------------- cluster key
+    objkey = np.where((typ == OTHER)[:, None], obj, np.where(np.arange(D)[None, :] == 0, obj, -1))
+    objkey = np.where((typ == BS)[:, None], -1, objkey)
+    # OTHER paths from an unknown object keep the interaction types apart too
+    key = np.concatenate([rx[:, None], typ[:, None], objkey, sub,
+                          np.where((typ == OTHER)[:, None], itype, 0)], axis=1)
+    uk, first_idx, g = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    g = g.reshape(-1)
+    ng = uk.shape[0]
+    pw = np.where(np.isfinite(power), power, -np.inf)
+    order = np.lexsort((toa, -pw, g))
+    gs = g[order]
+    starts = np.flatnonzero(np.r_[True, gs[1:] != gs[:-1]])
+    rep = order[starts]  # strongest path per group (groups in ascending g)
+    n_paths = np.bincount(g, minlength=ng)
+    ts = toa[order]
+    spread = np.maximum.reduceat(ts, starts) - np.minimum.reduceat(ts, starts)
+
+    # ---------------------------------------------------------------- landmark ids
+    ids = np.empty(ng, dtype=object)
+    for j, r in enumerate(rep):
+        t = typ[r]
+        if t == BS:
+            ids[j] = "bs"
+        elif t == VA:
+            name = index.names[o0[r]]
+            if is_va_plane[r]:
+                q = sub[r]
+                ids[j] = (f"{name}:plane({q[0] / _NORMAL_Q:+.3f},{q[1] / _NORMAL_Q:+.3f},"
+                          f"{q[2] / _NORMAL_Q:+.3f},{q[3] / _OFFSET_Q:+.2f})")
+            else:
+                ids[j] = f"{name}:{_FACE_TAGS[sub[r, 0]]}"
+        elif t in (SP, VS):
+            ids[j] = index.names[o0[r]]
+        else:
+            ids[j] = "+".join(index.names[o] if o >= 0 else "?" for o in obj[r] if o >= 0) or "?"
+
+    bounce = np.where((depth[rep] > 0)[:, None], verts[rep, 0], np.nan)
+    cols = {
+        "step": np.full(ng, step, np.int32),
+        "rx": rx[rep].astype(np.int16),
+        "type": typ[rep].astype(np.int8),
+        "landmark_id": ids,
+        "bounces": depth[rep].astype(np.int8),
+        "diffuse": np.any(itype[rep] == DIFFUSE, axis=1),
+        "toa_m": toa[rep],
+        "aod_az": angles[rep, 0], "aod_el": angles[rep, 1],
+        "aoa_az": angles[rep, 2], "aoa_el": angles[rep, 3],
+        "power_db": power[rep],
+        "bounce_x": bounce[:, 0], "bounce_y": bounce[:, 1], "bounce_z": bounce[:, 2],
+        "lm_x": lm[rep, 0], "lm_y": lm[rep, 1], "lm_z": lm[rep, 2],
+        "n_paths": n_paths.astype(np.int32),
+        "delay_spread_m": spread.astype(float),
+    }
+    assert set(cols) == set(PATH_COLUMNS)
+    return sort_paths(cols)
