@@ -17,6 +17,7 @@ reads and raises a one-line :class:`~mmslam.errors.CacheError` (CLI exit code 2)
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -155,7 +156,9 @@ class PathCache:
     Attributes:
         path: the cache directory.
         manifest: the parsed ``manifest.json``.
-        scenario: the resolved scenario the cache was traced from.
+        scenario: the resolved scenario the cache was traced from, with ``steps`` set to the
+            number of steps the cache holds (the trace may be shorter or longer than the
+            scenario file's ``steps``).
         vehicle_names: receiver / vehicle names (index = ``vehicle`` / ``rx`` column).
         states: ``(steps, n_veh, 7)`` true states ``[x, y, z, heading, speed, turn_rate, bias]``
             (m, m, m, rad, m/s, rad/s, m); ``bias`` is each vehicle's initial clock bias.
@@ -295,6 +298,11 @@ def load_cache(path: str | Path) -> PathCache:
         expect = c["step_stop"]
         vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], VEHICLE_COLUMNS))
         pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], PATH_COLUMNS))
+        for table, part in (("vehicles", vparts[-1]), ("paths", pparts[-1])):
+            st = part["step"]
+            if st.size and (st.min() < c["step_start"] or st.max() >= c["step_stop"]):
+                raise CacheError(f"{d / c['files'][table]}: steps {int(st.min())}..{int(st.max())} outside the "
+                                 f"chunk's range {c['step_start']}..{c['step_stop'] - 1}; {FORCE_HINT}")
     if expect != n_done:
         raise CacheError(f"{mp}: chunks cover {expect} steps but steps_completed is {n_done}; {FORCE_HINT}")
     veh = _concat(vparts, VEHICLE_COLUMNS)
@@ -315,5 +323,6 @@ def load_cache(path: str | Path) -> PathCache:
     for j, k in enumerate(("x", "y", "z", "heading", "speed", "turn_rate")):
         states[:, :, j] = veh[k].reshape(n_done, nv)
     states[:, :, 6] = np.array([v.initial_state[6] for v in scn.vehicles])[None, :nv]
+    scn = dataclasses.replace(scn, steps=max(n_done, 1))
     return PathCache(path=d, manifest=m, scenario=scn, vehicle_names=names, states=states,
                      vehicles=veh, paths=paths, steps=n_done)

@@ -74,7 +74,7 @@ def test_roundtrip_matches_source(tmp_path, paper):
     assert [(ch["step_start"], ch["step_stop"]) for ch in m["chunks"]] == [(0, 3), (3, 6), (6, 7)]
     assert m["geometry_hash"] == paper.geometry_hash()
     assert c.vehicle_names == ["veh1", "veh2"]
-    assert c.scenario.to_dict() == paper.to_dict()
+    assert c.scenario.to_dict() == {**paper.to_dict(), "steps": 7}
     np.testing.assert_array_equal(c.states, vehicle_trajectories(paper, 7))
     assert c.states.shape == (7, 2, 7)
     assert set(c.vehicles) == set(VEHICLE_COLUMNS) and len(c.vehicles["step"]) == 14
