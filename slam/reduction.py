@@ -1,0 +1,237 @@
+"""Gaussian-mixture reduction: pruning, greedy Mahalanobis merging and capping.
+
+Two public functions, both pure and batched over leading axes:
+
+- :func:`prune_merge`: Vo & Ma 2006 ("The Gaussian mixture probability hypothesis density
+  filter"), Table II, applied to every mixture of a batch at once (e.g. the ``P`` particle maps).
+- :func:`average_map`: the particle-weighted average map PHD of the paper's eq. (prevMFave),
+  ``sum_p w_p D^p``, reduced in the spirit of Mullane et al. 2011, Table IV.
+
+Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, covariances
+``(*B, Q, d, d)``, mask ``(*B, Q)``. Means are in the global frame (m; VS also m/s and rad/s).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .gm import GM, compact, empty, symmetrize
+
+
+def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.ndarray:
+    """Mask of components that survive pruning: live, ``w >= prune``, position trace small."""
+    keep = g.mask & (g.w >= prune)
+    if max_trace is not None:
+        tr = np.trace(g.P[..., :pos_dims, :pos_dims], axis1=-2, axis2=-1)
+        keep &= tr <= max_trace
+    return keep
+
+
+def _inv_spd(P: np.ndarray) -> np.ndarray:
+    """Inverse of symmetric positive-definite matrices ``(..., d, d)`` (closed form for d <= 3).
+
+    Raises FloatingPointError if a matrix is singular or not positive definite (non-positive
+    determinant or non-finite inverse).
+    """
+    d = P.shape[-1]
+    if d == 3:
+        a, b, c = P[..., 0, 0], P[..., 0, 1], P[..., 0, 2]
+        e, f, i = P[..., 1, 1], P[..., 1, 2], P[..., 2, 2]
+        A0, A1, A2 = e * i - f * f, c * f - b * i, b * f - c * e
+        det = a * A0 + b * A1 + c * A2
+        if not np.all(det > 0):
+            raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
+        inv = np.empty_like(P)
+        inv[..., 0, 0] = A0
+        inv[..., 0, 1] = inv[..., 1, 0] = A1
+        inv[..., 0, 2] = inv[..., 2, 0] = A2
+        inv[..., 1, 1] = a * i - c * c
+        inv[..., 1, 2] = inv[..., 2, 1] = b * c - a * f
+        inv[..., 2, 2] = a * e - b * b
+        inv /= det[..., None, None]
+    else:
+        try:
+            inv = symmetrize(np.linalg.inv(P))
+        except np.linalg.LinAlgError:
+            raise FloatingPointError("singular covariance in Gaussian-mixture merging") from None
+    if not np.all(np.isfinite(inv)):
+        raise FloatingPointError("singular covariance in Gaussian-mixture merging")
+    return inv
+
+
+_PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances
+
+
+def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
+                merge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Greedy merging on a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``Q`` slots.
+
+    The loop runs over merge iterations (at most ``Q``), never over batch members: iteration
+    ``it`` picks every member's current highest-weight remaining component (the cluster head)
+    and labels its cluster ``it``. The squared distance of candidate ``i`` to head ``j`` is
+    expanded as ``m_j^T A_i m_j - 2 m_j^T A_i m_i + m_i^T A_i m_i`` (``A_i = P_i^{-1}``, means
+    centred per mixture first to limit cancellation); for small problems the full ``(N, Q, Q)``
+    matrix is formed once with batched matrix products. After labelling, all clusters' moments
+    are computed at once (one-hot matrix products), spreads taken relative to the cluster head.
+    """
+    n, q, d = m.shape
+    out_w = np.zeros((n, q))
+    out_m = np.zeros((n, q, d))
+    out_P = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
+    out_mask = np.zeros((n, q), bool)
+    if n == 0 or q == 0 or not keep.any():
+        return out_w, out_m, out_P, out_mask
+    cnt = keep.sum(-1, keepdims=True)
+    centre = np.where(keep[..., None], m, 0.0).sum(-2) / np.maximum(cnt, 1)  # (N, d)
+    mc = np.where(keep[..., None], m - centre[:, None, :], 0.0)
+    A = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
+    A[keep] = _inv_spd(P[keep])
+    Aflat = A.reshape(n, q, d * d)
+    b = np.einsum("nqij,nqj->nqi", A, mc)  # (N, Q, d)  A_i m_i
+    c = np.einsum("nqi,nqi->nq", b, mc)  # (N, Q)     m_i^T A_i m_i
+    pairwise = n * q * q <= _PAIRWISE_BUDGET
+    if pairwise:
+        outer_all = (mc[..., :, None] * mc[..., None, :]).reshape(n, q, d * d)
+        # D[n, i, j] = distance of candidate i to head j (P_i used)
+        D = Aflat @ np.swapaxes(outer_all, -1, -2) - 2.0 * (b @ np.swapaxes(mc, -1, -2)) + c[..., None]
+    remaining = keep.copy()
+    label = np.full((n, q), -1)
+    heads = np.zeros((n, q), int)
+    rows = np.arange(n)
+    n_it = 0
+    for it in range(q):
+        active = remaining.any(-1)  # (N,)
+        if not active.any():
+            break
+        j = np.argmax(np.where(remaining, w, -np.inf), axis=-1)  # (N,)
+        if pairwise:
+            dist = D[rows, :, j]
+        else:
+            mj = mc[rows, j]
+            outer = (mj[:, :, None] * mj[:, None, :]).reshape(n, 1, d * d)
+            dist = (Aflat * outer).sum(-1) - 2.0 * (b * mj[:, None, :]).sum(-1) + c
+        L = remaining & (dist <= merge)
+        L[rows, j] = remaining[rows, j]  # the head always joins its own cluster
+        label[L] = it
+        heads[:, it] = j
+        out_mask[:, it] = active
+        remaining &= ~L
+        n_it = it + 1
+    # ---- moments of all clusters at once
+    onehot = (label[:, None, :] == np.arange(n_it)[None, :, None]).astype(float)  # (N, K, Q)
+    wk = onehot * w[:, None, :]
+    W = wk.sum(-1)  # (N, K)
+    Wsafe = np.where(W > 0, W, 1.0)
+    head_of = np.take_along_axis(heads, np.maximum(label, 0), axis=-1)  # (N, Q)
+    diff = np.where((label >= 0)[..., None], mc - np.take_along_axis(mc, head_of[..., None], axis=-2), 0.0)
+    dbar = (wk @ diff) / Wsafe[..., None]  # (N, K, d) mean offset from the head
+    Pflat = np.where(keep[..., None, None], P, 0.0).reshape(n, q, d * d)
+    second = Pflat + (diff[..., :, None] * diff[..., None, :]).reshape(n, q, d * d)
+    S = (wk @ second).reshape(n, n_it, d, d) / Wsafe[..., None, None]
+    Pbar = S - dbar[..., :, None] * dbar[..., None, :]
+    mhead = np.take_along_axis(mc, heads[:, :n_it, None], axis=-2)  # (N, K, d)
+    act = out_mask[:, :n_it]
+    out_w[:, :n_it] = np.where(act, W, 0.0)
+    out_m[:, :n_it] = np.where(act[..., None], mhead + dbar + centre[:, None, :], 0.0)
+    out_P[:, :n_it] = np.where(act[..., None, None], symmetrize(Pbar), np.eye(d))
+    return out_w, out_m, out_P, out_mask
+
+
+def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
+                pos_dims: int = 3, *, fixed_capacity: bool = False) -> GM:
+    """Prune, merge and cap every mixture of a batch (Vo & Ma 2006, Table II).
+
+    Steps, for each mixture of the batch independently (vectorised over the batch):
+
+    1. drop components with ``w < prune``, and, if ``max_trace`` is given, components whose
+       position covariance trace ``trace(P[:pos_dims, :pos_dims]) > max_trace`` (m^2);
+    2. greedy merging: take the highest-weight remaining component ``j``; the cluster is every
+       remaining ``i`` with ``(m_i - m_j)^T P_i^{-1} (m_i - m_j) <= merge`` (squared Mahalanobis
+       distance over all ``d`` state dimensions, e.g. ``49 = 7^2``); replace the cluster by its
+       moment match ``w = sum w_i``, ``m = sum w_i m_i / w``,
+       ``P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w``; repeat until none remain;
+    3. keep the ``cap`` largest merged components.
+
+    Args:
+        g: batch of mixtures, batch shape ``B``, ``Q`` slots, dimension ``d``.
+        prune: weight threshold (components below it are dropped).
+        merge: squared Mahalanobis merging threshold (dimensionless).
+        cap: maximum number of components per mixture after reduction.
+        max_trace: position-covariance trace limit in m^2, or None for no limit.
+        pos_dims: number of leading state dimensions that are the position.
+        fixed_capacity: if True the result has exactly ``cap`` slots (padded); otherwise the
+            capacity is the largest live count in the batch (at most ``cap``).
+
+    Returns:
+        The reduced batch, batch shape ``B``, compacted (live components first, descending
+        weight), symmetrised covariances.
+
+    Raises:
+        FloatingPointError: a live component has a non-finite weight, mean or covariance, or a
+            surviving covariance is singular.
+    """
+    g.check("in prune_merge input")
+    B = g.batch_shape
+    q, d = g.capacity, g.dim
+    keep = _live(g, prune, max_trace, pos_dims)
+    n = int(np.prod(B, dtype=int))
+    w, m, P, mask = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d),
+                                keep.reshape(n, q), merge)
+    out = GM(w.reshape(B + (q,)), m.reshape(B + (q, d)), P.reshape(B + (q, d, d)), mask.reshape(B + (q,)))
+    if fixed_capacity:
+        out = compact(out, cap)
+    else:
+        out = compact(out, min(cap, int(out.count().max(initial=0))))
+    out.P = symmetrize(out.P)
+    out.check("after prune_merge")
+    return out
+
+
+def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,
+                max_trace: float | None = None, pos_dims: int = 3) -> GM:
+    """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (prevMFave)).
+
+    ``D_bar(x) = sum_p w_p D^p(x)``: the union of all particles' components with weights
+    ``w_p * eta^{p,q}``, then reduced in the order of Mullane et al. 2011 (Table IV):
+
+    1. *per-particle pruning*: components whose own weight ``eta^{p,q} < prune`` are dropped
+       (with the paper's 0.1 this keeps a weak, wide, false Gaussian out of the merge so it
+       cannot dilute a true one). Pruning the products ``w_p eta`` instead would drop every
+       component (``w_p ~ 1/P``), so the threshold acts on ``eta``, not on the product;
+    2. components with position trace above ``max_trace`` (m^2) are dropped;
+    3. greedy Mahalanobis merging with ``merge`` (as :func:`prune_merge`) of the weighted union;
+    4. merged components with weight ``< prune`` are dropped (a landmark carried by too small a
+       share of the particle weight), and the ``cap`` largest are kept.
+
+    Args:
+        g: particle maps, batch shape ``(P,)``, ``Q`` slots, dimension ``d``.
+        particle_weights: ``(P,)`` non-negative particle weights (normalised to sum 1 here).
+        prune, merge, cap, max_trace, pos_dims: as in :func:`prune_merge`.
+
+    Returns:
+        A single mixture (batch shape ``()``), compacted.
+    """
+    if g.w.ndim != 2:
+        raise ValueError(f"average_map expects a batch of shape (P,), got batch shape {g.batch_shape}")
+    pw = np.asarray(particle_weights, dtype=float)
+    if pw.shape != g.batch_shape:
+        raise ValueError(f"particle_weights shape {pw.shape} != batch shape {g.batch_shape}")
+    if not np.all(np.isfinite(pw)) or np.any(pw < 0) or pw.sum() <= 0:
+        raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
+    g.check("in average_map input")
+    pw = pw / pw.sum()
+    keep = _live(g, prune, max_trace, pos_dims) & (pw[:, None] > 0)
+    d = g.dim
+    sel = keep.reshape(-1)
+    if not sel.any():
+        return empty((), 0, d)
+    w = (g.w * pw[:, None]).reshape(-1)[sel]
+    m = g.m.reshape(-1, d)[sel]
+    P = g.P.reshape(-1, d, d)[sel]
+    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge)
+    omask &= ow >= prune
+    out = GM(ow[0], om[0], oP[0], omask[0])
+    out = compact(out, min(cap, int(out.count())))
+    out.w = np.where(out.mask, out.w, 0.0)
+    out.P = symmetrize(out.P)
+    out.check("after average_map")
+    return out

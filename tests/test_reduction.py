@@ -1,0 +1,173 @@
+"""Tests of slam/reduction.py: hand-computed merges, the exact merge criterion, batching."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.slam.gm import GM, empty, select
+from mmslam.slam.reduction import average_map, prune_merge
+
+
+def _gm(w, m, P=None):
+    w = np.asarray(w, float)
+    m = np.asarray(m, float)
+    d = m.shape[-1]
+    if P is None:
+        P = np.broadcast_to(np.eye(d), m.shape + (d,)).copy()
+    return GM(w, m, np.asarray(P, float), np.ones(w.shape, bool))
+
+
+def _live(g):
+    return g.w[g.mask], g.m[g.mask], g.P[g.mask]
+
+
+def test_merge_two_by_hand_and_keep_far_one():
+    g = _gm([0.6, 0.4, 0.3, 1e-5], [[0, 0], [1, 0], [10, 0], [0.2, 0]])
+    out = prune_merge(g, prune=1e-4, merge=4.0, cap=10)
+    w, m, P = _live(out)
+    assert w.shape == (2,)
+    np.testing.assert_allclose(w, [1.0, 0.3])
+    np.testing.assert_allclose(m[0], [0.4, 0.0])
+    # 0.6 (I + diag(0.4^2, 0)) + 0.4 (I + diag(0.6^2, 0)) = diag(1.24, 1)
+    np.testing.assert_allclose(P[0], np.diag([1.24, 1.0]))
+    np.testing.assert_allclose(m[1], [10.0, 0.0])
+    np.testing.assert_allclose(P[1], np.eye(2))
+
+
+def test_merge_criterion_uses_candidate_covariance():
+    # j (highest weight) is sharp, i is wide: (m_i - m_j)^T P_i^{-1} (m_i - m_j) = 9 / 100 < 1.
+    P = [np.eye(2) * 0.01, np.eye(2) * 100.0]
+    g = _gm([0.9, 0.5], [[0, 0], [3, 0]], P)
+    assert prune_merge(g, 0.0, 1.0, 5).count() == 1
+    # reversed roles: now the candidate is sharp -> distance 900 > 1, no merge
+    g2 = _gm([0.5, 0.9], [[0, 0], [3, 0]], P)
+    assert prune_merge(g2, 0.0, 1.0, 5).count() == 2
+
+
+def test_boundary_distance_equal_threshold_merges():
+    g = _gm([0.5, 0.5 - 1e-9], [[0.0], [7.0]])
+    assert prune_merge(g, 0.0, 49.0, 5).count() == 1
+    g = _gm([0.5, 0.5 - 1e-9], [[0.0], [7.01]])
+    assert prune_merge(g, 0.0, 49.0, 5).count() == 2
+
+
+def test_max_trace_and_cap():
+    P = [np.eye(3), np.eye(3) * 20.0, np.eye(3), np.eye(3)]  # trace 60 > 50 for the second
+    m = [[0, 0, 0], [50, 0, 0], [100, 0, 0], [200, 0, 0]]
+    g = _gm([0.2, 0.9, 0.5, 0.4], m, P)
+    out = prune_merge(g, 1e-4, 49.0, cap=2, max_trace=50.0)
+    w, m_, _ = _live(out)
+    np.testing.assert_allclose(w, [0.5, 0.4])
+    np.testing.assert_allclose(m_[:, 0], [100, 200])
+    out = prune_merge(g, 1e-4, 49.0, cap=2, max_trace=50.0, fixed_capacity=True)
+    assert out.capacity == 2
+    # pos_dims limits the trace to the first dims: trace of 1 dim = 20 <= 50 -> kept
+    out = prune_merge(g, 1e-4, 49.0, cap=5, max_trace=50.0, pos_dims=1)
+    assert out.count() == 4
+
+
+def test_weight_conserved_and_covariance_spd():
+    rng = np.random.default_rng(3)
+    Q, d = 30, 7
+    A = rng.standard_normal((Q, d, d))
+    P = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(d)
+    g = _gm(rng.uniform(0.01, 1, Q), rng.standard_normal((Q, d)) * 2, P)
+    out = prune_merge(g, 0.0, 49.0, cap=Q)
+    np.testing.assert_allclose(out.w[out.mask].sum(), g.w.sum())
+    w, m, Pm = _live(out)
+    np.testing.assert_allclose(Pm, np.swapaxes(Pm, -1, -2))
+    assert np.all(np.linalg.eigvalsh(Pm) > 0)
+    # weighted mean of all components is preserved by moment matching
+    np.testing.assert_allclose((w[:, None] * m).sum(0), (g.w[:, None] * g.m).sum(0), atol=1e-9)
+
+
+def test_batched_equals_per_mixture():
+    rng = np.random.default_rng(0)
+    B, Q, d = (4, 3), 9, 3
+    w = rng.uniform(0, 1, B + (Q,))
+    m = rng.uniform(-4, 4, B + (Q, d))
+    A = rng.standard_normal(B + (Q, d, d)) * 0.7
+    P = A @ np.swapaxes(A, -1, -2) + 0.3 * np.eye(d)
+    mask = rng.uniform(size=B + (Q,)) < 0.8
+    w = np.where(mask, w, 0.0)
+    g = GM(w, m, P, mask)
+    out = prune_merge(g, 0.05, 4.0, cap=5)
+    for idx in np.ndindex(*B):
+        single = prune_merge(select(g, idx), 0.05, 4.0, cap=5)
+        k = int(single.count())
+        assert int(out.count()[idx]) == k
+        o = select(out, idx)
+        np.testing.assert_allclose(o.w[:k], single.w[:k])
+        np.testing.assert_allclose(o.m[:k], single.m[:k])
+        np.testing.assert_allclose(o.P[:k], single.P[:k])
+    assert (out.count() <= 5).all() and out.count().max() > 0
+
+
+def test_empty_and_all_pruned():
+    g = empty((3,), 4, 2)
+    out = prune_merge(g, 1e-4, 49.0, 5)
+    assert out.batch_shape == (3,) and (out.count() == 0).all()
+    g = _gm([1e-6, 1e-7], [[0, 0], [1, 1]])
+    assert prune_merge(g, 1e-4, 49.0, 5).count() == 0
+
+
+def test_nan_raises():
+    g = _gm([0.5, 0.5], [[0, np.nan], [1, 1]])
+    with pytest.raises(FloatingPointError):
+        prune_merge(g, 1e-4, 49.0, 5)
+
+
+def test_average_map_weights_and_prune():
+    # 2 particles, both see a landmark near (0,0); only particle 0 sees one at (50, 0).
+    m = np.array([[[0, 0, 0], [50, 0, 0]], [[0.3, 0, 0], [90, 0, 0]]], float)
+    w = np.array([[0.9, 0.8], [0.9, 0.05]])  # particle 1's second component: eta < 0.1 -> dropped
+    g = GM(w, m, np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy(), np.ones((2, 2), bool))
+    out = average_map(g, np.array([3.0, 1.0]), prune=0.1, merge=49.0, cap=10)
+    assert out.batch_shape == ()
+    wl, ml, _ = _live(out)
+    np.testing.assert_allclose(wl, [0.9, 0.6])  # 0.75*0.9 + 0.25*0.9; 0.75*0.8
+    np.testing.assert_allclose(ml[0], [0.25 * 0.3, 0, 0])
+    np.testing.assert_allclose(ml[1], [50, 0, 0])
+    # with particle 0 weight small, the (50,0,0) landmark's averaged weight < 0.1 -> dropped
+    out = average_map(g, np.array([0.1, 0.9]), prune=0.1, merge=49.0, cap=10)
+    assert out.count() == 1
+    np.testing.assert_allclose(out.w[0], 0.9)
+
+
+def test_average_map_identical_particles_equal_prune_merge():
+    rng = np.random.default_rng(1)
+    Q = 6
+    single = _gm(rng.uniform(0.2, 1, Q), rng.uniform(-30, 30, (Q, 3)))
+    P = 5
+    g = GM(np.tile(single.w, (P, 1)), np.tile(single.m, (P, 1, 1)), np.tile(single.P, (P, 1, 1, 1)),
+           np.ones((P, Q), bool))
+    out = average_map(g, rng.uniform(0.1, 1, P), 0.1, 4.0, 10)
+    ref = prune_merge(single, 0.1, 4.0, 10)
+    k = int(ref.count())
+    assert out.count() == k
+    np.testing.assert_allclose(out.w[:k], ref.w[:k])
+    np.testing.assert_allclose(out.m[:k], ref.m[:k], atol=1e-9)
+    np.testing.assert_allclose(out.P[:k], ref.P[:k], atol=1e-9)
+
+
+def test_pairwise_and_iterative_distance_paths_agree(monkeypatch):
+    import mmslam.slam.reduction as red
+    rng = np.random.default_rng(5)
+    B, Q, d = (6,), 12, 7
+    A = rng.standard_normal(B + (Q, d, d))
+    P = A @ np.swapaxes(A, -1, -2) + np.eye(d)
+    g = GM(rng.uniform(0, 1, B + (Q,)), rng.uniform(-3, 3, B + (Q, d)) + 100.0, P, np.ones(B + (Q,), bool))
+    ref = prune_merge(g, 0.01, 9.0, 8)
+    monkeypatch.setattr(red, "_PAIRWISE_BUDGET", 0)
+    out = prune_merge(g, 0.01, 9.0, 8)
+    np.testing.assert_array_equal(out.mask, ref.mask)
+    np.testing.assert_allclose(out.w, ref.w)
+    np.testing.assert_allclose(out.m, ref.m, atol=1e-9)
+    np.testing.assert_allclose(out.P, ref.P, atol=1e-9)
+    assert (ref.count() < Q).any()  # some merging happened
+
+
+def test_singular_covariance_raises():
+    g = _gm([0.5, 0.5], [[0, 0, 0], [1, 1, 1]], [np.eye(3), np.zeros((3, 3))])
+    with pytest.raises(FloatingPointError):
+        prune_merge(g, 1e-4, 49.0, 5)
