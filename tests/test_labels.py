@@ -1,0 +1,158 @@
+"""Path labelling on hand-made arrays (no Sionna): one wall, one scatterer, two cars."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.raytrace.labels import DIFFUSE, SPECULAR, SceneIndex, label_paths
+from mmslam.raytrace.schema import PATH_COLUMNS
+from mmslam.scenes.scenario import scenario_from_dict
+from mmslam.slam.measurement import BS, OTHER, SP, VA, VS
+
+BS_POS = np.array([0.0, 0.0, 10.0])
+
+
+def _scn(ground: bool = False):
+    d = {
+        "name": "tiny", "bs": BS_POS.tolist(),
+        "buildings": [{"name": "wall", "min": [20.0, -10.0, 0.0], "max": [22.0, 10.0, 15.0]}],
+        "scatterers": [{"name": "pole", "position": [5.0, 5.0, 2.0], "size": 1.0}],
+        "vehicles": [{"name": "car1", "initial_state": [10.0, 0.0, 1.5, 0.0, 5.0, 0.0, 0.0]},
+                     {"name": "car2", "initial_state": [10.0, -6.0, 1.5, 0.0, 5.0, 0.0, 0.0]}],
+    }
+    if ground:
+        d["ground"] = {"z": 0.0, "extent": 100.0}
+    return scenario_from_dict(d, "<test>")
+
+
+ANT = np.array([[10.0, 0.0, 1.5], [10.0, -6.0, 1.5]])
+
+
+def _paths(index: SceneIndex, rows: list[tuple]) -> dict:
+    """rows: (rx, [(object name, itype, vertex)], toa, power)."""
+    n, D = len(rows), 3
+    rx = np.array([r[0] for r in rows])
+    obj = np.full((n, D), -1)
+    it = np.zeros((n, D), int)
+    vt = np.full((n, D, 3), np.nan)
+    for i, r in enumerate(rows):
+        for j, (name, t, v) in enumerate(r[1]):
+            obj[i, j] = index.names.index(name)
+            it[i, j] = t
+            vt[i, j] = v
+    toa = np.array([r[2] for r in rows], float)
+    pw = np.array([r[3] for r in rows], float)
+    ang = np.tile(np.arange(4, dtype=float) * 0.1, (n, 1)) + np.arange(n)[:, None] * 1e-3
+    return dict(rx=rx, obj=obj, itype=it, verts=vt, toa_m=toa, angles=ang, power_db=pw)
+
+
+ROWS = [
+    (0, [], 12.3, -80.0),                                                     # LOS
+    (0, [("wall", SPECULAR, [20.0, 1.0, 5.0])], 40.0, -90.0),                 # VA on -x face
+    (0, [("pole", DIFFUSE, [4.6, 5.0, 2.0])], 21.0, -120.0),                  # SP cluster ...
+    (0, [("pole", DIFFUSE, [5.0, 4.6, 2.2])], 20.5, -110.0),                  # ... strongest
+    (0, [("pole", SPECULAR, [5.5, 5.0, 2.0])], 20.9, -115.0),                 # ... (specular, same SP)
+    (0, [("car2", DIFFUSE, [10.2, -5.5, 1.45])], 19.0, -130.0),               # VS car2
+    (0, [("car1", DIFFUSE, [10.5, 0.2, 1.45])], 15.0, -100.0),                # own car: dropped
+    (0, [("wall", SPECULAR, [20.0, 2.0, 4.0]), ("pole", DIFFUSE, [5.0, 5.4, 2.0])], 60.0, -140.0),  # OTHER
+    (1, [("car1", SPECULAR, [10.0, -0.9, 1.0])], 18.0, -105.0),               # VS car1 seen by car2
+    (1, [("wall", SPECULAR, [20.0, -3.0, 6.0]), ("car2", DIFFUSE, [9.0, -6.0, 1.0])], 50.0, -150.0),  # own: dropped
+    (1, [("wall", SPECULAR, [21.0, 3.0, 15.0])], 45.0, -95.0),                # roof (+z face) of the wall
+]
+
+
+def test_tiny_scene_labels_equal_expected_set():
+    scn = _scn()
+    idx = SceneIndex.from_scenario(scn)
+    out = label_paths(idx, antennas=ANT, step=7, **_paths(idx, ROWS))
+    got = {(int(r), int(t), str(i)) for r, t, i in zip(out["rx"], out["type"], out["landmark_id"])}
+    assert got == {
+        (0, BS, "bs"), (0, VA, "wall:-x"), (0, SP, "pole"), (0, VS, "car2"), (0, OTHER, "wall+pole"),
+        (1, VS, "car1"), (1, VA, "wall:+z"),
+    }
+    assert set(out) == set(PATH_COLUMNS)
+    assert np.all(out["step"] == 7)
+    by = {(int(r), str(i)): k for k, (r, i) in enumerate(zip(out["rx"], out["landmark_id"]))}
+    # VA landmark: BS mirrored in x = 20 -> (40, 0, 10); the roof z = 15 -> (0, 0, 20)
+    np.testing.assert_allclose([out[c][by[(0, "wall:-x")]] for c in ("lm_x", "lm_y", "lm_z")], [40, 0, 10])
+    np.testing.assert_allclose([out[c][by[(1, "wall:+z")]] for c in ("lm_x", "lm_y", "lm_z")], [0, 0, 20])
+    # SP cluster: 3 paths, strongest (-110 dB, toa 20.5) kept, spread 21.0 - 20.5
+    k = by[(0, "pole")]
+    assert out["n_paths"][k] == 3 and out["power_db"][k] == -110.0 and out["toa_m"][k] == 20.5
+    assert out["delay_spread_m"][k] == pytest.approx(0.5)
+    assert out["diffuse"][k]
+    np.testing.assert_allclose([out["bounce_x"][k], out["bounce_y"][k], out["bounce_z"][k]], [5.0, 4.6, 2.2])
+    np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [5, 5, 2])
+    # the strongest path's angles travel with it (row 3 of the input)
+    assert out["aod_az"][k] == pytest.approx(0.0 + 3e-3)
+    # VS: the other car's antenna position
+    np.testing.assert_allclose([out[c][by[(0, "car2")]] for c in ("lm_x", "lm_y", "lm_z")], ANT[1])
+    np.testing.assert_allclose([out[c][by[(1, "car1")]] for c in ("lm_x", "lm_y", "lm_z")], ANT[0])
+    assert not out["diffuse"][by[(1, "car1")]]
+    # BS row: landmark = BS, no bounce point; OTHER: NaN landmark, 2 bounces
+    kb = by[(0, "bs")]
+    np.testing.assert_allclose([out[c][kb] for c in ("lm_x", "lm_y", "lm_z")], BS_POS)
+    assert np.isnan(out["bounce_x"][kb]) and out["bounces"][kb] == 0
+    ko = by[(0, "wall+pole")]
+    assert np.isnan(out["lm_x"][ko]) and out["bounces"][ko] == 2
+    # sorted by (rx, type, id)
+    keys = list(zip(out["rx"], out["type"], out["landmark_id"]))
+    assert keys == sorted(keys)
+
+
+def test_labels_do_not_depend_on_path_order():
+    scn = _scn()
+    idx = SceneIndex.from_scenario(scn)
+    a = label_paths(idx, antennas=ANT, **_paths(idx, ROWS))
+    perm = np.random.default_rng(3).permutation(len(ROWS))
+    b = label_paths(idx, antennas=ANT, **_paths(idx, [ROWS[i] for i in perm]))
+    for c in PATH_COLUMNS:
+        if c == "landmark_id":
+            assert list(a[c]) == list(b[c])
+        elif c == "aod_az" or c.startswith(("aod", "aoa")):
+            continue  # the synthetic angles encode the input row number
+        else:
+            np.testing.assert_array_equal(a[c], b[c])
+
+
+def test_ground_and_xml_plane_va():
+    scn = _scn(ground=True)
+    idx = SceneIndex.from_scenario(scn, extra_static=["facade"])
+    rows = [(0, [("ground", SPECULAR, [3.0, 0.0, 0.0])], 14.0, -90.0),
+            (0, [("facade", SPECULAR, [-5.0, 1.0, 4.0])], 30.0, -95.0),
+            (0, [("facade", SPECULAR, [-5.0, 3.0, 6.0])], 31.0, -99.0),   # same plane, other triangle
+            (1, [("facade", DIFFUSE, [-5.0, 2.0, 5.0])], 33.0, -120.0)]   # diffuse on a facade: OTHER
+    p = _paths(idx, rows)
+    nrm = np.full((4, 3, 3), np.nan)
+    nrm[1, 0] = [-1.0, 0.0, 0.0]  # triangle normals may point either way: labels orient them to the BS
+    nrm[2, 0] = [1.0, 0.0, 0.0]
+    nrm[3, 0] = [1.0, 0.0, 0.0]
+    out = label_paths(idx, antennas=ANT, normals=nrm, **p)
+    got = {(int(r), int(t), str(i)): k for k, (r, t, i) in enumerate(zip(out["rx"], out["type"], out["landmark_id"]))}
+    assert set(got) == {(0, VA, "ground:+z"), (0, VA, "facade:plane(+1.000,+0.000,+0.000,-5.00)"), (1, OTHER, "facade")}
+    k = got[(0, VA, "ground:+z")]
+    np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [0, 0, -10])
+    k = got[(0, VA, "facade:plane(+1.000,+0.000,+0.000,-5.00)")]
+    np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [-10, 0, 10], atol=1e-12)
+    assert out["n_paths"][k] == 2 and out["delay_spread_m"][k] == pytest.approx(1.0)
+
+
+def test_empty_and_all_dropped_give_empty_tables():
+    scn = _scn()
+    idx = SceneIndex.from_scenario(scn)
+    out = label_paths(idx, antennas=ANT, **_paths(idx, [(0, [("car1", DIFFUSE, [10, 0, 1])], 5.0, -90.0)]))
+    assert set(out) == set(PATH_COLUMNS) and all(len(v) == 0 for v in out.values())
+    e = _paths(idx, [])
+    e["obj"] = np.zeros((0, 3), int); e["itype"] = np.zeros((0, 3), int); e["verts"] = np.zeros((0, 3, 3))
+    e["angles"] = np.zeros((0, 4))
+    out = label_paths(idx, antennas=ANT, **e)
+    assert all(len(v) == 0 for v in out.values())
+
+
+def test_non_finite_input_is_rejected():
+    scn = _scn()
+    idx = SceneIndex.from_scenario(scn)
+    p = _paths(idx, ROWS[:2])
+    p["toa_m"][1] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        label_paths(idx, antennas=ANT, **p)
