@@ -1,8 +1,109 @@
-"""CLI commands of this subpackage (registered on the top-level ``mmslam`` app)."""
+"""CLI commands of this subpackage: ``mmslam demo``, ``mmslam ablate`` and ``mmslam report``.
+
+Thin wrappers over :mod:`mmslam.pipelines.demo`, :mod:`mmslam.pipelines.ablate` and
+:mod:`mmslam.pipelines.report`; argument checks happen before any work starts.
+"""
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Optional
+
 import typer
+
+from mmslam.errors import ConfigError
+
+SOURCES = ("sionna", "analytic")
+
+
+def _check_source(source: str) -> None:
+    if source not in SOURCES:
+        raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
+
+
+def _print_summary(summary, title: str, extra: list[str]) -> None:
+    from rich.console import Console
+
+    from mmslam.pipelines.report import summary_console_table
+
+    con = Console()
+    con.print(summary_console_table(summary, title))
+    for line in extra:
+        con.print(line, highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:
     """Add this subpackage's commands to ``app``."""
+
+    @app.command("demo")
+    def demo_cmd(
+        source: str = typer.Option("sionna", "--source", help="Path source: sionna (ray traced) or analytic."),
+        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)."),
+        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
+        out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory (cache, jobs, report)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
+        quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
+    ) -> None:
+        """The main job: paper preset, baseline / cm1 / proposed x MC runs, summary and HTML report."""
+        from mmslam.pipelines.ablate import check_run_args
+        from mmslam.pipelines.demo import run_demo
+
+        _check_source(source)
+        check_run_args(mc, particles, None, "local", None, workers)
+        res = run_demo(source=source, mc=mc, particles=particles, out=out, workers=workers, progress=not quiet)
+        run = res.ablation
+        _print_summary(run.summary, f"paper ({source}), {mc} runs, P = {particles}", [
+            f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); ablation wall time "
+            f"{run.wall_time_s:.1f} s",
+            f"report: {res.report}"])
+
+    @app.command("ablate")
+    def ablate_cmd(
+        scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
+        variants: str = typer.Option("baseline,cm1,proposed", "--variants",
+                                     help="Comma-separated filter variants (baseline, cm1, proposed)."),
+        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)."),
+        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
+        source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
+        out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary)."),
+        steps: Optional[int] = typer.Option(None, "--steps", help="Time steps (default: the scenario's)."),
+        executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler",
+                                                help="Dask scheduler address, e.g. tcp://host:8786 "
+                                                     "(default: start a local cluster)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
+        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path (1..3)."),
+        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source."),
+        report: bool = typer.Option(False, "--report", help="Also write figures and the HTML report."),
+        quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
+    ) -> None:
+        """Run the (variant x seed) grid; finished jobs are kept and skipped on re-runs."""
+        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_variants, prepare_cache,
+                                             run_ablation)
+
+        vs = parse_variants(variants)
+        _check_source(source)
+        check_run_args(mc, particles, steps, executor, scheduler, workers)
+        cache = prepare_cache(scenario, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
+                              samples=samples)
+        cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor)
+        run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
+                           scheduler=scheduler, workers=workers, progress=not quiet, command=cmd)
+        extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
+                 f"{run.wall_time_s:.1f} s",
+                 f"summary: {Path(out) / 'summary.parquet'}"]
+        if report:
+            from mmslam.pipelines.report import write_report
+
+            extra.append(f"report: {write_report(out)}")
+        _print_summary(run.summary, f"{scenario} ({source}), {mc} runs, P = {particles}", extra)
+
+    @app.command("report")
+    def report_cmd(
+        out: Path = typer.Argument(..., help="An ablation directory (from `mmslam ablate` or `mmslam demo`)."),
+    ) -> None:
+        """Regenerate the summary, figures and the HTML report from stored results."""
+        from mmslam.pipelines.ablate import load_summary
+        from mmslam.pipelines.report import write_report
+
+        path = write_report(out)
+        _print_summary(load_summary(out), str(out), [f"report: {path}"])

@@ -1,0 +1,238 @@
+"""The ablation report: figures + one self-contained HTML file, regenerated from stored results.
+
+:func:`write_report` re-aggregates the stored jobs of an ablation directory
+(:func:`mmslam.pipelines.ablate.aggregate`), draws every figure of
+:mod:`mmslam.pipelines.figures` into ``DIR/figures/*.png`` and writes ``DIR/report.html`` with
+the figures embedded as base64 PNG, the summary table, the scenario parameters, the software
+versions and the command that reproduces the ablation.
+
+The summary table is machine-readable: ``<table id="summary">`` rows carry ``data-variant`` and
+``data-map``, cells ``data-col`` (``gospa_VA``, ``gospa_SP``, ``gospa_VS``, ``pos_rmse``,
+``wall_time_s``, ``runs``) and ``data-value`` (the full-precision number).
+"""
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import importlib.metadata
+import json
+import math
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+from mmslam.pipelines.ablate import (Job, Summary, aggregate, is_finished, job_dir, plan_jobs,
+                                     read_ablation)
+
+REPORT_FILE = "report.html"
+FIGURES_DIR = "figures"
+HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("gospa_VA", "GOSPA VA [m]"), ("gospa_SP", "GOSPA SP [m]"), ("gospa_VS", "GOSPA VS [m]"),
+    ("pos_rmse", "position RMSE [m]"), ("wall_time_s", "wall time / run [s]"), ("runs", "runs"),
+)
+"""(key, header) of the summary table's number columns, in order."""
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of Python and the libraries that shape the results (``not installed`` if absent)."""
+    out = {"python": platform.python_version()}
+    for pkg in ("mmslam", "numpy", "scipy", "pyarrow", "matplotlib", "sionna-rt", "mitsuba", "drjit",
+                "dask", "distributed"):
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    out["platform"] = platform.platform()
+    return out
+
+
+def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
+    """Draw every figure into ``out_dir/figures``; returns name -> PNG path (in report order).
+
+    The top-down maps show the lowest finished seed of each variant.
+    """
+    from mmslam.pipelines import figures as F
+    from mmslam.scenes.scenario import scenario_from_resolved
+    from mmslam.slam.result import Result
+
+    out = Path(out_dir)
+    fdir = out / FIGURES_DIR
+    spec = read_ablation(out)
+    made: dict[str, Path] = {}
+    plots = (("fig2a_gospa_vs", lambda: F.fig_gospa(summary, "VS")),
+             ("fig2b_gospa_va", lambda: F.fig_gospa(summary, "VA")),
+             ("fig3_position_rmse", lambda: F.fig_position_rmse(summary)),
+             ("gospa_sp", lambda: F.fig_gospa(summary, "SP")))
+    for name, make in plots:
+        made[name] = F.save_figure(make(), fdir / f"{name}.png")
+    scn = scenario_from_resolved(spec["scenario"])
+    for v in summary.variants:
+        seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s))))
+        if not seeds:
+            continue
+        res = Result.load(job_dir(out, Job(v, seeds[0])))
+        made[f"map_{v}"] = F.save_figure(F.fig_map(res, scn), fdir / f"map_{v}.png")
+    return made
+
+
+FIGURE_CAPTIONS = {
+    "fig2a_gospa_vs": "Fig. 2a: mean GOSPA of the VS map (fused at the BS) vs time step; shaded: ±1 std over runs.",
+    "fig2b_gospa_va": "Fig. 2b: mean GOSPA of the VA map (fused at the BS) vs time step; shaded: ±1 std over runs.",
+    "fig3_position_rmse": "Fig. 3: vehicle position RMSE over Monte Carlo runs and vehicles vs time step.",
+    "gospa_sp": "Mean GOSPA of the SP map (fused at the BS) vs time step.",
+}
+
+
+def _fmt(x: Any, col: str) -> str:
+    if isinstance(x, (int,)) and not isinstance(x, bool):
+        return str(x)
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return html.escape(str(x))
+    if not math.isfinite(f):
+        return "n/a"
+    return f"{f:.2f}" if col == "wall_time_s" else f"{f:.3f}"
+
+
+def summary_rows(summary: Summary) -> list[dict[str, Any]]:
+    """The headline rows (variant, map, :data:`HEADLINE_COLUMNS`), in table order."""
+    return list(summary.headline)
+
+
+def _summary_html(summary: Summary) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for _, h in HEADLINE_COLUMNS)
+    rows = []
+    for r in summary_rows(summary):
+        cells = "".join(
+            f'<td data-col="{k}" data-value="{html.escape(repr(r.get(k)))}">{_fmt(r.get(k), k)}</td>'
+            for k, _ in HEADLINE_COLUMNS)
+        rows.append(f'<tr data-variant="{html.escape(r["variant"])}" data-map="{html.escape(r["map"])}">'
+                    f'<td>{html.escape(r["variant"])}</td><td>{html.escape(r["map"])}</td>{cells}</tr>')
+    return (f'<table id="summary"><thead><tr><th>variant</th><th>map</th>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table>')
+
+
+def _flatten(d: Any, prefix: str = "") -> list[tuple[str, str]]:
+    out: list[tuple[str, str]] = []
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out += _flatten(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(d, list) and d and all(isinstance(x, dict) for x in d):
+        for x in d:
+            name = x.get("name", "")
+            out.append((f"{prefix}[{name}]", json.dumps({k: v for k, v in x.items() if k != "name"})))
+    else:
+        out.append((prefix, json.dumps(d)))
+    return out
+
+
+def _kv_table(pairs: list[tuple[str, str]], table_id: str) -> str:
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td><code>{html.escape(v)}</code></td></tr>" for k, v in pairs)
+    return f'<table id="{table_id}" class="kv"><tbody>{body}</tbody></table>'
+
+
+_CSS = """
+body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:1em 0;font-size:0.9em}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right}
+th{background:#f3f3f3} table.kv th,table.kv td{text-align:left}
+figure{display:inline-block;margin:0.5em;max-width:48%;vertical-align:top}
+figure img{max-width:100%} figcaption{font-size:0.85em}
+pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
+"""
+
+
+def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path]) -> str:
+    """The report as one HTML string (figures inlined as base64 PNG)."""
+    out = Path(out_dir)
+    spec = read_ablation(out)
+    cfg = summary.config
+    grid = plan_jobs(spec.get("variants", []), int(spec.get("mc", 0)))
+    missing = [j.name for j in grid if not is_finished(out, j)]
+    figs = []
+    for name, path in figures.items():
+        b64 = base64.b64encode(Path(path).read_bytes()).decode("ascii")
+        cap = FIGURE_CAPTIONS.get(name) or (f"Top-down map of variant {name[4:]} (lowest seed) at the last "
+                                            "step: hollow = truth, x = estimates; solid = true, dashed = "
+                                            "estimated trajectories.")
+        figs.append(f'<figure id="fig-{name}"><img alt="{html.escape(name)}" src="data:image/png;base64,{b64}">'
+                    f"<figcaption>{html.escape(cap)}</figcaption></figure>")
+    abl = [("scenario", str(spec.get("scenario_name"))), ("source", str(spec.get("source"))),
+           ("trace config hash", str(spec.get("config_hash"))), ("variants", ",".join(spec.get("variants", []))),
+           ("Monte Carlo runs (seeds)", f"{spec.get('mc')} (0..{int(spec.get('mc', 1)) - 1})"),
+           ("particles", str(spec.get("particles"))), ("time steps", str(spec.get("steps"))),
+           ("fusion start (GOSPA / RMSE averaged over steps >=)", str(cfg.get("fusion_start")))]
+    warn = (f'<p class="warn">Incomplete: {len(missing)} of {len(grid)} jobs missing '
+            f"({html.escape(', '.join(missing[:10]))}{' ...' if len(missing) > 10 else ''}); re-run the "
+            "command below to finish them.</p>") if missing else ""
+    vers = software_versions()
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>mmslam ablation: {html.escape(str(spec.get('scenario_name')))}</title>
+<style>{_CSS}</style></head><body>
+<h1>Cooperative MM-PHD-SLAM with vehicle scatterers: ablation report</h1>
+<p>Scenario <b>{html.escape(str(spec.get('scenario_name')))}</b>, {html.escape(str(spec.get('source')))} paths,
+{len(grid)} jobs (variants x seeds). Generated {now} from the stored results in <code>{html.escape(str(out.resolve()))}</code>.</p>
+{warn}
+<h2>Summary</h2>
+<p>Mean GOSPA (p = 2, c = {html.escape(str(_eval(spec, 'gospa_c')))} m, alpha = 2) per landmark type and map,
+and position RMSE, both over all runs and the time steps k &ge; {cfg.get('fusion_start')} (map fusion start).
+Vehicle rows: that vehicle's local map and position error; <i>fused</i>: the BS map and all vehicles' positions.
+Wall time: mean per filter run (one variant, one seed, all vehicles).</p>
+{_summary_html(summary)}
+<h2>Figures</h2>
+{''.join(figs)}
+<h2>Reproduce</h2>
+<pre id="command">{html.escape(str(spec.get('command', '')))}</pre>
+<p>Regenerate this report from the stored results: <code>mmslam report {html.escape(str(out))}</code></p>
+<h2>Ablation settings</h2>
+{_kv_table(abl, 'settings')}
+<h2>Scenario parameters</h2>
+{_kv_table(_flatten(spec.get('scenario', {})), 'scenario')}
+<h2>Software</h2>
+{_kv_table(list(vers.items()), 'versions')}
+</body></html>
+"""
+
+
+def _eval(spec: dict[str, Any], key: str) -> Any:
+    return spec.get("scenario", {}).get("evaluation", {}).get(key, "?")
+
+
+def write_report(out_dir: str | Path) -> Path:
+    """Re-aggregate the stored jobs, redraw the figures and write ``out_dir/report.html``.
+
+    Raises:
+        CacheError: ``out_dir`` is missing, holds no ablation or no finished job.
+    """
+    out = Path(out_dir)
+    summary = aggregate(out)
+    figures = make_figures(out, summary)
+    text = render_html(out, summary, figures)
+    path = out / REPORT_FILE
+    tmp = path.with_name(f".{REPORT_FILE}.{os.getpid()}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
+    """The summary table as a :class:`rich.table.Table` (for the CLI)."""
+    from rich.table import Table
+
+    fs = summary.config.get("fusion_start")
+    t = Table(title=f"{title} (means over runs and steps k >= {fs})")
+    t.add_column("variant")
+    t.add_column("map")
+    for _, h in HEADLINE_COLUMNS:
+        t.add_column(h, justify="right")
+    for r in summary_rows(summary):
+        t.add_row(r["variant"], r["map"], *[_fmt(r.get(k), k) for k, _ in HEADLINE_COLUMNS])
+    return t
+
+
+__all__ = ["write_report", "make_figures", "render_html", "software_versions", "summary_console_table",
+           "summary_rows", "HEADLINE_COLUMNS"]
