@@ -5,11 +5,14 @@ of every step not yet in the cache, writing one chunk of ``chunk_steps`` steps a
 chunk aligned to multiples of ``chunk_steps``). Killing the process at any moment and running
 it again continues after the last complete chunk; the final table contents equal those of an
 uninterrupted run. A larger ``steps`` extends an existing shorter cache; ``force`` deletes the
-cache directory and traces from scratch.
+cache directory and traces from scratch. One writer at a time: a lock file
+``.<cachedir>.lock`` (holding the writer's pid) next to the cache refuses a second live writer;
+the lock of a killed writer is taken over.
 """
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import shutil
 import sys
 import time
@@ -142,10 +145,66 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
     if chunk_steps < 1:
         raise ConfigError(f"chunk_steps {chunk_steps}: expected >= 1")
     cache_dir = cache_dir_for(out_root, scn, source)
-    if force and cache_dir.exists():
-        shutil.rmtree(cache_dir)
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    remove_temp_files(cache_dir)
+    cache_dir.parent.mkdir(parents=True, exist_ok=True)
+    lock = _acquire_lock(cache_dir)
+    try:
+        if force and cache_dir.exists():
+            shutil.rmtree(cache_dir)
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        remove_temp_files(cache_dir)
+        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress)
+    finally:
+        _release_lock(lock)
+
+
+def lock_path(cache_dir: Path) -> Path:
+    """The writer lock of a cache: ``.<dirname>.lock`` next to the cache directory."""
+    return cache_dir.parent / f".{cache_dir.name}.lock"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _acquire_lock(cache_dir: Path) -> Path:
+    """Create the writer lock (holding our pid); a lock of a dead process is taken over."""
+    lock = lock_path(cache_dir)
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or "0")
+            except (OSError, ValueError):
+                pid = 0
+            if pid > 0 and _pid_alive(pid):
+                raise CacheError(f"{cache_dir}: another trace (pid {pid}) is writing this cache; wait for it, "
+                                 f"or delete {lock} if that process is gone") from None
+            lock.unlink(missing_ok=True)  # stale: its writer was killed
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()}\n")
+        return lock
+    raise CacheError(f"{lock}: could not take the writer lock; delete it and re-run")
+
+
+def _release_lock(lock: Path) -> None:
+    try:
+        if lock.read_text().strip() == str(os.getpid()):
+            lock.unlink()
+    except FileNotFoundError:
+        pass
+
+
+def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk_steps: int,
+                progress: bool) -> Path:
+    """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
     if (cache_dir / MANIFEST).is_file():
         m = read_manifest(cache_dir)

@@ -347,3 +347,22 @@ def test_make_source_errors(paper):
         make_source("raytracer", paper)
     with pytest.raises(MmslamError, match="max-depth"):
         make_source("sionna", paper, max_depth=4)
+
+
+def test_writer_lock_blocks_a_live_writer_and_takes_over_a_dead_ones(tmp_path, paper):
+    from mmslam.raytrace.trace import lock_path
+
+    src = AnalyticSource(paper)
+    d = cache_dir_for(tmp_path, paper, src)
+    lock = lock_path(d)
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        lock.write_text(f"{live.pid}\n")
+        with pytest.raises(CacheError, match=f"another trace \\(pid {live.pid}\\)"):
+            trace_scenario(paper, src, tmp_path, steps=2, progress=False)
+    finally:
+        live.kill()
+        live.wait()
+    # that process is gone now: its lock is stale and taken over
+    trace_scenario(paper, src, tmp_path, steps=2, progress=False)
+    assert load_cache(d).steps == 2 and not lock.exists()
