@@ -7,7 +7,8 @@ A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
   (library versions), ``settings`` (solver settings), ``resolved_scenario``
   (:meth:`Scenario.to_dict`), ``vehicle_names``, ``dt`` [s], ``steps_completed``,
   ``steps_requested``, ``chunks`` (list of ``{index, step_start, step_stop, files: {vehicles,
-  paths}, sha256: {vehicles, paths}, rows: {vehicles, paths}}``, ``step_stop`` exclusive);
+  paths}, sha256: {vehicles, paths}, rows: {vehicles, paths}, versions}``, ``step_stop``
+  exclusive; ``versions`` = library versions of the run that wrote the chunk);
 - per chunk of consecutive steps, ``vehicles-NNNNN.parquet`` and ``paths-NNNNN.parquet``.
 
 Every file is written to a temporary name in the same directory and renamed into place

@@ -236,6 +236,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
                        console=Console(stderr=True), transient=False)
         task = bar.add_task("trace", total=n_steps, completed=done, rate=0.0)
         bar.start()
+    versions = _versions(source)
     t0, n_rows = time.perf_counter(), 0
     try:
         start = done
@@ -252,6 +253,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
                                hint="nothing was written for these steps; fix the source")
             entry = write_chunk(cache_dir, len(m["chunks"]), start,
                                 vehicle_columns(states[start:stop], start, scn.dt), paths)
+            entry["versions"] = versions  # a resumed trace may run under other library versions
             m["chunks"].append(entry)
             m["steps_completed"] = stop
             write_manifest(cache_dir, m)
