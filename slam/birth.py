@@ -1,0 +1,122 @@
+"""Measurement-driven birth of landmark Gaussians (TWC2020 App. D-A; paper Sec. IV-A for VS).
+
+For every particle ``p`` and measurement ``z_j`` the ``2 x 5 = 10`` cubature points of
+``N(z_j, R)`` (``R`` the filter's measurement covariance) are each mapped to a landmark position
+by geometric inversion given the particle's vehicle state ``s_p = [x, y, z, alpha, zeta, xi, B]``;
+the birth Gaussian is the mean and covariance of the 10 images (all in the global frame, m).
+
+- VA: from the vehicle ``u`` along the AOA direction (body azimuth + heading ``alpha``,
+  elevation) at range ``TOA - B``: ``v = u + (TOA - B) d``.
+- SP (and the position part of VS): the point ``s = u + r d`` on the AOA ray with
+  ``TOA - B = |b - s| + |s - u|`` (an ellipsoid with foci ``b`` and ``u`` intersected with the
+  ray): ``r = (L^2 - |b - u|^2) / (2 (L - d . (b - u)))`` with ``L = TOA - B``; it needs
+  ``L > |b - u|``.
+
+AOD components do not enter the inversion (the AOA ray and the TOA determine the point).
+A birth is dropped when any of its cubature images is invalid (non-positive range, ``L <= |b - u|``)
+and, for SP and VS, when its mean lies outside the sensor FOV (``p_D = 0`` there).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .gm import GM, symmetrize
+from .gmphd import cubature_points
+from .measurement import SP, VA, VS
+from .vs import vs_birth_covariance, vs_birth_mean
+
+
+def aoa_direction(state: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Global unit AOA direction ``(..., 3)`` from body-frame AOA in ``z (..., 5)`` and heading."""
+    az = z[..., 3] + state[..., 3]
+    az, el = np.broadcast_arrays(az, z[..., 4])
+    ce = np.cos(el)
+    return np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=-1)
+
+
+def invert_va(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """VA image-source position from a measurement: ``(position (..., 3), valid (...))``.
+
+    ``state (..., 7)`` vehicle states and ``z (..., 5)`` measurements broadcast together.
+    ``bs`` is unused (kept for a uniform signature).
+    """
+    r = z[..., 0] - state[..., 6]
+    pos = state[..., 0:3] + r[..., None] * aoa_direction(state, z)
+    return pos, r > 0.0
+
+
+def invert_sp(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Single-scatter point from a measurement: ``(position (..., 3), valid (...))``.
+
+    The point on the AOA ray from ``u`` whose bistatic range ``|b - s| + |s - u|`` equals
+    ``TOA - B`` (closed form, see module docstring).
+    """
+    u = state[..., 0:3]
+    d = aoa_direction(state, z)
+    L = z[..., 0] - state[..., 6]
+    bu = np.asarray(bs, float) - u
+    nbu2 = np.einsum("...i,...i->...", bu, bu)
+    den = 2.0 * (L - np.einsum("...i,...i->...", d, bu))
+    valid = (L * L > nbu2) & (L > 0.0) & (den > 0.0)
+    r = np.where(valid, (L * L - nbu2) / np.where(den > 0.0, den, 1.0), 0.0)
+    valid &= r > 0.0
+    return u + r[..., None] * d, valid
+
+
+def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Equal-weight mean ``(..., 3)`` and covariance ``(..., 3, 3)`` of images ``(..., K, 3)``."""
+    mean = pts.mean(axis=-2)
+    dev = pts - mean[..., None, :]
+    cov = symmetrize(np.einsum("...ka,...kb->...ab", dev, dev) / pts.shape[-2])
+    ok = valid.all(axis=-1) & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
+    # guard against a degenerate (rank-deficient) spread: the minimum eigenvalue must be > 0
+    ok &= np.linalg.det(np.where(ok[..., None, None], cov, np.eye(3))) > 0.0
+    return mean, cov, ok
+
+
+def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs: np.ndarray,
+             birth_weight: float,
+             pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
+             vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
+             vs_turn_std: float = np.pi / 2) -> GM:
+    """Birth PHD of one landmark type from a measurement set, batched over particles.
+
+    Args:
+        states: ``(P, 7)`` particle vehicle states at the measurement time.
+        Z: ``(J, 5)`` measurements (body-frame AOA).
+        R: ``(5, 5)`` filter measurement covariance (cubature spread of each ``z``).
+        lm_type: ``VA``, ``SP`` or ``VS``.
+        bs: ``(3,)`` BS position.
+        birth_weight: weight of every birth Gaussian.
+        pd_fn: ``pd_fn(vehicle_pos (P, J, 3), lm_pos (P, J, 3), lm_type) -> (P, J)``; SP and VS
+            births whose mean has ``p_D = 0`` (outside the FOV) are dropped.
+        vs_velocity_var, vs_turn_std: VS birth velocity variances ``(m/s)^2`` and turn-rate std
+            (rad/s), passed to :func:`mmslam.slam.vs.vs_birth_covariance`.
+
+    Returns:
+        GM with batch ``(P,)``, ``J`` slots (slot ``j`` from ``z_j``), dim 3 (VA, SP) or 7 (VS).
+    """
+    P_, J = states.shape[0], Z.shape[0]
+    if J == 0:
+        d = 7 if lm_type == VS else 3
+        return GM(np.zeros((P_, 0)), np.zeros((P_, 0, d)), np.zeros((P_, 0, d, d)), np.zeros((P_, 0), bool))
+    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
+    s = states[:, None, None, :]
+    inv = invert_va if lm_type == VA else invert_sp
+    pts, valid = inv(s, zpts[None], bs)  # (P, J, 10, 3)
+    mean, cov, ok = _image_moments(pts, valid)
+    if lm_type in (SP, VS):
+        pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
+        ok &= pd > 0.0
+    mean = np.where(ok[..., None], mean, 0.0)
+    cov = np.where(ok[..., None, None], cov, np.eye(3))
+    if lm_type == VS:
+        m7 = np.asarray(vs_birth_mean(mean), float)
+        c7 = np.asarray(vs_birth_covariance(cov, vs_velocity_var, vs_turn_std), float)
+        m7 = np.where(ok[..., None], m7, 0.0)
+        c7 = np.where(ok[..., None, None], c7, np.eye(7))
+        mean, cov = m7, c7
+    w = np.where(ok, birth_weight, 0.0)
+    return GM(w, mean, cov, ok)

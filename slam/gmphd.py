@@ -1,0 +1,270 @@
+"""GM-PHD map prediction and correction for the RBPF (paper eqs. prevPredPHD, prevCorrPHD, propCorrPHD).
+
+Everything is batched over particles ``P`` x Gaussians ``Q`` x measurements ``J`` with padded
+arrays (:class:`~mmslam.slam.gm.GM`, batch shape ``(P,)``). Frames and units: global frame,
+metres, radians; a measurement is ``z = [TOA (m, incl. clock bias), AOD az, AOD el, AOA az
+(body frame), AOA el]`` (:mod:`mmslam.slam.measurement`).
+
+The measurement update of a landmark Gaussian is a cubature Kalman filter (CKF) step: the
+``2d`` cubature points of ``N(m, P)`` are pushed through ``h(s_p, ., type)`` for the particle's
+vehicle state ``s_p``; azimuth components are averaged and differenced with wrapping.
+VS Gaussians are 7-D ``[x, y, z, vx, vy, vz, xi]``; the measurement sees the position part only
+(SP geometry), and the CKF on the full 7-D state carries the correction to velocity and turn
+rate through the cross-covariance.
+
+The known BS is a single fixed landmark (weight 1, no map): it only adds
+``p_D N(z; h(s_p, b, BS), R)`` to the normaliser ``psi(z)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .dynamics import wrap_angle
+from .gm import GM, symmetrize
+from .measurement import AZIMUTH_COMPONENTS, BS, MEAS_DIM, measure
+
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def safe_cholesky(P: np.ndarray, stage: str) -> np.ndarray:
+    """Batched lower Cholesky factor of ``P (..., d, d)``; FloatingPointError naming ``stage``."""
+    if not np.isfinite(P).all():
+        raise FloatingPointError(f"non-finite covariance in {stage}")
+    try:
+        return np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        # one retry with a relative jitter (round-off on near-singular but valid matrices)
+        d = P.shape[-1]
+        scale = np.maximum(np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(-1), 1e-12)
+        try:
+            return np.linalg.cholesky(P + (1e-10 * scale)[..., None, None] * np.eye(d))
+        except np.linalg.LinAlgError:
+            raise FloatingPointError(f"covariance not positive definite in {stage}") from None
+
+
+def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points") -> np.ndarray:
+    """Third-degree spherical-radial cubature points of ``N(m, P)``.
+
+    Args:
+        m: means ``(..., d)``; P: covariances ``(..., d, d)`` (SPD).
+
+    Returns:
+        ``(..., 2d, d)``: ``m + sqrt(d) L e_i`` for ``i < d`` and ``m - sqrt(d) L e_i`` after,
+        with ``L`` the lower Cholesky factor of ``P``. All points carry weight ``1 / (2d)``.
+    """
+    d = m.shape[-1]
+    L = safe_cholesky(P, stage) * np.sqrt(d)
+    cols = np.swapaxes(L, -1, -2)  # (..., d, d): row i = L e_i
+    return np.concatenate([m[..., None, :] + cols, m[..., None, :] - cols], axis=-2)
+
+
+def ckf_moments(m: np.ndarray, P: np.ndarray, h: Callable[[np.ndarray], np.ndarray],
+                wrap: tuple[int, ...] = AZIMUTH_COMPONENTS, stage: str = "CKF"
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cubature estimates of the predicted measurement moments of ``z = h(x)``, ``x ~ N(m, P)``.
+
+    Args:
+        m: ``(..., d)`` means; P: ``(..., d, d)`` covariances.
+        h: maps points ``(..., 2d, d)`` to measurements ``(..., 2d, nz)`` (broadcasting over the
+            leading axes of ``m``).
+        wrap: measurement components that are angles on the circle (averaged and differenced
+            modulo ``2 pi``; the predicted value is wrapped to ``(-pi, pi]``).
+
+    Returns:
+        ``zhat (..., nz)``, ``Pzz (..., nz, nz)`` (no noise added) and ``Pxz (..., d, nz)``.
+    """
+    pts = cubature_points(m, P, stage)
+    hz = h(pts)
+    n = pts.shape[-2]
+    ref = hz[..., :1, :]
+    dev = hz - ref
+    for c in wrap:
+        dev[..., c] = wrap_angle(dev[..., c])
+    mdev = dev.mean(axis=-2)
+    zhat = ref[..., 0, :] + mdev
+    for c in wrap:
+        zhat[..., c] = wrap_angle(zhat[..., c])
+    Dz = dev - mdev[..., None, :]
+    Dx = pts - m[..., None, :]
+    Pzz = np.einsum("...ka,...kb->...ab", Dz, Dz) / n
+    Pxz = np.einsum("...ka,...kb->...ab", Dx, Dz) / n
+    return zhat, Pzz, Pxz
+
+
+@dataclass
+class Innovation:
+    """Per-Gaussian innovation statistics against a measurement set (shapes with ``(P, Q)`` lead).
+
+    ``loglik (P, Q, J)``: ``log N(z_j; zhat, S)``; ``gain_sqrt (P, Q, d, 5)``: ``A = Pxz L^-T``
+    with ``S = L L^T`` (so ``K = A L^-1``, ``K r = A y``); ``y (P, Q, J, 5)``: whitened
+    residuals ``L^-1 (z_j - zhat)`` (azimuths wrapped); ``P_post (P, Q, d, d) = P - A A^T``.
+    """
+
+    loglik: np.ndarray
+    y: np.ndarray
+    gain_sqrt: np.ndarray
+    P_post: np.ndarray
+
+
+def innovation(m: np.ndarray, P: np.ndarray, Z: np.ndarray, R: np.ndarray,
+               h: Callable[[np.ndarray], np.ndarray], stage: str) -> Innovation:
+    """CKF innovation of every Gaussian ``N(m, P)`` (``(..., d)``) against every ``z`` in ``Z (J, 5)``.
+
+    ``R (5, 5)`` is the filter's measurement covariance. Works for any leading batch shape.
+    """
+    zhat, Pzz, Pxz = ckf_moments(m, P, h, stage=stage)
+    S = symmetrize(Pzz + R)
+    L = safe_cholesky(S, stage + " (innovation covariance)")
+    Linv = np.linalg.inv(L)
+    r = Z - zhat[..., None, :]  # (..., J, 5)
+    for c in AZIMUTH_COMPONENTS:
+        r[..., c] = wrap_angle(r[..., c])
+    y = np.einsum("...ab,...jb->...ja", Linv, r)
+    half_logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
+    nz = Z.shape[-1]
+    loglik = -0.5 * np.einsum("...ja,...ja->...j", y, y) - half_logdet[..., None] - 0.5 * nz * _LOG_2PI
+    A = np.einsum("...dk,...ak->...da", Pxz, Linv)  # Pxz L^-T
+    P_post = symmetrize(P - np.einsum("...da,...ea->...de", A, A))
+    return Innovation(loglik, y, A, P_post)
+
+
+def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
+                  h: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Single CKF update of ``N(m, P)`` by one measurement ``z (nz,)``: ``(m_post, P_post, log N(z))``.
+
+    A convenience wrapper over :func:`innovation` (used by tests and for a single Gaussian).
+    """
+    inn = innovation(m, P, np.asarray(z, float)[None, :], R, h, "kalman_update")
+    m_post = m + np.einsum("...da,...a->...d", inn.gain_sqrt, inn.y[..., 0, :])
+    return m_post, inn.P_post, inn.loglik[..., 0]
+
+
+def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Measurement function of landmark points for per-particle vehicle states.
+
+    Args:
+        states: ``(P, 7)`` vehicle states.
+        lm_type: VA, SP or VS (VS: SP geometry on the first three state components).
+
+    Returns:
+        ``h(pts)`` mapping ``(P, Q, K, d)`` landmark points to ``(P, Q, K, 5)`` measurements.
+    """
+    s = states[:, None, None, :]
+
+    def h(pts: np.ndarray) -> np.ndarray:
+        return measure(s, pts[..., 0:3], lm_type, bs)
+
+    return h
+
+
+def predict_static(g: GM, p_survival: float) -> GM:
+    """Static landmark prediction (identity dynamics): weights times ``p_survival``."""
+    return GM(g.w * p_survival, g.m, g.P, g.mask)
+
+
+@dataclass
+class TypeCorrection:
+    """Intermediate per-type correction terms: detection terms and innovation.
+
+    ``logq (P, Q, J)``: ``log(p_D w N(z_j; zhat, S))`` (``-inf`` where masked);
+    ``missed_w (P, Q)``: ``(1 - p_D) w``.
+    """
+
+    g: GM
+    lm_type: int
+    logq: np.ndarray
+    missed_w: np.ndarray
+    inn: Innovation
+
+
+def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
+               bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray]) -> TypeCorrection:
+    """Detection terms of one map type (batched over particles, Gaussians and measurements).
+
+    Args:
+        g: predicted map of this type, batch ``(P,)``, ``Q`` slots, dim 3 (VA/SP) or 7 (VS).
+        states: ``(P, 7)`` particle vehicle states.
+        Z: ``(J, 5)`` measurements of this vehicle and step.
+        pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
+            probability evaluated at the Gaussian means.
+    """
+    inn = innovation(g.m, g.P, Z, R, landmark_h(states, lm_type, bs), f"{_tname(lm_type)} correction")
+    pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
+    pd = np.where(g.mask, pd, 0.0)
+    with np.errstate(divide="ignore"):
+        logq = np.log(pd * g.w)[..., None] + inn.loglik
+    logq = np.where(g.mask[..., None], logq, -np.inf)
+    return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn)
+
+
+def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
+               p_d: np.ndarray) -> np.ndarray:
+    """``log(p_D N(z_j; h(s_p, b, BS), R))`` for the known BS, shape ``(P, J)``.
+
+    ``p_d`` is ``(P,)``: the BS detection probability for each particle.
+    """
+    zhat = measure(states, bs, BS, bs)  # (P, 5)
+    r = Z[None, :, :] - zhat[:, None, :]
+    for c in AZIMUTH_COMPONENTS:
+        r[..., c] = wrap_angle(r[..., c])
+    L = safe_cholesky(R, "BS likelihood")
+    y = np.linalg.solve(L, r.reshape(-1, MEAS_DIM).T).T.reshape(r.shape)
+    half_logdet = np.log(np.diag(L)).sum()
+    ll = -0.5 * np.einsum("pja,pja->pj", y, y) - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+    with np.errstate(divide="ignore"):
+        return np.log(p_d)[:, None] + ll
+
+
+def log_psi(terms: list[TypeCorrection], bs_term: np.ndarray | None, log_clutter: float,
+            shape: tuple[int, int]) -> np.ndarray:
+    """``log psi(z_j) = log(c(z) + sum_types sum_q q + BS term)``, shape ``(P, J)`` (log-sum-exp).
+
+    Raises FloatingPointError if some ``psi(z)`` is zero or non-finite (e.g. no clutter and no
+    landmark can explain a measurement).
+    """
+    parts = [np.full(shape, float(log_clutter))]
+    if bs_term is not None:
+        parts.append(bs_term)
+    for t in terms:
+        if t.logq.shape[1]:
+            mx = t.logq.max(axis=1)
+            safe = np.where(np.isfinite(mx), mx, 0.0)
+            parts.append(safe + np.log(np.exp(t.logq - safe[:, None, :]).sum(axis=1)))
+    stacked = np.stack(parts, axis=0)
+    mx = stacked.max(axis=0)
+    if not np.isfinite(mx).all() or np.isnan(stacked).any():
+        raise FloatingPointError("psi(z) is zero or non-finite in the PHD correction "
+                                 "(no clutter and no landmark explains a measurement)")
+    return mx + np.log(np.exp(stacked - mx).sum(axis=0))
+
+
+def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray) -> GM:
+    """Corrected PHD of one type: missed-detection part plus one updated Gaussian per (q, z).
+
+    Returns a GM with batch ``(P,)`` and ``Q (1 + J)`` slots: the first ``Q`` are
+    ``(1 - p_D) w`` with the predicted moments, then ``Q x J`` updated components
+    (``w = q / psi(z)``, ``m + K r``, ``P - K S K^T``).
+    """
+    g, inn = t.g, t.inn
+    P_, Q, d = g.m.shape
+    J = Z.shape[0]
+    w_det = np.exp(t.logq - logpsi[:, None, :])  # (P, Q, J)
+    m_det = g.m[:, :, None, :] + np.einsum("pqda,pqja->pqjd", inn.gain_sqrt, inn.y)
+    P_det = np.broadcast_to(inn.P_post[:, :, None], (P_, Q, J, d, d))
+    mask_det = np.broadcast_to(g.mask[:, :, None], (P_, Q, J))
+    w = np.concatenate([np.where(g.mask, t.missed_w, 0.0), w_det.reshape(P_, Q * J)], axis=1)
+    m = np.concatenate([g.m, m_det.reshape(P_, Q * J, d)], axis=1)
+    Pc = np.concatenate([g.P, P_det.reshape(P_, Q * J, d, d)], axis=1)
+    mask = np.concatenate([g.mask, mask_det.reshape(P_, Q * J)], axis=1)
+    m = np.where(mask[..., None], m, 0.0)
+    Pc = np.where(mask[..., None, None], Pc, np.eye(d))
+    out = GM(np.where(mask, w, 0.0), m, Pc, mask)
+    out.check(f"after the {_tname(t.lm_type)} correction")
+    return out
+
+
+def _tname(t: int) -> str:
+    return {1: "VA", 2: "SP", 3: "VS"}.get(t, str(t))

@@ -1,0 +1,87 @@
+"""Vehicle particles of the Rao-Blackwellised particle filter (paper Sec. III-A).
+
+Vehicle states ``s = [x, y, z, alpha, zeta, xi, B]`` (m, m, m, rad, m/s, rad/s, m; global frame),
+particles ``(P, 7)`` with log-weights ``(P,)``. Speed ``zeta`` and turn rate ``xi`` are known
+inputs (on-board inertial sensor): the caller passes them per step and they overwrite the
+particles' values before the coordinated-turn transition.
+
+Every random draw uses the ``numpy.random.Generator`` passed in.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .dynamics import vehicle_ct, wrap_angle
+
+
+def init_particles(mean: np.ndarray, std: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` particles from ``N(mean, diag(std^2))``: ``(n, 7)`` (zero-std entries stay fixed)."""
+    mean = np.asarray(mean, float)
+    std = np.asarray(std, float)
+    return mean[None, :] + rng.standard_normal((n, mean.size)) * std[None, :]
+
+
+def propagate(s: np.ndarray, speed: float, turn_rate: float, dt: float, noise_std: np.ndarray,
+              rng: np.random.Generator) -> np.ndarray:
+    """Sample ``s' ~ f_V(. | s)``: CT transition with known speed / turn rate plus Gaussian noise.
+
+    Args:
+        s: ``(P, 7)`` particles at step k-1.
+        speed, turn_rate: the known inputs (m/s, rad/s) over the interval (from step k-1).
+        dt: time step (s).
+        noise_std: ``(7,)`` process noise std (zero entries draw nothing).
+
+    Returns:
+        ``(P, 7)`` particles at step k (heading wrapped to ``(-pi, pi]``; speed and turn rate
+        equal to the known inputs).
+    """
+    s = np.array(s, dtype=float, copy=True)
+    s[:, 4] = speed
+    s[:, 5] = turn_rate
+    out = vehicle_ct(s, dt)
+    out += rng.standard_normal(out.shape) * np.asarray(noise_std, float)[None, :]
+    out[:, 4] = speed
+    out[:, 5] = turn_rate
+    out[:, 3] = wrap_angle(out[:, 3])
+    return out
+
+
+def normalise_log_weights(logw: np.ndarray, stage: str = "particle weights") -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(log w - logsumexp(log w), w)``; FloatingPointError if all weights vanish / NaN."""
+    if np.isnan(logw).any():
+        raise FloatingPointError(f"NaN {stage}")
+    mx = logw.max()
+    if not np.isfinite(mx):
+        raise FloatingPointError(f"all {stage} are zero or infinite")
+    lw = logw - mx
+    lse = np.log(np.exp(lw).sum())
+    lw = lw - lse
+    return lw, np.exp(lw)
+
+
+def ess(w: np.ndarray) -> float:
+    """Effective sample size ``1 / sum w^2`` of normalised weights ``(P,)``."""
+    return float(1.0 / np.sum(w * w))
+
+
+def systematic_resample(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Systematic resampling: ``(P,)`` ancestor indices for normalised weights ``w (P,)``."""
+    n = w.size
+    u = (rng.random() + np.arange(n)) / n
+    c = np.cumsum(w)
+    c[-1] = 1.0
+    return np.minimum(np.searchsorted(c, u, side="right"), n - 1)
+
+
+def weighted_state_mean(s: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Posterior-mean vehicle state ``(7,)``; the heading is a circular (weighted) mean."""
+    m = w @ s
+    m[3] = np.arctan2(w @ np.sin(s[:, 3]), w @ np.cos(s[:, 3]))
+    return m
+
+
+def weighted_state_cov(s: np.ndarray, w: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Weighted particle covariance ``(7, 7)`` around ``mean`` (heading differences wrapped)."""
+    d = s - mean[None, :]
+    d[:, 3] = wrap_angle(d[:, 3])
+    return np.einsum("p,pa,pb->ab", w, d, d)

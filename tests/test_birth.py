@@ -1,0 +1,96 @@
+"""Birth by geometric inversion of measurements (slam/birth.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.slam.birth import birth_gm, invert_sp, invert_va
+from mmslam.slam.measurement import SP, VA, VS, measure
+
+BS_POS = np.array([0.0, 0.0, 40.0])
+R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+
+
+def _pd(u, x, t):
+    inside = (t == VA) | (np.linalg.norm(np.asarray(u) - np.asarray(x), axis=-1) <= 50.0)
+    return np.where(inside, 0.95, 0.0)
+
+
+def _random_states(rng, n):
+    s = np.zeros((n, 7))
+    s[:, 0:2] = rng.uniform(-80, 80, (n, 2))
+    s[:, 2] = rng.uniform(0, 2, n)
+    s[:, 3] = rng.uniform(-np.pi, np.pi, n)
+    s[:, 4] = 20.0
+    s[:, 5] = 0.3
+    s[:, 6] = rng.uniform(-50, 300, n)
+    return s
+
+
+def test_va_inversion_of_exact_measurement_returns_the_image_source():
+    rng = np.random.default_rng(1)
+    s = _random_states(rng, 200)
+    vas = np.array([[200.0, 0, 40], [-200.0, 0, 40], [0, 200.0, 40], [0, -200.0, 40]])
+    lm = vas[rng.integers(0, 4, 200)]
+    z = measure(s, lm, VA, BS_POS)
+    pos, ok = invert_va(s, z, BS_POS)
+    assert ok.all()
+    assert np.abs(pos - lm).max() < 1e-6
+
+
+def test_sp_inversion_of_exact_measurement_returns_the_scatter_point():
+    rng = np.random.default_rng(2)
+    s = _random_states(rng, 200)
+    lm = np.column_stack([rng.uniform(-90, 90, (200, 2)), rng.uniform(0, 40, 200)])
+    z = measure(s, lm, SP, BS_POS)
+    pos, ok = invert_sp(s, z, BS_POS)
+    assert ok.all()
+    assert np.abs(pos - lm).max() < 1e-6
+
+
+def test_sp_inversion_rejects_a_bistatic_range_shorter_than_the_direct_path():
+    s = np.array([50.0, 0, 0, 0, 20, 0.3, 10.0])
+    z = measure(s, np.array([60.0, 10.0, 5.0]), SP, BS_POS)
+    z[0] = np.linalg.norm(BS_POS - s[:3]) + s[6] - 1.0  # 1 m shorter than LOS: impossible
+    _, ok = invert_sp(s, z, BS_POS)
+    assert not ok
+
+
+def test_birth_gm_centres_on_the_landmark_and_drops_sp_outside_fov():
+    s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0],
+                  [70.0, 1.0, 0, np.pi / 2 + 0.01, 22.22, np.pi / 10, 299.5]])
+    near = np.array([60.0, 20.0, 10.0])   # ~24 m away: inside the 50 m FOV
+    far = np.array([-55.0, 55.0, 10.0])   # ~138 m away: outside
+    Z = np.stack([measure(s[0], near, SP, BS_POS), measure(s[0], far, SP, BS_POS)])
+    g = birth_gm(s, Z, R, SP, BS_POS, 1.5e-5, _pd)
+    assert g.w.shape == (2, 2)
+    assert g.mask[:, 0].all() and not g.mask[:, 1].any()
+    assert np.allclose(g.w[:, 0], 1.5e-5) and np.all(g.w[:, 1] == 0)
+    # particle 0 is the true state: birth mean within a fraction of the spread of the truth
+    assert np.linalg.norm(g.m[0, 0] - near) < 0.5
+    assert np.all(np.linalg.eigvalsh(g.P[0, 0]) > 0)
+    # particle 1 is displaced: its birth lands elsewhere (the map is conditioned on the particle)
+    assert np.linalg.norm(g.m[1, 0] - g.m[0, 0]) > 0.5
+
+
+def test_va_births_are_kept_at_any_range_and_vs_births_are_7d():
+    s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
+    va = np.array([200.0, 0, 40])
+    vs = np.array([60.73, 0.0, 0.0])
+    far = np.array([-55.0, 55.0, 10.0])
+    Z = np.stack([measure(s[0], far, SP, BS_POS), measure(s[0], vs, VS, BS_POS)])
+    gva = birth_gm(s, np.stack([measure(s[0], va, VA, BS_POS)] * 2), R, VA, BS_POS, 1.5e-5, _pd)
+    assert gva.mask.all()  # VA births have no range gate (the VA is 135 m away)
+    assert np.linalg.norm(gva.m[0, 0] - va) < 1.0
+    gvs = birth_gm(s, Z, R, VS, BS_POS, 1.5e-5, _pd, (100.0, 100.0, 0.09), np.pi / 2)
+    assert gvs.dim == 7
+    assert gvs.mask[0, 1] and not gvs.mask[0, 0]  # the far SP's image is outside the FOV: no VS birth
+    assert np.linalg.norm(gvs.m[0, 1, :3] - vs) < 1.0
+    assert np.allclose(np.diag(gvs.P[0, 1])[3:], [100.0, 100.0, 0.09, (np.pi / 2) ** 2])
+    assert np.all(gvs.m[0, 1, 3:6] == 0.0)
+
+
+def test_birth_with_no_measurements_is_empty():
+    s = np.zeros((3, 7))
+    g = birth_gm(s, np.zeros((0, 5)), R, SP, BS_POS, 1.5e-5, _pd)
+    assert g.w.shape == (3, 0) and g.m.shape == (3, 0, 3)

@@ -1,0 +1,136 @@
+"""CKF machinery and GM-PHD correction (slam/gmphd.py); Jacobians used by the filter."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
+from mmslam.slam.gm import GM
+from mmslam.slam.gmphd import (bs_logterm, ckf_moments, corrected_gm, cubature_points, kalman_update,
+                               log_psi, type_terms)
+from mmslam.slam.measurement import SP, VA, VS, measure
+
+BS_POS = np.array([0.0, 0.0, 40.0])
+R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+
+
+def _spd(rng, d, scale=1.0):
+    A = rng.standard_normal((d, d))
+    return scale * (A @ A.T + d * np.eye(d))
+
+
+@pytest.mark.parametrize("d", [3, 7])
+def test_ckf_update_equals_kalman_update_for_a_linear_measurement(d):
+    rng = np.random.default_rng(d)
+    H = rng.standard_normal((5, d)) * 0.05  # small so the "azimuth" components never wrap
+    if d == 7:
+        H[:, 3:] = 0.0  # like VS: only the position is observed
+    m = rng.standard_normal(d)
+    P = _spd(rng, d, 0.1)
+    Rm = _spd(rng, 5, 0.01)
+    z = H @ m + rng.standard_normal(5) * 0.1
+    m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H.T)
+    S = H @ P @ H.T + Rm
+    K = P @ H.T @ np.linalg.inv(S)
+    r = z - H @ m
+    m_kf = m + K @ r
+    P_kf = P - K @ S @ K.T
+    ll_kf = -0.5 * r @ np.linalg.solve(S, r) - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
+    assert np.allclose(m_ckf, m_kf, atol=1e-10)
+    assert np.allclose(P_ckf, P_kf, atol=1e-10)
+    assert np.isclose(ll_ckf, ll_kf, atol=1e-9)
+    if d == 7:  # the unobserved velocity is corrected only through its correlation
+        assert not np.allclose(m_ckf[3:], m[3:])
+
+
+def test_cubature_points_reproduce_mean_and_covariance():
+    rng = np.random.default_rng(0)
+    m = rng.standard_normal((4, 7))
+    P = np.stack([_spd(rng, 7) for _ in range(4)])
+    X = cubature_points(m, P)
+    assert X.shape == (4, 14, 7)
+    assert np.allclose(X.mean(1), m)
+    D = X - m[:, None]
+    assert np.allclose(np.einsum("nka,nkb->nab", D, D) / 14, P)
+
+
+def test_ckf_moments_handle_azimuth_wrap_at_pi():
+    # vehicle heading 0, SP straight behind it: body AOA azimuth ~ +-pi
+    s = np.array([50.0, 0.0, 0.0, 0.0, 20.0, 0.3, 0.0])
+    lm = np.array([30.0, 0.0, 5.0])
+    P = np.eye(3) * 0.5
+    zhat, Pzz, _ = ckf_moments(lm, P, lambda x: measure(s, x, SP, BS_POS))
+    ztrue = measure(s, lm, SP, BS_POS)
+    d = (zhat[3] - ztrue[3] + np.pi) % (2 * np.pi) - np.pi
+    assert abs(d) < 1e-2
+    assert Pzz[3, 3] < 0.01  # a naive mean over +-pi would give a variance ~ pi^2
+
+
+def test_vs_ct_jacobian_matches_finite_differences():
+    # used by predict_vs inside the VS map prediction
+    rng = np.random.default_rng(3)
+    for xi in (0.3, -0.7, 1e-7, 0.0):
+        t = np.array([10.0, -5.0, 1.0, 12.0, -3.0, 0.2, xi]) + np.r_[rng.standard_normal(6), 0.0]
+        J = vs_ct_jacobian(t, 0.5)
+        eps = 1e-6
+        Jfd = np.stack([(vs_ct(t + eps * e, 0.5) - vs_ct(t - eps * e, 0.5)) / (2 * eps) for e in np.eye(7)], 1)
+        assert np.allclose(J, Jfd, atol=1e-6)
+
+
+def _pd(u, x, t):
+    inside = (t == VA) | (np.linalg.norm(np.asarray(u) - np.asarray(x), axis=-1) <= 50.0)
+    return np.where(inside, 0.95, 0.0)
+
+
+def test_phd_correction_weights_partition_each_measurement():
+    """For every z: sum of updated weights + (c + BS term)/psi = 1 (eq. prevCorrPHD)."""
+    rng = np.random.default_rng(5)
+    P_, Q = 4, 3
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
+    s[:, 0:2] += rng.standard_normal((P_, 2)) * 0.3
+    sp = np.array([[60.0, 40.0, 5.0], [60.0, 20.0, 5.0], [-55.0, 55, 10.0]])
+    g = GM(np.tile([0.9, 0.5, 0.7], (P_, 1)), np.tile(sp, (P_, 1, 1)) + rng.standard_normal((P_, Q, 3)),
+           np.tile(np.eye(3), (P_, Q, 1, 1)), np.ones((P_, Q), bool))
+    Z = np.stack([measure(s[0], sp[1], SP, BS_POS), measure(s[0], BS_POS, 0, BS_POS),
+                  np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
+    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    bt = bs_logterm(s, Z, R, BS_POS, np.full(P_, 0.95))
+    lc = np.log(1.2832e-5)
+    lp = log_psi([tc], bt, lc, (P_, 3))
+    out = corrected_gm(tc, Z, lp)
+    assert out.w.shape == (P_, Q * 4)
+    det = out.w[:, Q:].reshape(P_, Q, 3).sum(1)
+    total = det + np.exp(lc - lp) + np.exp(bt - lp)
+    assert np.allclose(total, 1.0)
+    # the SP outside the 50 m FOV (third) is not detected: its missed weight is its full weight
+    assert np.allclose(out.w[:, 2], 0.7)
+    assert np.allclose(out.w[:, 0], 0.05 * 0.9)
+    # the measurement of SP 2 is explained by it, the BS measurement by the BS, the third by clutter
+    assert np.all(out.w[:, Q:].reshape(P_, Q, 3)[:, 1, 0] > 0.5)
+    assert np.all(np.exp(bt[:, 1] - lp[:, 1]) > 0.99)
+    assert np.all(np.exp(lc - lp[:, 2]) > 0.99)
+
+
+def test_vs_correction_moves_velocity_only_through_correlation():
+    s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
+    t_true = np.array([60.73, 0.0, 0.0])
+    m = np.array([[[61.5, 0.5, 0.3, 0.0, 19.0, 0.0, 0.3]]])
+    P = np.diag([4.0, 4.0, 1.0, 9.0, 9.0, 0.1, 0.2])
+    P[0, 3] = P[3, 0] = 3.0  # x correlated with vx
+    g = GM(np.array([[1.0]]), m, P[None, None], np.ones((1, 1), bool))
+    Z = measure(s[0], t_true, VS, BS_POS)[None]
+    tc = type_terms(g, VS, s, Z, R, BS_POS, _pd)
+    lp = log_psi([tc], None, np.log(1.2832e-5), (1, 1))
+    out = corrected_gm(tc, Z, lp)
+    upd = out.m[0, 1]
+    assert np.linalg.norm(upd[:3] - t_true) < np.linalg.norm(m[0, 0, :3] - t_true)
+    assert upd[3] != m[0, 0, 3]          # correlated velocity component moved
+    assert np.isclose(upd[4], m[0, 0, 4])  # uncorrelated one did not
+    assert np.all(np.linalg.eigvalsh(out.P[0, 1]) > 0)
+
+
+def test_nan_in_a_map_raises_floating_point_error():
+    s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
+    g = GM(np.array([[1.0]]), np.array([[[np.nan, 0.0, 0.0]]]), np.eye(3)[None, None], np.ones((1, 1), bool))
+    with pytest.raises(FloatingPointError):
+        type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, _pd)
