@@ -252,6 +252,8 @@ def build_scene(scn: Scenario, out_dir: str | Path) -> Path:
 def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
     """Top-down plan (x east, y north, m): BS, buildings, SPs, VAs, trajectories, FOV circles.
 
+    Trajectories start at the open circle; the arrow head marks the last step's direction.
+
     FOV circles (radius ``sensor.fov_range``) are drawn around ``fov_points`` evenly spaced
     trajectory points of each vehicle. Written atomically as PNG; returns the path.
     """
@@ -276,7 +278,9 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
     for i, v in enumerate(scn.vehicles):
         c = colors[i % len(colors)]
         ax.plot(traj[:, i, 0], traj[:, i, 1], "-", color=c, lw=1.5, label=f"{v.name} trajectory")
-        ax.plot(traj[0, i, 0], traj[0, i, 1], ">", color=c, ms=8)
+        ax.plot(traj[0, i, 0], traj[0, i, 1], "o", color=c, ms=7, mfc="white")  # start
+        ax.annotate("", xy=traj[-1, i, :2], xytext=traj[-2, i, :2],
+                    arrowprops=dict(arrowstyle="-|>", color=c, lw=1.5))  # direction at the end
         idx = np.linspace(0, len(traj) - 1, max(fov_points, 1)).round().astype(int)
         for j, k in enumerate(np.unique(idx)):
             ax.add_patch(Circle((traj[k, i, 0], traj[k, i, 1]), scn.sensor.fov_range, fill=False, color=c,
