@@ -1,0 +1,405 @@
+"""Tests of mmslam.pipelines: ablation grid, executors, resume, aggregation, figures, report, CLI.
+
+The end-to-end tests (``slow``) run the real filter through the CLI on the analytic source with
+a small grid: 8 steps, P = 50, 2 seeds, 3 variants. The fast tests check the aggregation
+arithmetic on hand-made results and the argument checks.
+"""
+from __future__ import annotations
+
+import html.parser
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmslam.cli import main
+from mmslam.pipelines import ablate as A
+from mmslam.pipelines import figures as F
+from mmslam.slam.result import Result
+
+STEPS, PARTICLES, MC = 8, 50, 2
+SMALL = ["--source", "analytic", "--steps", str(STEPS), "--particles", str(PARTICLES), "--mc", str(MC),
+         "--quiet"]
+
+
+# ====================================================================== helpers
+def _run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+def _assert_one_line_error(code: int, err: str, *needles: str) -> None:
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: ")
+    for n in needles:
+        assert n in lines[0]
+
+
+def _jobs(d: Path) -> dict[A.Job, Result]:
+    return {A.Job(v, s): Result.load(A.job_dir(d, A.Job(v, s))) for v in A.VARIANTS for s in range(MC)}
+
+
+def _same_result(a: Result, b: Result) -> None:
+    for name in ("vehicles", "metrics", "landmarks"):
+        ta, tb = getattr(a, name), getattr(b, name)
+        assert set(ta) == set(tb)
+        for k in ta:
+            va, vb = np.asarray(ta[k]), np.asarray(tb[k])
+            assert va.shape == vb.shape, (name, k)
+            if va.dtype.kind == "f":
+                np.testing.assert_array_equal(va, vb, err_msg=f"{name}.{k}")
+            else:
+                assert va.tolist() == vb.tolist(), (name, k)
+    strip = lambda m: {k: v for k, v in m.items() if k != "wall_time_s"}  # noqa: E731
+    assert strip(a.meta) == strip(b.meta)
+
+
+def _summary_tables_equal(a: A.Summary, b: A.Summary) -> None:
+    assert set(a.table) == set(b.table)
+    for k in a.table:
+        va, vb = np.asarray(a.table[k]), np.asarray(b.table[k])
+        if va.dtype.kind == "f":
+            np.testing.assert_array_equal(va, vb, err_msg=k)
+        else:
+            assert va.tolist() == vb.tolist(), k
+
+
+class _SummaryTableParser(html.parser.HTMLParser):
+    """(variant, map, col) -> data-value of the report's <table id="summary">."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.inside = False
+        self.row: tuple[str, str] | None = None
+        self.cells: dict[tuple[str, str, str], str] = {}
+
+    def handle_starttag(self, tag: str, attrs: list) -> None:
+        a = dict(attrs)
+        if tag == "table":
+            self.inside = a.get("id") == "summary"
+        elif self.inside and tag == "tr" and "data-variant" in a:
+            self.row = (a["data-variant"], a["data-map"])
+        elif self.inside and tag == "td" and "data-col" in a and self.row:
+            self.cells[(*self.row, a["data-col"])] = a["data-value"]
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == "table":
+            self.inside = False
+
+
+def _expected_headline(jobs: dict[A.Job, Result], variant: str, map_: str, fusion_start: int) -> dict:
+    """Headline numbers recomputed straight from the job results."""
+    res = [r for j, r in jobs.items() if j.variant == variant]
+    out = {}
+    for ty in ("VA", "SP", "VS"):
+        vals = np.concatenate([np.asarray(r.metrics["gospa"], float)[
+            (np.asarray(r.metrics["map"]).astype(str) == map_) & (np.asarray(r.metrics["type"]).astype(str) == ty)
+            & (np.asarray(r.metrics["step"]) >= fusion_start)] for r in res])
+        out[f"gospa_{ty}"] = float(np.nanmean(vals))
+    names = res[0].meta["vehicle_names"]
+    errs = []
+    for r in res:
+        sel = np.asarray(r.vehicles["step"]) >= fusion_start
+        if map_ != "fused":
+            sel &= np.asarray(r.vehicles["vehicle"]) == names.index(map_)
+        errs.append(np.asarray(r.vehicles["pos_err"], float)[sel])
+    e = np.concatenate(errs)
+    out["pos_rmse"] = float(np.sqrt(np.mean(e ** 2)))
+    out["runs"] = len(res)
+    return out
+
+
+# ====================================================================== fast unit tests
+def test_parse_variants_keeps_order_and_rejects_unknown_and_duplicates() -> None:
+    assert A.parse_variants("proposed, baseline") == ("proposed", "baseline")
+    with pytest.raises(A.ConfigError, match="unknown variant 'cm2'"):
+        A.parse_variants("baseline,cm2")
+    with pytest.raises(A.ConfigError, match="given twice"):
+        A.parse_variants("cm1,cm1")
+    with pytest.raises(A.ConfigError, match="empty"):
+        A.parse_variants(" , ")
+
+
+def test_plan_jobs_is_the_variant_by_seed_grid() -> None:
+    jobs = A.plan_jobs(["baseline", "proposed"], 3)
+    assert [j.name for j in jobs] == ["baseline-seed0", "baseline-seed1", "baseline-seed2",
+                                      "proposed-seed0", "proposed-seed1", "proposed-seed2"]
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"mc": 0}, "--mc 0"), ({"particles": 0}, "--particles 0"), ({"steps": 0}, "--steps 0"),
+    ({"executor": "ray"}, "--executor ray"), ({"scheduler": "tcp://x:1"}, "--scheduler"),
+    ({"workers": 0}, "--workers 0"),
+])
+def test_check_run_args_rejects_bad_numbers(kw: dict, needle: str) -> None:
+    args = {"mc": 2, "particles": 10, "steps": None, "executor": "local", "scheduler": None, "workers": None}
+    args.update(kw)
+    with pytest.raises(A.MmslamError) as e:
+        A.check_run_args(**args)
+    assert needle in str(e.value) and "\n" not in str(e.value)
+
+
+def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray) -> Result:
+    """A result with given fused-VS GOSPA per step and per-(step, vehicle) position errors."""
+    steps = len(gospa)
+    st, mp, ty, g = [], [], [], []
+    for k in range(steps):
+        for m in ("veh1", "veh2", "fused"):
+            for t in ("VA", "SP", "VS"):
+                st.append(k), mp.append(m), ty.append(t), g.append(gospa[k] if (m, t) == ("fused", "VS") else 1.0)
+    n = len(st)
+    g = np.asarray(g, float)
+    metrics = {"step": np.asarray(st, np.int32), "map": np.asarray(mp, object), "type": np.asarray(ty, object),
+               "gospa": g, "loc": g ** 2, "missed": np.zeros(n), "false": np.zeros(n),
+               "n_est": np.ones(n, np.int32), "n_true": np.ones(n, np.int32)}
+    vst = np.repeat(np.arange(steps), 2).astype(np.int32)
+    vid = np.tile([0, 1], steps).astype(np.int16)
+    z = np.zeros(2 * steps)
+    vehicles = {"step": vst, "vehicle": vid, "x": z, "y": z, "z": z, "heading": z, "bias": z, "true_x": z,
+                "true_y": z, "true_z": z, "true_heading": z, "true_bias": z,
+                "pos_err": np.asarray(pos_err, float).ravel(), "heading_err": z, "bias_err": z}
+    landmarks = {"step": np.zeros(0, np.int32), "map": np.zeros(0, object), "type": np.zeros(0, object),
+                 "x": np.zeros(0), "y": np.zeros(0), "z": np.zeros(0), "weight": np.zeros(0)}
+    meta = {"variant": variant, "seed": seed, "particles": 7, "steps": steps, "vehicle_names": ["veh1", "veh2"],
+            "wall_time_s": 1.0 + seed}
+    return Result(vehicles, metrics, landmarks, meta)
+
+
+def test_aggregate_means_rms_and_headline_on_known_numbers(tmp_path: Path) -> None:
+    """Stored jobs are skipped (no filter runs) and the summary holds the right arithmetic."""
+    out = tmp_path / "abl"
+    cache = A.prepare_cache("paper", "analytic", out, steps=6, progress=False)
+    g = {0: np.array([10.0, 8, 6, 4, 2, 0]), 1: np.array([20.0, 18, 16, 14, 12, 10])}
+    pe = {0: np.full((6, 2), 3.0), 1: np.full((6, 2), 4.0)}
+    for s in (0, 1):
+        _hand_result("proposed", s, g[s], pe[s]).save(A.job_dir(out, A.Job("proposed", s)))
+    run = A.run_ablation(cache, out, ["proposed"], mc=2, particles=7, progress=False)
+    assert run.ran == [] and len(run.skipped) == 2
+    s = A.load_summary(out)
+    vs = s.series("proposed", "fused", "VS", "gospa")
+    np.testing.assert_allclose(vs["mean"], (g[0] + g[1]) / 2)
+    np.testing.assert_allclose(vs["std"], np.abs(g[0] - g[1]) / 2)  # population std of two values
+    assert vs["n"].tolist() == [2] * 6
+    pos = s.series("proposed", "all", "state", "pos_err")
+    np.testing.assert_allclose(pos["rms"], math.sqrt((9 + 16) / 2))  # over 2 runs x 2 vehicles
+    assert pos["n"].tolist() == [4] * 6
+    fused = next(r for r in s.headline if r["map"] == "fused")
+    assert s.config["fusion_start"] == 5
+    assert fused["gospa_VS"] == pytest.approx((0 + 10) / 2)  # steps >= 5 only
+    assert fused["pos_rmse"] == pytest.approx(math.sqrt(12.5))
+    assert fused["wall_time_s"] == pytest.approx(1.5)
+    on_disk = json.loads((out / A.SUMMARY_JSON).read_text())
+    assert on_disk["headline"][2]["gospa_VS"] == pytest.approx(5.0)
+
+
+def test_resume_rejects_other_particles_and_keeps_jobs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "abl"
+    cache = A.prepare_cache("paper", "analytic", out, steps=6, progress=False)
+    for s in (0, 1):
+        _hand_result("proposed", s, np.zeros(6), np.zeros((6, 2))).save(A.job_dir(out, A.Job("proposed", s)))
+    A.run_ablation(cache, out, ["proposed"], mc=2, particles=7, progress=False)
+    before = sorted(p.name for p in (out / "jobs").iterdir())
+    code, _, err = _run_cli(["ablate", "paper", "--variants", "proposed", "--source", "analytic", "--steps", "6",
+                             "--mc", "2", "--particles", "8", "--out", str(out), "--quiet"], capsys)
+    _assert_one_line_error(code, err, "particles=7", "particles=8", "another --out")
+    assert sorted(p.name for p in (out / "jobs").iterdir()) == before
+
+
+def test_bad_cli_input_gives_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bad"
+    code, _, err = _run_cli(["ablate", "paper", "--variants", "baseline,nope", "--out", str(out)] + SMALL, capsys)
+    _assert_one_line_error(code, err, "nope", "--variants")
+    code, _, err = _run_cli(["ablate", "paper", "--out", str(out), "--source", "analytic", "--mc", "0"], capsys)
+    _assert_one_line_error(code, err, "--mc 0")
+    code, _, err = _run_cli(["ablate", "paper", "--out", str(out), "--source", "analytic", "--particles", "0"],
+                            capsys)
+    _assert_one_line_error(code, err, "--particles 0")
+    code, _, err = _run_cli(["demo", "--mc", "0", "--out", str(out)], capsys)
+    _assert_one_line_error(code, err, "--mc 0")
+    assert not out.exists()  # nothing started
+    code, _, err = _run_cli(["report", str(tmp_path / "missing")], capsys)
+    _assert_one_line_error(code, err, "missing", "mmslam ablate")
+
+
+def test_unreachable_scheduler_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "dask-bad"
+    code, _, err = _run_cli(["ablate", "paper", "--out", str(out), "--executor", "dask", "--scheduler",
+                             "tcp://127.0.0.1:9"] + SMALL, capsys)
+    _assert_one_line_error(code, err, "tcp://127.0.0.1:9", "dask scheduler")
+    assert not any((out / "jobs").iterdir())
+
+
+# ====================================================================== end to end (real filter)
+@pytest.fixture(scope="module")
+def e2e(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One small ablation with report through the CLI, local executor, 2 workers."""
+    d = tmp_path_factory.mktemp("pipelines") / "abl"
+    code = main(["ablate", "paper", "--out", str(d), "--workers", "2", "--report"] + SMALL)
+    assert code == 0
+    return {"dir": d, "jobs": _jobs(d)}
+
+
+@pytest.mark.slow
+def test_e2e_results_figures_and_report_exist(e2e: dict) -> None:
+    d = e2e["dir"]
+    assert sorted(p.name for p in (d / "jobs").iterdir()) == sorted(
+        f"{v}-seed{s}" for v in A.VARIANTS for s in range(MC))
+    for j, r in e2e["jobs"].items():
+        assert r.meta["variant"] == j.variant and r.meta["seed"] == j.seed
+        assert r.meta["particles"] == PARTICLES
+        assert sorted(set(np.asarray(r.metrics["step"]).tolist())) == list(range(STEPS))
+    for name in ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "map_baseline",
+                 "map_cm1", "map_proposed"):
+        png = d / "figures" / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = (d / "report.html").read_text()
+    assert text.count("data:image/png;base64,") == 7
+    assert "numpy" in text and "sionna-rt" in text and "scipy" in text
+    cmd = text.split('<pre id="command">')[1].split("</pre>")[0]
+    assert cmd.startswith("mmslam ablate paper --variants baseline,cm1,proposed --mc 2 --particles 50 "
+                          "--source analytic")
+
+
+@pytest.mark.slow
+def test_e2e_gospa_figures_plot_the_stored_means(e2e: dict) -> None:
+    d, jobs = e2e["dir"], e2e["jobs"]
+    s = A.load_summary(d)
+    for ty in ("VS", "VA", "SP"):
+        fig = F.fig_gospa(s, ty)
+        ax = fig.axes[0]
+        lines = {ln.get_label(): ln for ln in ax.get_lines() if ln.get_label() in A.VARIANTS}
+        assert sorted(lines) == sorted(A.VARIANTS)
+        marks = [ln for ln in ax.get_lines() if ln.get_gid() == "fusion_start"]
+        assert len(marks) == 1 and marks[0].get_xdata()[0] == 5
+        assert "GOSPA [m]" in ax.get_ylabel() and "time step" in ax.get_xlabel()
+        for v, ln in lines.items():
+            # equals the stored summary ...
+            stored = s.series(v, "fused", ty, "gospa")
+            np.testing.assert_array_equal(ln.get_xdata(), stored["step"])
+            np.testing.assert_array_equal(ln.get_ydata(), stored["mean"])
+            # ... which equals the mean over seeds of the job results
+            per_seed = []
+            for seed in range(MC):
+                m = jobs[A.Job(v, seed)].metrics
+                sel = (np.asarray(m["map"]).astype(str) == "fused") & (np.asarray(m["type"]).astype(str) == ty)
+                order = np.argsort(np.asarray(m["step"])[sel])
+                per_seed.append(np.asarray(m["gospa"], float)[sel][order])
+            np.testing.assert_allclose(ln.get_ydata(), np.mean(per_seed, axis=0), rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_e2e_rmse_figure_is_rmse_over_runs_and_vehicles(e2e: dict) -> None:
+    d, jobs = e2e["dir"], e2e["jobs"]
+    fig = F.fig_position_rmse(A.load_summary(d))
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines() if ln.get_label() in A.VARIANTS}
+    assert sorted(lines) == sorted(A.VARIANTS)
+    assert ax.get_ylabel() == "position RMSE [m]"
+    for v, ln in lines.items():
+        sq = np.zeros(STEPS)
+        cnt = np.zeros(STEPS)
+        for seed in range(MC):
+            vt = jobs[A.Job(v, seed)].vehicles
+            np.add.at(sq, np.asarray(vt["step"]), np.asarray(vt["pos_err"], float) ** 2)
+            np.add.at(cnt, np.asarray(vt["step"]), 1)
+        assert cnt.tolist() == [MC * 2] * STEPS
+        np.testing.assert_allclose(ln.get_ydata(), np.sqrt(sq / cnt), rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_e2e_map_figure_shows_truth_and_estimates(e2e: dict) -> None:
+    from mmslam.scenes.scenario import load_preset
+
+    r = e2e["jobs"][A.Job("proposed", 0)]
+    fig = F.fig_map(r, load_preset("paper"))
+    gids = {ln.get_gid(): ln for ln in fig.axes[0].get_lines()}
+    assert len(gids["true:VA"].get_xdata()) == 4 and len(gids["true:SP"].get_xdata()) == 4
+    assert len(gids["true:VS"].get_xdata()) == 2
+    tr = np.asarray(r.vehicles["true_x"])[np.asarray(r.vehicles["vehicle"]) == 0]
+    np.testing.assert_array_equal(np.sort(gids["true_traj:veh1"].get_xdata()), np.sort(tr))
+    lm = r.landmarks
+    last = (np.asarray(lm["step"]) == STEPS - 1) & (np.asarray(lm["map"]).astype(str) == "fused")
+    n_est = sum(len(gids[f"est:{t}"].get_xdata()) for t in ("VA", "SP", "VS"))
+    if last.any():
+        assert n_est == int(last.sum())
+
+
+@pytest.mark.slow
+def test_e2e_report_table_matches_stored_results(e2e: dict) -> None:
+    d, jobs = e2e["dir"], e2e["jobs"]
+    p = _SummaryTableParser()
+    p.feed((d / "report.html").read_text())
+    rows = {(v, m) for v, m, _ in p.cells}
+    assert rows == {(v, m) for v in A.VARIANTS for m in ("veh1", "veh2", "fused")}
+    for v, m in rows:
+        exp = _expected_headline(jobs, v, m, fusion_start=5)
+        for col, val in exp.items():
+            got = float(p.cells[(v, m, col)])
+            assert got == pytest.approx(val, rel=1e-12, abs=1e-12), (v, m, col)
+        walls = [jobs[A.Job(v, s)].meta["wall_time_s"] for s in range(MC)]
+        assert float(p.cells[(v, m, "wall_time_s")]) == pytest.approx(np.mean(walls))
+
+
+@pytest.mark.slow
+def test_e2e_report_command_regenerates_from_stored_results(e2e: dict, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    d = tmp_path / "copy"
+    shutil.copytree(e2e["dir"], d)
+    shutil.rmtree(d / "figures")
+    (d / "report.html").unlink()
+    (d / "summary.parquet").unlink()
+    code, out, _ = _run_cli(["report", str(d)], capsys)
+    assert code == 0 and "report.html" in out
+    assert (d / "report.html").is_file() and len(list((d / "figures").glob("*.png"))) == 7
+    _summary_tables_equal(A.load_summary(d), A.load_summary(e2e["dir"]))
+
+
+@pytest.mark.slow
+def test_e2e_dask_local_cluster_gives_identical_results(e2e: dict, tmp_path: Path) -> None:
+    d = tmp_path / "dask"
+    code = main(["ablate", "paper", "--out", str(d), "--executor", "dask", "--workers", "2"] + SMALL)
+    assert code == 0
+    for j, r in _jobs(d).items():
+        _same_result(r, e2e["jobs"][j])
+    _summary_tables_equal(A.load_summary(d), A.load_summary(e2e["dir"]))
+
+
+@pytest.mark.slow
+def test_e2e_resume_runs_only_missing_jobs(e2e: dict, tmp_path: Path) -> None:
+    d = tmp_path / "resume"
+    shutil.copytree(e2e["dir"], d)
+    lost = A.Job("cm1", 1)
+    shutil.rmtree(A.job_dir(d, lost))
+    stamps = {j: (A.job_dir(d, j) / "meta.json").stat().st_mtime_ns for j in e2e["jobs"] if j != lost}
+    cache = next((d / "cache").iterdir())
+    run = A.run_ablation(cache, d, A.VARIANTS, mc=MC, particles=PARTICLES, steps=STEPS, workers=1, progress=False)
+    assert run.ran == [lost]
+    assert sorted(run.skipped) == sorted(stamps)
+    for j, t in stamps.items():
+        assert (A.job_dir(d, j) / "meta.json").stat().st_mtime_ns == t
+    _same_result(Result.load(A.job_dir(d, lost)), e2e["jobs"][lost])
+    _summary_tables_equal(A.load_summary(d), A.load_summary(e2e["dir"]))
+    # a second re-run has nothing to do
+    assert A.run_ablation(cache, d, A.VARIANTS, mc=MC, particles=PARTICLES, steps=STEPS, progress=False).ran == []
+
+
+@pytest.mark.slow
+def test_e2e_demo_on_analytic_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    d = tmp_path / "demo"
+    code, out, _ = _run_cli(["demo", "--source", "analytic", "--mc", "1", "--particles", "20", "--out", str(d),
+                             "--quiet"], capsys)
+    assert code == 0
+    assert f"report: {d / 'report.html'}" in out.replace("\n", "")
+    spec = json.loads((d / "ablation.json").read_text())
+    assert spec["scenario_name"] == "paper" and spec["steps"] == 40 and spec["variants"] == list(A.VARIANTS)
+    assert spec["command"] == f"mmslam demo --source analytic --mc 1 --particles 20 --out {d}"
+    s = A.load_summary(d)
+    assert sorted(s.variants) == sorted(A.VARIANTS)
+    for v in A.VARIANTS:
+        assert s.series(v, "fused", "VS", "gospa")["step"].tolist() == list(range(40))
