@@ -1,0 +1,246 @@
+"""Sensor model: noise-free traced paths -> measurement sets of one Monte Carlo run (DESIGN.md 1, 4, 5).
+
+Ray tracing is noise-free and cached; everything random about the measurements happens here,
+drawn from a caller-supplied :class:`numpy.random.Generator`:
+
+- the true clock bias ``B_k`` (random walk, metres);
+- per path: detection with ``p_detect`` (SP / VS only within ``fov_range`` of the true vehicle
+  position; BS / VA always in the FOV) and additive Gaussian noise ``N(0, R)``;
+- per vehicle and step: ``Poisson(clutter_mean)`` clutter, uniform over the measurement space;
+- the order of each measurement set (shuffled: the filter must not rely on it).
+
+A measurement is ``z = [TOA + B, AOD az, AOD el, AOA az - heading, AOA el]`` (m, rad; azimuths
+wrapped to ``(-pi, pi]``), see :mod:`mmslam.slam.measurement`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from mmslam.errors import MmslamError
+from mmslam.scenes.scenario import Scenario, SensorParams
+
+from .dynamics import wrap_angle
+from .measurement import BS, MEAS_DIM, OTHER, SP, VA, VS
+
+_Z_COLUMNS = ("toa_m", "aod_az", "aod_el", "aoa_az", "aoa_el")
+_LM_COLUMNS = ("lm_x", "lm_y", "lm_z")
+
+
+@dataclass
+class Measurements:
+    """Measurement sets of one Monte Carlo run, padded to ``J`` slots per (step, vehicle).
+
+    Attributes:
+        z: ``(steps, n_veh, J, 5)`` measurements ``[toa (m), aod_az, aod_el, aoa_az, aoa_el]``
+            (rad; AOA azimuth in the vehicle body frame); 0 where padded.
+        mask: ``(steps, n_veh, J)`` True where a slot holds a measurement.
+        origin_type: ``(steps, n_veh, J)`` int8 landmark type code of the originating path
+            (``BS=0 .. OTHER=4``), -1 for clutter and padding.
+        origin_id: ``(steps, n_veh, J)`` object, the path's ``landmark_id``; '' for clutter / padding.
+        origin_pos: ``(steps, n_veh, J, 3)`` ground-truth landmark position (global, m); NaN for
+            clutter, padding and OTHER paths.
+        true_states: ``(steps, n_veh, 7)`` true vehicle states ``[x, y, z, heading, speed,
+            turn_rate, clock_bias]`` with the simulated clock-bias random walk.
+        clutter_intensity: ``c(z) = clutter_mean / V`` with the measurement-space volume
+            ``V = clutter_toa_max * 2pi * pi * 2pi * pi`` (units 1 / (m rad^4)).
+        R: ``(5, 5)`` true measurement-noise covariance ``diag(toa_std^2, angle_std^2 x 4)``.
+    """
+
+    z: np.ndarray
+    mask: np.ndarray
+    origin_type: np.ndarray
+    origin_id: np.ndarray
+    origin_pos: np.ndarray
+    true_states: np.ndarray
+    clutter_intensity: float
+    R: np.ndarray
+
+    @property
+    def steps(self) -> int:
+        return self.z.shape[0]
+
+    @property
+    def n_vehicles(self) -> int:
+        return self.z.shape[1]
+
+    def set(self, step: int, vehicle: int) -> np.ndarray:
+        """The measurement set of one vehicle at one step, ``(J_k, 5)`` (live slots only)."""
+        return self.z[step, vehicle][self.mask[step, vehicle]]
+
+
+def clutter_intensity(params: SensorParams) -> float:
+    """Uniform clutter intensity ``clutter_mean / (toa_max * (2 pi)^2 * pi^2)`` (1 / (m rad^4))."""
+    vol = params.clutter_toa_max * (2.0 * math.pi) ** 2 * math.pi**2
+    if vol <= 0:
+        if params.clutter_mean == 0:
+            return 0.0
+        raise MmslamError("sensor.clutter_toa_max must be > 0 when sensor.clutter_mean > 0")
+    return params.clutter_mean / vol
+
+
+def noise_covariance(params: SensorParams) -> np.ndarray:
+    """True measurement-noise covariance ``diag(toa_std^2, angle_std^2 x 4)``, ``(5, 5)``."""
+    return np.diag([params.toa_std**2] + [params.angle_std**2] * 4)
+
+
+def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | np.ndarray,
+                    params: SensorParams) -> np.ndarray:
+    """Detection probability ``p_D`` of landmarks for the filter (broadcasting over leading axes).
+
+    Args:
+        vehicle_pos: ``(..., 3)`` vehicle (antenna) positions, global frame, m.
+        lm_pos: ``(..., 3)`` landmark positions (VA: image source; SP / VS: scatter point), m.
+        lm_type: landmark type code(s), scalar or broadcastable to the leading shape.
+        params: sensor parameters (``p_detect``, ``fov_range`` in m).
+
+    Returns:
+        ``(...)``: ``p_detect`` for BS / VA (always in the FOV) and for SP / VS within
+        ``fov_range`` (distance <= range) of the vehicle; 0 for SP / VS beyond it.
+    """
+    d = np.linalg.norm(np.asarray(lm_pos, float) - np.asarray(vehicle_pos, float), axis=-1)
+    t = np.asarray(lm_type)
+    gated = (t == SP) | (t == VS)
+    inside = ~gated | (d <= params.fov_range)
+    return np.where(inside, params.p_detect, 0.0)
+
+
+def _used_types(scn: Scenario, include_types: Sequence[int]) -> np.ndarray:
+    types = {int(t) for t in include_types if int(t) != OTHER}
+    if scn.sensor.emit_other:
+        types.add(OTHER)
+    return np.array(sorted(types), dtype=int)
+
+
+def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
+                          rng: np.random.Generator,
+                          include_types: Sequence[int] = (BS, VA, SP, VS)) -> Measurements:
+    """Draw one Monte Carlo run of measurement sets from noise-free paths.
+
+    Args:
+        scn: scenario; ``scn.sensor`` gives noise, ``p_detect``, ``fov_range``, clutter and the
+            clock-bias random-walk std ``vehicle_noise_std[6]`` (m per step).
+        states: ``(steps, n_veh, 7)`` true vehicle states (the trajectory the paths were traced
+            on); column 6 at step 0 is the initial clock bias.
+        paths: ``paths`` table columns (see :mod:`mmslam.raytrace.schema`): at least ``step, rx,
+            type, landmark_id, toa_m, aod_az, aod_el, aoa_az, aoa_el, lm_x, lm_y, lm_z`` (global
+            frame). Rows with ``step >= steps`` or ``rx >= n_veh`` are ignored.
+        rng: the only source of randomness.
+        include_types: landmark types whose paths become measurements. ``OTHER`` (4) paths are
+            used if and only if ``scn.sensor.emit_other`` is set, whatever this argument says.
+
+    Returns:
+        :class:`Measurements`.
+
+    The true state differs from ``states`` only in the clock bias:
+    ``B_0 = states[0, :, 6]``, ``B_k = B_{k-1} + N(0, vehicle_noise_std[6]^2)``. Position,
+    heading etc. are taken as given because the cached paths were traced on exactly these
+    positions; process noise on them (``sensor.true_process_noise``) therefore has to be put
+    into the trajectory *before* tracing (``vehicle_trajectories(scn, rng=...)``), not here.
+
+    Draw order (fixed, so one seed gives one result): clock-bias increments ``(steps - 1,
+    n_veh)``; detection uniforms and ``(n_rows, 5)`` noise normals for every used path row in
+    (step, rx, type, landmark_id) order (drawn whether or not the row is in the FOV); clutter
+    counts ``(steps, n_veh)``; clutter uniforms ``(n_clutter, 5)``; shuffle keys.
+
+    Raises:
+        MmslamError: a used path row has NaN in a measurement column (or, for SP / VS, in the
+            landmark position), naming the column and step; or shapes do not fit.
+    """
+    sp = scn.sensor
+    states = np.asarray(states, dtype=float)
+    if states.ndim != 3 or states.shape[-1] != 7:
+        raise MmslamError(f"states must have shape (steps, n_vehicles, 7), got {states.shape}")
+    if not np.all(np.isfinite(states)):
+        raise MmslamError("true vehicle states contain NaN or inf; check the trajectory")
+    steps, n_veh, _ = states.shape
+    for col in ("step", "rx", "type", "landmark_id", *_Z_COLUMNS, *_LM_COLUMNS):
+        if col not in paths:
+            raise MmslamError(f"paths table has no column '{col}'; the cache is not of the expected schema")
+
+    # ---- true clock bias: random walk
+    inc = rng.standard_normal((max(steps - 1, 0), n_veh)) * sp.vehicle_noise_std[6]
+    true = states.copy()
+    true[:, :, 6] = states[0, :, 6][None, :] + np.concatenate([np.zeros((1, n_veh)), np.cumsum(inc, 0)])[:steps]
+
+    # ---- select and order the used path rows
+    step = np.asarray(paths["step"]).astype(int)
+    rx = np.asarray(paths["rx"]).astype(int)
+    typ = np.asarray(paths["type"]).astype(int)
+    ids = np.asarray(paths["landmark_id"]).astype(str)
+    sel = (step >= 0) & (step < steps) & (rx >= 0) & (rx < n_veh) & np.isin(typ, _used_types(scn, include_types))
+    idx = np.nonzero(sel)[0]
+    idx = idx[np.lexsort((ids[idx], typ[idx], rx[idx], step[idx]))]
+    step, rx, typ, ids = step[idx], rx[idx], typ[idx], ids[idx]
+    g = np.stack([np.asarray(paths[c], dtype=float)[idx] for c in _Z_COLUMNS], axis=-1)  # (n, 5)
+    lm = np.stack([np.asarray(paths[c], dtype=float)[idx] for c in _LM_COLUMNS], axis=-1)  # (n, 3)
+    for k, c in enumerate(_Z_COLUMNS):
+        bad = ~np.isfinite(g[:, k])
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise MmslamError(f"paths column '{c}' is NaN/inf at step {step[i]} (rx {rx[i]}, "
+                              f"landmark '{ids[i]}'); re-trace or repair the cache")
+    point = (typ == SP) | (typ == VS)
+    for k, c in enumerate(_LM_COLUMNS):
+        bad = point & ~np.isfinite(lm[:, k])
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise MmslamError(f"paths column '{c}' is NaN/inf at step {step[i]} (rx {rx[i]}, "
+                              f"landmark '{ids[i]}'); an SP/VS row needs its landmark position")
+
+    # ---- detection (FOV + p_D) and noise
+    n = idx.size
+    u_det = rng.random(n)
+    noise = rng.standard_normal((n, MEAS_DIM)) * np.sqrt(np.diag(noise_covariance(sp)))
+    upos = true[step, rx, 0:3]
+    in_fov = ~point | (np.linalg.norm(np.where(point[:, None], lm, 0.0) - upos, axis=-1) <= sp.fov_range)
+    det = in_fov & (u_det < sp.p_detect)
+    z = g.copy()
+    z[:, 0] += true[step, rx, 6]
+    z[:, 3] = z[:, 3] - true[step, rx, 3]
+    z += noise
+    z[:, 1] = wrap_angle(z[:, 1])
+    z[:, 3] = wrap_angle(z[:, 3])
+
+    # ---- clutter, uniform over [0, toa_max] x (-pi, pi] x [-pi/2, pi/2] x (-pi, pi] x [-pi/2, pi/2]
+    counts = rng.poisson(sp.clutter_mean, size=(steps, n_veh)) if sp.clutter_mean > 0 else np.zeros((steps, n_veh), int)
+    n_c = int(counts.sum())
+    uc = rng.random((n_c, MEAS_DIM))
+    zc = np.empty((n_c, MEAS_DIM))
+    zc[:, 0] = uc[:, 0] * sp.clutter_toa_max
+    zc[:, 1] = wrap_angle(-np.pi + 2.0 * np.pi * uc[:, 1])
+    zc[:, 2] = -np.pi / 2 + np.pi * uc[:, 2]
+    zc[:, 3] = wrap_angle(-np.pi + 2.0 * np.pi * uc[:, 3])
+    zc[:, 4] = -np.pi / 2 + np.pi * uc[:, 4]
+    c_set = np.repeat(np.arange(steps * n_veh), counts.reshape(-1))
+
+    # ---- assemble padded, shuffled sets
+    d_set = (step * n_veh + rx)[det]
+    all_set = np.concatenate([d_set, c_set])
+    all_z = np.concatenate([z[det], zc])
+    all_type = np.concatenate([typ[det], np.full(n_c, -1)]).astype(np.int8)
+    all_id = np.concatenate([ids[det].astype(object), np.full(n_c, "", dtype=object)])
+    all_pos = np.concatenate([np.where(typ[det, None] == OTHER, np.nan, lm[det]), np.full((n_c, 3), np.nan)])
+    keys = rng.random(all_set.size)
+    order = np.lexsort((keys, all_set))
+    s_sorted = all_set[order]
+    per_set = np.bincount(all_set, minlength=steps * n_veh)
+    J = int(per_set.max(initial=0))
+    start = np.concatenate([[0], np.cumsum(per_set)[:-1]])
+    slot = np.arange(order.size) - start[s_sorted]
+    ks, vs = np.divmod(s_sorted, n_veh)
+
+    Z = np.zeros((steps, n_veh, J, MEAS_DIM))
+    mask = np.zeros((steps, n_veh, J), bool)
+    otype = np.full((steps, n_veh, J), -1, dtype=np.int8)
+    oid = np.full((steps, n_veh, J), "", dtype=object)
+    opos = np.full((steps, n_veh, J, 3), np.nan)
+    Z[ks, vs, slot] = all_z[order]
+    mask[ks, vs, slot] = True
+    otype[ks, vs, slot] = all_type[order]
+    oid[ks, vs, slot] = all_id[order]
+    opos[ks, vs, slot] = all_pos[order]
+    return Measurements(Z, mask, otype, oid, opos, true, clutter_intensity(sp), noise_covariance(sp))
