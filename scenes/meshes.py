@@ -281,7 +281,7 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
         ax.plot(traj[0, i, 0], traj[0, i, 1], "o", color=c, ms=7, mfc="white")  # start
         ax.annotate("", xy=traj[-1, i, :2], xytext=traj[-2, i, :2],
                     arrowprops=dict(arrowstyle="-|>", color=c, lw=1.5))  # direction at the end
-        idx = np.linspace(0, len(traj) - 1, max(fov_points, 1)).round().astype(int)
+        idx = np.floor(np.linspace(0, len(traj), max(fov_points, 1), endpoint=False)).astype(int)
         for j, k in enumerate(np.unique(idx)):
             ax.add_patch(Circle((traj[k, i, 0], traj[k, i, 1]), scn.sensor.fov_range, fill=False, color=c,
                                 ls="--", lw=0.8, label=f"{v.name} FOV ({scn.sensor.fov_range:g} m)" if j == 0 else None))
