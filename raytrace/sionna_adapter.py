@@ -133,15 +133,22 @@ class SionnaSource:
             self._car_local[v.name] = exact[j]
             self._vp_key[v.name] = key
 
-        # triangle normals of static objects without a known box (external XML scenes)
-        self._static_normals: dict[str, np.ndarray] = {}
+        # triangle normals of static objects without a known box (external XML scenes), stacked:
+        # normal of (object index o, primitive i) = self._normals[self._nrm_off[o] + i]
+        self._nrm_off = np.full(len(self.index.names), -1, np.int64)
+        self._nrm_count = np.zeros(len(self.index.names), np.int64)
+        blocks, off = [], 0
         for n in extra:
             mesh = self.scene.objects[n].mi_mesh
             vp = np.asarray(mesh.vertex_positions_buffer().numpy(), float).reshape(-1, 3)
             fc = np.asarray(mesh.faces_buffer().numpy(), np.int64).reshape(-1, 3)
             nv = np.cross(vp[fc[:, 1]] - vp[fc[:, 0]], vp[fc[:, 2]] - vp[fc[:, 0]])
             ln = np.linalg.norm(nv, axis=1, keepdims=True)
-            self._static_normals[n] = np.where(ln > 0, nv / np.where(ln > 0, ln, 1.0), np.nan)
+            blocks.append(np.where(ln > 0, nv / np.where(ln > 0, ln, 1.0), np.nan))
+            k = self.index.names.index(n)
+            self._nrm_off[k], self._nrm_count[k] = off, len(fc)
+            off += len(fc)
+        self._normals = np.concatenate(blocks) if blocks else np.zeros((0, 3))
         self._steps_traced = 0
 
     # ------------------------------------------------------------------ protocol
@@ -226,12 +233,10 @@ class SionnaSource:
             obj = lut_idx[np.searchsorted(uid, ids)]
             obj = np.where(itype != 0, obj, -1)
         normals = np.full(verts.shape, np.nan)
-        if self._static_normals and n:
-            for nm, fn in self._static_normals.items():
-                k = self.index.names.index(nm)
-                hit = obj == k
-                if np.any(hit):
-                    normals[hit] = fn[np.clip(prims[hit], 0, len(fn) - 1)]
+        if len(self._normals) and n:
+            so = np.clip(obj, 0, None)
+            has = (obj >= 0) & (self._nrm_off[so] >= 0) & (prims >= 0) & (prims < self._nrm_count[so])
+            normals[has] = self._normals[self._nrm_off[so][has] + prims[has]]
         el_t = np.pi / 2 - ang[1]
         el_r = np.pi / 2 - ang[3]
         angles = np.stack([ang[0], el_t, ang[2], el_r], axis=1) if n else np.zeros((0, 4))
