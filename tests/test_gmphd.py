@@ -134,3 +134,17 @@ def test_nan_in_a_map_raises_floating_point_error():
     g = GM(np.array([[1.0]]), np.array([[[np.nan, 0.0, 0.0]]]), np.eye(3)[None, None], np.ones((1, 1), bool))
     with pytest.raises(FloatingPointError):
         type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, _pd)
+
+
+def test_batched_cholesky_and_triangular_inverse_match_lapack():
+    from mmslam.slam.gmphd import batched_cholesky, safe_cholesky, tril_inverse
+
+    rng = np.random.default_rng(9)
+    for d in (3, 5, 7):
+        A = np.stack([_spd(rng, d) for _ in range(6)]).reshape(2, 3, d, d)
+        L = batched_cholesky(A)
+        assert np.allclose(L, np.linalg.cholesky(A))
+        assert np.allclose(tril_inverse(L) @ L, np.eye(d), atol=1e-12)
+    bad = np.diag([1.0, -1.0, 1.0])[None]
+    with pytest.raises(FloatingPointError, match="not positive definite in test stage"):
+        safe_cholesky(bad, "test stage")

@@ -1,0 +1,140 @@
+"""The cooperative MM-PHD-SLAM filter (slam/filter.py, slam/rbpf.py, slam/cli.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.errors import CacheError, MmslamError
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.trajectory import vehicle_trajectories
+from mmslam.slam.filter import ego_gaussian, run_filter, run_slam
+from mmslam.slam.gospa import gospa
+from mmslam.slam.rbpf import systematic_resample
+
+
+@pytest.fixture(scope="module")
+def paper():
+    scn = load_preset("paper")
+    states = vehicle_trajectories(scn)
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(scn.steps)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    return scn, states, paths
+
+
+def _rmse(res, lo=10, hi=40):
+    v = res.vehicles
+    s = (v["step"] >= lo) & (v["step"] < hi)
+    return float(np.sqrt(np.mean(v["pos_err"][s] ** 2)))
+
+
+def _metric(res, step, mp, typ, col="gospa"):
+    m = res.metrics
+    s = (m["step"] == step) & (m["map"] == mp) & (m["type"] == typ)
+    assert s.sum() == 1
+    return float(m[col][s][0])
+
+
+# ---------------------------------------------------------------- small units
+def test_systematic_resampling_reproduces_weights_exactly_when_they_are_multiples_of_1_over_p():
+    rng = np.random.default_rng(0)
+    w = np.array([0.5, 0.0, 0.25, 0.25])
+    for _ in range(20):
+        idx = systematic_resample(w, rng)
+        assert np.bincount(idx, minlength=4).tolist() == [2, 0, 1, 1]
+
+
+def test_ego_gaussian_jacobian_matches_finite_differences():
+    """The linearisation mapping the particle covariance to [pos, vel, xi] (proposed upload)."""
+    mean = np.array([10.0, -3.0, 0.5, 0.7, 20.0, 0.3, 300.0])
+
+    def f(s):
+        return ego_gaussian(s, np.zeros((7, 7)), np.zeros(7))[0]
+
+    eps = 1e-6
+    Jfd = np.stack([(f(mean + eps * e) - f(mean - eps * e)) / (2 * eps) for e in np.eye(7)], 1)
+    cov = np.diag([0.1, 0.2, 0.0, 1e-4, 0.0, 0.0, 0.09]) + 0.01
+    m, C = ego_gaussian(mean, cov, np.zeros(7))
+    assert np.allclose(m, f(mean))
+    assert np.allclose(C, Jfd @ cov @ Jfd.T, atol=1e-8)
+    _, C2 = ego_gaussian(mean, cov, np.ones(7))
+    assert np.allclose(C2 - C, np.eye(7))
+
+
+# ---------------------------------------------------------------- errors
+def test_bad_inputs_give_one_line_errors(paper, tmp_path):
+    scn, states, paths = paper
+    for kw, word in [({"variant": "fancy"}, "variant"), ({"particles": 0}, "particles"),
+                     ({"steps": 999}, "steps"), ({"steps": 0}, "steps"), ({"include_types": (9,)}, "include_types")]:
+        with pytest.raises(MmslamError) as e:
+            run_filter(scn, states, paths, **kw)
+        assert "\n" not in str(e.value) and word in str(e.value)
+    with pytest.raises(CacheError):
+        run_slam(tmp_path / "nope")
+    with pytest.raises(MmslamError, match="particles"):
+        run_slam(tmp_path / "nope", particles=0)
+
+
+def test_cli_bad_cache_exits_2_with_one_line(tmp_path, capsys):
+    from mmslam.cli import main
+
+    code = main(["slam", str(tmp_path / "missing"), "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("error:") and "\n" not in err
+
+
+# ---------------------------------------------------------------- end to end
+def test_same_seed_same_result_and_seed_matters(paper):
+    scn, states, paths = paper
+    a = run_filter(scn, states, paths, variant="proposed", particles=30, seed=4, steps=9)
+    b = run_filter(scn, states, paths, variant="proposed", particles=30, seed=4, steps=9)
+    c = run_filter(scn, states, paths, variant="proposed", particles=30, seed=5, steps=9)
+    for k in a.vehicles:
+        assert np.array_equal(a.vehicles[k], b.vehicles[k])
+    for k in a.metrics:
+        assert np.array_equal(a.metrics[k], b.metrics[k])
+    assert not np.array_equal(a.vehicles["x"], c.vehicles["x"])
+    # table layout: per step, (veh1, veh2, fused) x (VA, SP, VS); GOSPA^2 = loc + missed + false
+    m = a.metrics
+    assert len(m["step"]) == 9 * 3 * 3
+    assert np.allclose(m["gospa"] ** 2, m["loc"] + m["missed"] + m["false"])
+    assert set(m["map"]) == {"veh1", "veh2", "fused"}
+    assert len(a.vehicles["step"]) == 9 * 2
+
+
+@pytest.mark.slow
+def test_filter_beats_dead_reckoning_and_maps_the_vas(paper):
+    """Analytic `paper` data without VS rows, baseline filter, P = 300, one seed."""
+    scn, states, paths = paper
+    res = run_filter(scn, states, paths, variant="baseline", particles=300, seed=0, include_types=(0, 1, 2))
+    dr = run_filter(scn, states, paths, variant="baseline", particles=300, seed=0, include_types=(0, 1, 2),
+                    measurement_update=False)
+    r_f, r_dr = _rmse(res), _rmse(dr)
+    assert r_f <= 0.5 * r_dr, (r_f, r_dr)
+    last = scn.steps - 1
+    n_true = int(_metric(res, last, "fused", "VA", "n_true"))
+    assert n_true == 4
+    empty = gospa(np.zeros((n_true, 3)), np.zeros((0, 3)), 20.0, 2.0, 2.0).d
+    g = _metric(res, last, "fused", "VA")
+    assert g <= 0.5 * empty, (g, empty)
+
+
+def test_cli_writes_result_and_prints_summary(paper, tmp_path, capsys):
+    from mmslam.cli import main
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.slam.result import Result
+
+    scn = paper[0]
+    cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "cache", steps=7, progress=False)
+    out = tmp_path / "res"
+    code = main(["slam", str(cache), "--variant", "cm1", "--particles", "20", "--seed", "1",
+                 "--out", str(out), "--steps", "7"])
+    text = capsys.readouterr().out
+    assert code == 0
+    r = Result.load(out)
+    assert r.meta["variant"] == "cm1" and r.meta["particles"] == 20 and r.meta["steps"] == 7
+    assert r.meta["source"] == "analytic" and r.meta["cache"]
+    assert "position RMSE veh1" in text and "fused" in text
+    assert main(["slam", str(cache), "--variant", "nope", "--out", str(out)]) == 2
