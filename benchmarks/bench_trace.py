@@ -38,14 +38,23 @@ def main() -> None:
     src.trace_step(0, states[0])  # warm-up: traces and compiles the kernels
     t_warm = time.perf_counter() - t0
 
+    import drjit as dr
+
     per_step = []
     counts = np.zeros(5, int)
+    kernels = misses = backend_ms = 0
     t_all = time.perf_counter()
-    for k in range(steps):
-        t0 = time.perf_counter()
-        out = src.trace_step(k, states[k])
-        per_step.append(time.perf_counter() - t0)
-        counts += np.bincount(out["type"].astype(int), minlength=5)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history_clear()
+        for k in range(steps):
+            t0 = time.perf_counter()
+            out = src.trace_step(k, states[k])
+            per_step.append(time.perf_counter() - t0)
+            counts += np.bincount(out["type"].astype(int), minlength=5)
+            for h in dr.kernel_history([dr.KernelType.JIT]):
+                kernels += 1
+                misses += not h.get("cache_hit", True)
+                backend_ms += h.get("backend_time", 0.0)
     total = time.perf_counter() - t_all
 
     v = src.versions()
@@ -54,6 +63,8 @@ def main() -> None:
     print(f"scene build + load: {t_init:.2f} s; warm-up step (kernel compile): {t_warm:.2f} s")
     print(f"per step: median {statistics.median(per_step) * 1e3:.0f} ms, max {max(per_step) * 1e3:.0f} ms")
     print(f"total {steps} steps: {total:.2f} s (target <= 60 s)")
+    print(f"JIT kernels launched after warm-up: {kernels}; not in the in-memory cache (re-traced): {misses}; "
+          f"backend compile time {backend_ms / 1e3:.2f} s")
     print("rows per type: " + ", ".join(f"{n}={c}" for n, c in zip(("BS", "VA", "SP", "VS", "OTHER"), counts)))
 
 

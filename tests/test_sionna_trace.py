@@ -262,3 +262,17 @@ def test_visibility_with_partial_walls(tmp_path):
             assert got == want, (k, rx, got, want)
             seen_sets.add(frozenset(want))
     assert len(seen_sets) >= 3  # the visible set really changes along the lap
+
+
+def test_moving_vehicles_does_not_recompile(traced):
+    """After the first steps, new vehicle poses reuse the cached kernels (no JIT cache miss)."""
+    import drjit as dr
+
+    scn, states, src, _ = traced
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history_clear()
+        for k in (3, 21):
+            src.trace_step(k, states[k])
+        hist = dr.kernel_history([dr.KernelType.JIT])
+    assert len(hist) > 0
+    assert sum(not h["cache_hit"] for h in hist) == 0
