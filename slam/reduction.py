@@ -61,8 +61,39 @@ def _inv_spd(P: np.ndarray) -> np.ndarray:
 _PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances
 
 
+def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarray, c: np.ndarray,
+                  tr: np.ndarray, keep: np.ndarray, merge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy cluster labels of one mixture, shrinking the candidate set as clusters are taken.
+
+    Same rule and tie-breaking as the batched loop (head = first index of maximal weight).
+    ``tr (Q,)`` are the covariance traces, used for an exact Euclidean pre-gate.
+    Returns ``label (Q,)`` (-1 for pruned) and ``heads (K,)``.
+    """
+    d = mc.shape[-1]
+    label = np.full(w.shape[0], -1)
+    heads = []
+    alive = np.nonzero(keep)[0]
+    alive = alive[np.argsort(-w[alive], kind="stable")]
+    # Euclidean gate: D^T A_i D <= merge implies |D|^2 <= merge * lambda_max(P_i) <= merge * trace(P_i)
+    r2 = merge * tr * (1.0 + 1e-9) + 1e-12
+    while alive.size:
+        j = alive[0]
+        mj = mc[j]
+        near = np.nonzero(np.sum((mc[alive] - mj) ** 2, axis=-1) <= r2[alive])[0]
+        cand = alive[near]
+        dist = Aflat[cand] @ np.outer(mj, mj).reshape(d * d) - 2.0 * (b[cand] @ mj) + c[cand]
+        L = np.zeros(alive.size, bool)
+        L[near] = dist <= merge
+        L[0] = True
+        label[alive[L]] = len(heads)
+        heads.append(j)
+        alive = alive[~L]
+    return label, np.asarray(heads, dtype=int)
+
+
 def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
-                merge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                merge: float, pairwise: bool | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Greedy merging on a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``Q`` slots.
 
     The loop runs over merge iterations (at most ``Q``), never over batch members: iteration
@@ -88,7 +119,8 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     Aflat = A.reshape(n, q, d * d)
     b = np.einsum("nqij,nqj->nqi", A, mc)  # (N, Q, d)  A_i m_i
     c = np.einsum("nqi,nqi->nq", b, mc)  # (N, Q)     m_i^T A_i m_i
-    pairwise = n * q * q <= _PAIRWISE_BUDGET
+    if pairwise is None:
+        pairwise = n * q * q <= _PAIRWISE_BUDGET
     if pairwise:
         outer_all = (mc[..., :, None] * mc[..., None, :]).reshape(n, q, d * d)
         # D[n, i, j] = distance of candidate i to head j (P_i used)
@@ -98,7 +130,14 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     heads = np.zeros((n, q), int)
     rows = np.arange(n)
     n_it = 0
-    for it in range(q):
+    if n == 1 and not pairwise:
+        tr = np.trace(P[0], axis1=-2, axis2=-1)
+        lab, hd = _label_single(w[0], mc[0], Aflat[0], b[0], c[0], tr, keep[0], merge)
+        label[0], n_it = lab, hd.size
+        heads[0, :n_it] = hd
+        out_mask[0, :n_it] = True
+        remaining[:] = False
+    for it in range(q if remaining.any() else 0):
         active = remaining.any(-1)  # (N,)
         if not active.any():
             break
@@ -171,8 +210,13 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     """
     g.check("in prune_merge input")
     B = g.batch_shape
-    q, d = g.capacity, g.dim
     keep = _live(g, prune, max_trace, pos_dims)
+    # prune first, then trim the slots to the largest surviving count so merging sees no dead slots
+    g = compact(GM(np.where(keep, g.w, 0.0), g.m, g.P, keep))
+    keep = g.mask
+    q, d = g.capacity, g.dim
+    if q == 0:
+        return compact(g, cap) if fixed_capacity else g
     n = int(np.prod(B, dtype=int))
     w, m, P, mask = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d),
                                 keep.reshape(n, q), merge)
@@ -227,7 +271,8 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     w = (g.w * pw[:, None]).reshape(-1)[sel]
     m = g.m.reshape(-1, d)[sel]
     P = g.P.reshape(-1, d, d)[sel]
-    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge)
+    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge,
+                                    pairwise=False)
     omask &= ow >= prune
     out = GM(ow[0], om[0], oP[0], omask[0])
     out = compact(out, min(cap, int(out.count())))

@@ -171,3 +171,24 @@ def test_singular_covariance_raises():
     g = _gm([0.5, 0.5], [[0, 0, 0], [1, 1, 1]], [np.eye(3), np.zeros((3, 3))])
     with pytest.raises(FloatingPointError):
         prune_merge(g, 1e-4, 49.0, 5)
+
+
+def test_single_mixture_shrinking_path_agrees(monkeypatch):
+    import mmslam.slam.reduction as red
+    rng = np.random.default_rng(6)
+    Q, d = 40, 7
+    A = rng.standard_normal((Q, d, d))
+    P = A @ np.swapaxes(A, -1, -2) + np.eye(d)
+    centres = rng.uniform(-20, 20, (5, d))
+    m = centres[rng.integers(0, 5, Q)] + rng.standard_normal((Q, d))
+    w = rng.uniform(0, 1, Q)
+    w[3] = w[7]  # a weight tie: the lower index must head the cluster on both paths
+    g = _gm(w, m, P)
+    ref = prune_merge(g, 0.01, 16.0, Q)  # single mixture, small: pairwise path
+    monkeypatch.setattr(red, "_PAIRWISE_BUDGET", 0)
+    out = prune_merge(g, 0.01, 16.0, Q)  # single mixture: shrinking candidate-set path
+    np.testing.assert_array_equal(out.mask, ref.mask)
+    np.testing.assert_allclose(out.w, ref.w)
+    np.testing.assert_allclose(out.m, ref.m, atol=1e-9)
+    np.testing.assert_allclose(out.P, ref.P, atol=1e-9)
+    assert 1 < ref.count() < Q
