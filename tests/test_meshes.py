@@ -117,3 +117,23 @@ def test_plot_plan_writes_png(tmp_path):
     out = plot_plan(load_preset("paper"), tmp_path / "plan.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not [p for p in tmp_path.iterdir() if p.name != "plan.png"]  # no temp files left
+
+
+def test_scene_cli_list_build_show(tmp_path, capsys):
+    from mmslam.cli import main
+
+    assert main(["scene", "list"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert any(l.startswith("paper: 2 vehicles, 4 buildings, 4 scatterers") and "40 steps" in l for l in lines)
+    assert any(l.startswith("street: 3 vehicles, 7 buildings") and "60 steps" in l for l in lines)
+    assert main(["scene", "build", "paper", "--out", str(tmp_path / "s")]) == 0
+    assert (tmp_path / "s" / "paper.xml").is_file()
+    assert sorted(p.name for p in (tmp_path / "s" / "meshes").iterdir()) == sorted(
+        f"{n}.ply" for n in ["wall_east", "wall_west", "wall_north", "wall_south", "sp_ne", "sp_nw", "sp_sw",
+                             "sp_se", "veh1", "veh2"])
+    assert main(["scene", "show", "paper", "--out", str(tmp_path / "p.png")]) == 0
+    assert (tmp_path / "p.png").is_file()
+    capsys.readouterr()
+    assert main(["scene", "build", "no_such_preset", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: unknown scenario 'no_such_preset'")
