@@ -107,6 +107,9 @@ def test_xml_scene_external_is_merged(tmp_path):
     for s in root.findall("shape"):
         fn = s.find("string[@name='filename']").get("value")
         assert (xml.parent / fn).is_file()
+    clash = dataclasses.replace(scn, vehicles=(dataclasses.replace(scn.vehicles[0], name="wall"),))
+    with pytest.raises(ConfigError, match=r"\['wall'\] already exist in xml_scene"):
+        build_scene(clash, tmp_path / "clash")
     with pytest.raises(ConfigError, match="no such Sionna scene"):
         resolve_xml_scene("sionna:nope")
     with pytest.raises(ConfigError, match="file not found"):
