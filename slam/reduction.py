@@ -123,8 +123,8 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
         pairwise = n * q * q <= _PAIRWISE_BUDGET
     if pairwise:
         outer_all = (mc[..., :, None] * mc[..., None, :]).reshape(n, q, d * d)
-        # D[n, i, j] = distance of candidate i to head j (P_i used)
-        D = Aflat @ np.swapaxes(outer_all, -1, -2) - 2.0 * (b @ np.swapaxes(mc, -1, -2)) + c[..., None]
+        # Dt[n, j, i] = distance of candidate i to head j (P_i used); head-major for contiguous rows
+        Dt = outer_all @ np.swapaxes(Aflat, -1, -2) - 2.0 * (mc @ np.swapaxes(b, -1, -2)) + c[:, None, :]
     remaining = keep.copy()
     label = np.full((n, q), -1)
     heads = np.zeros((n, q), int)
@@ -143,29 +143,33 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
             break
         j = np.argmax(np.where(remaining, w, -np.inf), axis=-1)  # (N,)
         if pairwise:
-            dist = D[rows, :, j]
+            dist = Dt[rows, j]
         else:
             mj = mc[rows, j]
             outer = (mj[:, :, None] * mj[:, None, :]).reshape(n, 1, d * d)
             dist = (Aflat * outer).sum(-1) - 2.0 * (b * mj[:, None, :]).sum(-1) + c
         L = remaining & (dist <= merge)
         L[rows, j] = remaining[rows, j]  # the head always joins its own cluster
-        label[L] = it
+        np.copyto(label, it, where=L)
         heads[:, it] = j
         out_mask[:, it] = active
         remaining &= ~L
         n_it = it + 1
-    # ---- moments of all clusters at once
-    onehot = (label[:, None, :] == np.arange(n_it)[None, :, None]).astype(float)  # (N, K, Q)
-    wk = onehot * w[:, None, :]
-    W = wk.sum(-1)  # (N, K)
+    # ---- moments of all clusters at once (scatter-add by cluster label)
+    valid = label >= 0
+    flat = (rows[:, None] * n_it + label)[valid]  # (M,) cluster index in the flattened (N, K)
+    wv = w[valid]
+    W = np.bincount(flat, weights=wv, minlength=n * n_it).reshape(n, n_it)
     Wsafe = np.where(W > 0, W, 1.0)
     head_of = np.take_along_axis(heads, np.maximum(label, 0), axis=-1)  # (N, Q)
-    diff = np.where((label >= 0)[..., None], mc - np.take_along_axis(mc, head_of[..., None], axis=-2), 0.0)
-    dbar = (wk @ diff) / Wsafe[..., None]  # (N, K, d) mean offset from the head
-    Pflat = np.where(keep[..., None, None], P, 0.0).reshape(n, q, d * d)
-    second = Pflat + (diff[..., :, None] * diff[..., None, :]).reshape(n, q, d * d)
-    S = (wk @ second).reshape(n, n_it, d, d) / Wsafe[..., None, None]
+    diff = (mc - np.take_along_axis(mc, head_of[..., None], axis=-2))[valid]  # (M, d) offset from head
+    acc1 = np.zeros((n * n_it, d))
+    np.add.at(acc1, flat, wv[:, None] * diff)
+    dbar = acc1.reshape(n, n_it, d) / Wsafe[..., None]  # mean offset from the head
+    second = P[valid] + diff[:, :, None] * diff[:, None, :]  # (M, d, d)
+    acc2 = np.zeros((n * n_it, d, d))
+    np.add.at(acc2, flat, wv[:, None, None] * second)
+    S = acc2.reshape(n, n_it, d, d) / Wsafe[..., None, None]
     Pbar = S - dbar[..., :, None] * dbar[..., None, :]
     mhead = np.take_along_axis(mc, heads[:, :n_it, None], axis=-2)  # (N, K, d)
     act = out_mask[:, :n_it]
