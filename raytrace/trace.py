@@ -29,7 +29,7 @@ from mmslam.raytrace.cache import (
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, sort_paths
 from mmslam.scenes.scenario import Scenario
-from mmslam.scenes.trajectory import vehicle_trajectories
+from mmslam.scenes.trajectory import true_trajectories
 
 SOURCES = ("sionna", "analytic")
 
@@ -223,7 +223,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
     if done >= n_steps:
         return cache_dir
 
-    states = vehicle_trajectories(scn, n_steps)
+    states = true_trajectories(scn, n_steps)
     bar = None
     if progress:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,

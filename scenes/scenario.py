@@ -200,13 +200,15 @@ class Scenario:
         """SHA-256 (hex, 16 chars) of everything that changes traced paths.
 
         Covers BS, buildings, scatterers, ground, vehicles, dt, frequency, xml scene and the FOV
-        range; not ``steps`` (a longer trace extends a shorter one), nor sensor noise, filter,
+        range (and the true process noise, when on); not ``steps`` (a longer trace extends a shorter one), nor sensor noise, filter,
         fusion or evaluation parameters (they act after the cache).
         """
         d = self.to_dict()
         keep = {k: d[k] for k in ("bs", "vehicles", "buildings", "scatterers", "ground", "dt",
                                   "frequency_hz", "xml_scene")}
         keep["fov_range"] = d["sensor"]["fov_range"]
+        if self.sensor.true_process_noise:  # the truth itself then depends on the noise draw
+            keep["true_process_noise"] = [d["seed"], d["sensor"]["vehicle_noise_std"]]
         blob = json.dumps(keep, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 

@@ -81,9 +81,22 @@ def vehicle_trajectories(scn: Scenario, steps: int | None = None,
         noise = np.asarray(scn.sensor.vehicle_noise_std, float).copy()
         noise[6] = 0.0
     out = np.empty((n, len(scn.vehicles), 7))
+    # one child stream per vehicle: a vehicle's draws do not depend on the trajectory length
+    children = rng.spawn(len(scn.vehicles)) if rng is not None else [None] * len(scn.vehicles)
     for i, v in enumerate(scn.vehicles):
         if v.motion == "ct":
-            out[:, i] = _ct_trajectory(v, n, scn.dt, rng, noise)
+            out[:, i] = _ct_trajectory(v, n, scn.dt, children[i], noise)
         else:
             out[:, i] = _waypoint_trajectory(v, n, scn.dt)
     return out
+
+
+def true_trajectories(scn: Scenario, steps: int | None = None) -> np.ndarray:
+    """The trajectories a trace uses as ground truth, ``(steps, n_vehicles, 7)``.
+
+    Noise-free unless ``scn.sensor.true_process_noise`` is set; then ``ct`` vehicles get process
+    noise drawn from a generator seeded by the scenario seed, so the truth is the same on every
+    run and a longer trace extends a shorter one with identical first steps.
+    """
+    rng = np.random.default_rng([scn.seed, 0x7472616A]) if scn.sensor.true_process_noise else None
+    return vehicle_trajectories(scn, steps, rng=rng)

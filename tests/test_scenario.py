@@ -149,3 +149,18 @@ def test_unknown_preset():
 def test_valid_base_loads(tmp_path):
     scn = load_scenario(_write(tmp_path, BASE))
     assert scn.vehicles[0].name == "v1" and scn.steps == 40 and preset_path("paper").is_file()
+
+
+def test_true_process_noise_changes_truth_and_hash():
+    import dataclasses
+
+    from mmslam.scenes.trajectory import true_trajectories
+
+    scn = load_preset("paper")
+    noisy = dataclasses.replace(scn, sensor=dataclasses.replace(scn.sensor, true_process_noise=True))
+    a, b = true_trajectories(noisy, 10), true_trajectories(noisy, 20)
+    assert np.array_equal(a, b[:10])  # extension keeps the first steps
+    clean = true_trajectories(scn, 10)
+    assert np.array_equal(clean[0], a[0]) and not np.allclose(clean[5, :, :2], a[5, :, :2])
+    assert np.all(a[:, :, 6] == 300.0)  # the clock bias walk is the sensor model's, not here
+    assert noisy.geometry_hash() != scn.geometry_hash()
