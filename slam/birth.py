@@ -76,6 +76,40 @@ def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.n
     return mean, cov, ok
 
 
+def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,
+                  bs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
+
+    ``lm_type`` VA uses :func:`invert_va`, SP and VS :func:`invert_sp` (the same images: compute
+    once and pass to :func:`birth_from_moments` for both). No FOV gating here.
+    """
+    J = Z.shape[0]
+    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
+    inv = invert_va if lm_type == VA else invert_sp
+    pts, valid = inv(states[:, None, None, :], zpts[None], bs)  # (P, J, 10, 3)
+    return _image_moments(pts, valid)
+
+
+def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,
+                       lm_type: int, birth_weight: float,
+                       pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
+                       vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
+                       vs_turn_std: float = np.pi / 2) -> GM:
+    """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`)."""
+    if lm_type in (SP, VS):
+        pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
+        ok = ok & (pd > 0.0)
+    mean = np.where(ok[..., None], mean, 0.0)
+    cov = np.where(ok[..., None, None], cov, np.eye(3))
+    if lm_type == VS:
+        m7 = np.asarray(vs_birth_mean(mean), float)
+        c7 = np.asarray(vs_birth_covariance(cov, vs_velocity_var, vs_turn_std), float)
+        mean = np.where(ok[..., None], m7, 0.0)
+        cov = np.where(ok[..., None, None], c7, np.eye(7))
+    w = np.where(ok, birth_weight, 0.0)
+    return GM(w, mean, cov, ok)
+
+
 def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs: np.ndarray,
              birth_weight: float,
              pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
@@ -102,21 +136,5 @@ def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs:
     if J == 0:
         d = 7 if lm_type == VS else 3
         return GM(np.zeros((P_, 0)), np.zeros((P_, 0, d)), np.zeros((P_, 0, d, d)), np.zeros((P_, 0), bool))
-    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
-    s = states[:, None, None, :]
-    inv = invert_va if lm_type == VA else invert_sp
-    pts, valid = inv(s, zpts[None], bs)  # (P, J, 10, 3)
-    mean, cov, ok = _image_moments(pts, valid)
-    if lm_type in (SP, VS):
-        pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
-        ok &= pd > 0.0
-    mean = np.where(ok[..., None], mean, 0.0)
-    cov = np.where(ok[..., None, None], cov, np.eye(3))
-    if lm_type == VS:
-        m7 = np.asarray(vs_birth_mean(mean), float)
-        c7 = np.asarray(vs_birth_covariance(cov, vs_velocity_var, vs_turn_std), float)
-        m7 = np.where(ok[..., None], m7, 0.0)
-        c7 = np.where(ok[..., None, None], c7, np.eye(7))
-        mean, cov = m7, c7
-    w = np.where(ok, birth_weight, 0.0)
-    return GM(w, mean, cov, ok)
+    mean, cov, ok = birth_moments(states, Z, R, lm_type, bs)
+    return birth_from_moments(states, mean, cov, ok, lm_type, birth_weight, pd_fn, vs_velocity_var, vs_turn_std)

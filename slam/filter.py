@@ -52,7 +52,7 @@ import numpy as np
 from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario
 
-from .birth import birth_gm
+from .birth import birth_from_moments, birth_moments
 from .dynamics import wrap_angle
 from .gm import GM, compact, concat, empty
 from .gmphd import bs_logterm, corrected_gm, log_psi, predict_static, type_terms
@@ -152,9 +152,13 @@ class LocalFilter:
         fp = self.fp
         births: dict[int, GM] = {}
         if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
+            moments = {}
             for t in self.types:
-                births[t] = birth_gm(self.s, self._prev_Z, self.R, t, self.bs, fp.birth_weight, self.pd_fn,
-                                     fp.vs_birth_velocity_var, fp.vs_birth_turn_std)
+                kind = VA if t == VA else SP  # SP and VS share the single-scatter inversion
+                if kind not in moments:
+                    moments[kind] = birth_moments(self.s, self._prev_Z, self.R, kind, self.bs)
+                births[t] = birth_from_moments(self.s, *moments[kind], t, fp.birth_weight, self.pd_fn,
+                                               fp.vs_birth_velocity_var, fp.vs_birth_turn_std)
         self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
                            self.rng)
         if not self.update:
@@ -183,7 +187,7 @@ class LocalFilter:
         terms = [type_terms(self.maps[t], t, self.s, Z, self.R, self.bs, self.pd_fn) for t in self.types]
         lpsi = log_psi(terms, bs_term, self.log_clutter, (self.P, J))
         for tc in terms:
-            self.maps[tc.lm_type] = corrected_gm(tc, Z, lpsi)
+            self.maps[tc.lm_type] = corrected_gm(tc, Z, lpsi, prune=self.fp.prune)
         self.logw = self.logw + lpsi.sum(axis=1)
 
     def reduce(self) -> None:
@@ -514,7 +518,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     from mmslam import __version__ as mm_version  # noqa: PLC0415
 
     md: dict[str, Any] = {"variant": variant, "particles": int(particles), "seed": int(seed),
-                          "scenario": scn.name, "steps": steps, "vehicle_names": list(names),
+                          "scenario": scn.name, "cache": None, "source": None, "steps": steps, "vehicle_names": list(names),
                           "include_types": [int(t) for t in include_types],
                           "measurement_update": bool(measurement_update),
                           "fusion_start": int(min(scn.fusion.start)),

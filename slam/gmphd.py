@@ -27,6 +27,14 @@ from .gm import GM, symmetrize
 from .measurement import AZIMUTH_COMPONENTS, BS, MEAS_DIM, measure
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
+_TWO_PI = 2.0 * np.pi
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angles to ``[-pi, pi]`` (``a - 2 pi round(a / 2 pi)``): cheaper than
+    :func:`~mmslam.slam.dynamics.wrap_angle` where the sign of an exact ``+-pi`` does not matter
+    (residuals and deviations; predicted values are wrapped with ``wrap_angle``)."""
+    return a - _TWO_PI * np.round(a * (1.0 / _TWO_PI))
 
 
 def batched_cholesky(A: np.ndarray) -> np.ndarray:
@@ -94,36 +102,50 @@ def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points"
 
 
 def ckf_moments(m: np.ndarray, P: np.ndarray, h: Callable[[np.ndarray], np.ndarray],
-                wrap: tuple[int, ...] = AZIMUTH_COMPONENTS, stage: str = "CKF"
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                wrap: tuple[int, ...] = AZIMUTH_COMPONENTS, stage: str = "CKF",
+                obs_dims: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cubature estimates of the predicted measurement moments of ``z = h(x)``, ``x ~ N(m, P)``.
 
     Args:
         m: ``(..., d)`` means; P: ``(..., d, d)`` covariances.
-        h: maps points ``(..., 2d, d)`` to measurements ``(..., 2d, nz)`` (broadcasting over the
-            leading axes of ``m``).
+        h: maps points ``(..., 2 d_o, d_o)`` to measurements ``(..., 2 d_o, nz)`` (broadcasting
+            over the leading axes of ``m``), ``d_o = obs_dims or d``.
         wrap: measurement components that are angles on the circle (averaged and differenced
             modulo ``2 pi``; the predicted value is wrapped to ``(-pi, pi]``).
+        obs_dims: if ``h`` depends only on the first ``d_o < d`` state components (VS: the
+            position), the cubature rule is applied to that marginal (``2 d_o`` points) and the
+            cross-covariance with the full state follows from the Gaussian conditional:
+            ``Pxz = P[:, :d_o] P_oo^-1 Pxz_o`` (exact for linear ``h``, and the same
+            third-degree accuracy as the full-state rule).
 
     Returns:
         ``zhat (..., nz)``, ``Pzz (..., nz, nz)`` (no noise added) and ``Pxz (..., d, nz)``.
     """
-    pts = cubature_points(m, P, stage)
+    d = m.shape[-1]
+    do = d if obs_dims is None else int(obs_dims)
+    mo = m[..., :do]
+    Lo = safe_cholesky(P[..., :do, :do], stage) * np.sqrt(do)
+    cols = np.swapaxes(Lo, -1, -2)  # row i = sqrt(d_o) L e_i
+    pts = np.concatenate([mo[..., None, :] + cols, mo[..., None, :] - cols], axis=-2)
     hz = h(pts)
-    n = pts.shape[-2]
+    n = 2 * do
     ref = hz[..., :1, :]
     dev = hz - ref
     for c in wrap:
-        dev[..., c] = wrap_angle(dev[..., c])
+        dev[..., c] = _wrap(dev[..., c])
     mdev = dev.mean(axis=-2)
     zhat = ref[..., 0, :] + mdev
     for c in wrap:
         zhat[..., c] = wrap_angle(zhat[..., c])
     Dz = dev - mdev[..., None, :]
-    Dx = pts - m[..., None, :]
-    DzT = np.swapaxes(Dz, -1, -2)
-    Pzz = (DzT @ Dz) / n
-    Pxz = (np.swapaxes(Dx, -1, -2) @ Dz) / n
+    Pzz = (np.swapaxes(Dz, -1, -2) @ Dz) / n
+    # Pxz_o = (1/n) sum_i (+-c_i) Dz_i^T = (1/n) Lo^T-rows times (Dz_plus - Dz_minus)
+    G = (Dz[..., :do, :] - Dz[..., do:, :]) / n  # (..., d_o, nz): Pxz_o = Lo @ G
+    if do == d:
+        Pxz = Lo @ G
+    else:
+        # P[:, :do] P_oo^-1 Lo G = P[:, :do] (Lo Lo^T / d_o)^-1 Lo G = d_o P[:, :do] Lo^-T G
+        Pxz = do * (P[..., :, :do] @ (np.swapaxes(tril_inverse(Lo), -1, -2) @ G))
     return zhat, Pzz, Pxz
 
 
@@ -143,18 +165,19 @@ class Innovation:
 
 
 def innovation(m: np.ndarray, P: np.ndarray, Z: np.ndarray, R: np.ndarray,
-               h: Callable[[np.ndarray], np.ndarray], stage: str) -> Innovation:
+               h: Callable[[np.ndarray], np.ndarray], stage: str, obs_dims: int | None = None) -> Innovation:
     """CKF innovation of every Gaussian ``N(m, P)`` (``(..., d)``) against every ``z`` in ``Z (J, 5)``.
 
     ``R (5, 5)`` is the filter's measurement covariance. Works for any leading batch shape.
+    ``obs_dims``: see :func:`ckf_moments` (3 for landmark maps: ``h`` sees the position only).
     """
-    zhat, Pzz, Pxz = ckf_moments(m, P, h, stage=stage)
+    zhat, Pzz, Pxz = ckf_moments(m, P, h, stage=stage, obs_dims=obs_dims)
     S = symmetrize(Pzz + R)
     L = safe_cholesky(S, stage + " (innovation covariance)")
     Linv = tril_inverse(L)
     r = Z - zhat[..., None, :]  # (..., J, 5)
     for c in AZIMUTH_COMPONENTS:
-        r[..., c] = wrap_angle(r[..., c])
+        r[..., c] = _wrap(r[..., c])
     LinvT = np.swapaxes(Linv, -1, -2)
     y = r @ LinvT  # (..., J, 5): rows L^-1 r_j
     half_logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
@@ -166,12 +189,13 @@ def innovation(m: np.ndarray, P: np.ndarray, Z: np.ndarray, R: np.ndarray,
 
 
 def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
-                  h: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  h: Callable[[np.ndarray], np.ndarray], obs_dims: int | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Single CKF update of ``N(m, P)`` by one measurement ``z (nz,)``: ``(m_post, P_post, log N(z))``.
 
     A convenience wrapper over :func:`innovation` (used by tests and for a single Gaussian).
     """
-    inn = innovation(m, P, np.asarray(z, float)[None, :], R, h, "kalman_update")
+    inn = innovation(m, P, np.asarray(z, float)[None, :], R, h, "kalman_update", obs_dims)
     m_post = m + np.einsum("...da,...a->...d", inn.gain_sqrt, inn.y[..., 0, :])
     return m_post, inn.P_post, inn.loglik[..., 0]
 
@@ -184,7 +208,8 @@ def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np
         lm_type: VA, SP or VS (VS: SP geometry on the first three state components).
 
     Returns:
-        ``h(pts)`` mapping ``(P, Q, K, d)`` landmark points to ``(P, Q, K, 5)`` measurements.
+        ``h(pts)`` mapping ``(P, Q, K, >= 3)`` landmark points (positions first) to
+        ``(P, Q, K, 5)`` measurements.
     """
     s = states[:, None, None, :]
 
@@ -225,7 +250,8 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
             probability evaluated at the Gaussian means.
     """
-    inn = innovation(g.m, g.P, Z, R, landmark_h(states, lm_type, bs), f"{_tname(lm_type)} correction")
+    inn = innovation(g.m, g.P, Z, R, landmark_h(states, lm_type, bs), f"{_tname(lm_type)} correction",
+                     obs_dims=3)
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     pd = np.where(g.mask, pd, 0.0)
     with np.errstate(divide="ignore"):
@@ -276,27 +302,48 @@ def log_psi(terms: list[TypeCorrection], bs_term: np.ndarray | None, log_clutter
     return mx + np.log(np.exp(stacked - mx).sum(axis=0))
 
 
-def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray) -> GM:
+def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: float | None = None) -> GM:
     """Corrected PHD of one type: missed-detection part plus one updated Gaussian per (q, z).
 
-    Returns a GM with batch ``(P,)`` and ``Q (1 + J)`` slots: the first ``Q`` are
-    ``(1 - p_D) w`` with the predicted moments, then ``Q x J`` updated components
-    (``w = q / psi(z)``, ``m + K r``, ``P - K S K^T``).
+    With ``prune=None`` the result has the dense layout: batch ``(P,)`` and ``Q (1 + J)``
+    slots, the first ``Q`` holding ``(1 - p_D) w`` with the predicted moments, then ``Q x J``
+    updated components ``(q, j)`` at slot ``Q + q J + j`` (``w = q / psi(z)``, ``m + K r``,
+    ``P - K S K^T``).
+
+    With a ``prune`` threshold only components of weight ``>= prune`` are materialised
+    (the same rule as the first step of ``prune_merge``), compacted to the front (slot order:
+    missed-detection components first, then updates in ``(q, j)`` order) with as many slots as
+    the largest surviving count. This avoids building the ``(P, Q J, d, d)`` arrays.
     """
     g, inn = t.g, t.inn
     P_, Q, d = g.m.shape
     J = Z.shape[0]
-    w_det = np.exp(t.logq - logpsi[:, None, :])  # (P, Q, J)
-    m_det = g.m[:, :, None, :] + inn.y @ np.swapaxes(inn.gain_sqrt, -1, -2)
-    P_det = np.broadcast_to(inn.P_post[:, :, None], (P_, Q, J, d, d))
-    mask_det = np.broadcast_to(g.mask[:, :, None], (P_, Q, J))
-    w = np.concatenate([np.where(g.mask, t.missed_w, 0.0), w_det.reshape(P_, Q * J)], axis=1)
-    m = np.concatenate([g.m, m_det.reshape(P_, Q * J, d)], axis=1)
-    Pc = np.concatenate([g.P, P_det.reshape(P_, Q * J, d, d)], axis=1)
-    mask = np.concatenate([g.mask, mask_det.reshape(P_, Q * J)], axis=1)
-    m = np.where(mask[..., None], m, 0.0)
-    Pc = np.where(mask[..., None, None], Pc, np.eye(d))
-    out = GM(np.where(mask, w, 0.0), m, Pc, mask)
+    w_det = np.exp(t.logq - logpsi[:, None, :])  # (P, Q, J); 0 where masked (logq = -inf)
+    w_all = np.concatenate([np.where(g.mask, t.missed_w, 0.0), w_det.reshape(P_, Q * J)], axis=1)
+    mask_all = np.concatenate([g.mask, np.repeat(g.mask, J, axis=1)], axis=1)
+    if prune is None:
+        keep = mask_all
+        order = np.broadcast_to(np.arange(Q * (1 + J)), (P_, Q * (1 + J)))
+    else:
+        keep = mask_all & (w_all >= prune)
+        K = int(keep.sum(1).max(initial=0))
+        order = np.argsort(~keep, axis=1, kind="stable")[:, :K]
+    live = np.take_along_axis(keep, order, 1)
+    w = np.where(live, np.take_along_axis(w_all, order, 1), 0.0)
+    is_det = order >= Q
+    q_idx = np.where(is_det, (order - Q) // max(J, 1), order)
+    j_idx = np.where(is_det, (order - Q) % max(J, 1), 0)
+    pi = np.arange(P_)[:, None]
+    m = g.m[pi, q_idx]  # (P, K, d)
+    if J:
+        upd = (inn.gain_sqrt[pi, q_idx] @ inn.y[pi, q_idx, j_idx][..., None])[..., 0]
+        m = np.where(is_det[..., None], m + upd, m)
+        Pc = np.where(is_det[..., None, None], inn.P_post[pi, q_idx], g.P[pi, q_idx])
+    else:
+        Pc = g.P[pi, q_idx]
+    m = np.where(live[..., None], m, 0.0)
+    Pc = np.where(live[..., None, None], Pc, np.eye(d))
+    out = GM(w, m, Pc, live)
     if not np.isfinite(out.w.sum() + out.m.sum() + out.P.sum()):  # masked slots are 0 / I
         out.check(f"after the {_tname(t.lm_type)} correction")
         raise FloatingPointError(f"non-finite values after the {_tname(t.lm_type)} correction")

@@ -138,3 +138,46 @@ def test_cli_writes_result_and_prints_summary(paper, tmp_path, capsys):
     assert r.meta["source"] == "analytic" and r.meta["cache"]
     assert "position RMSE veh1" in text and "fused" in text
     assert main(["slam", str(cache), "--variant", "nope", "--out", str(out)]) == 2
+
+
+# ---------------------------------------------------------------- ablation (paper Sec. V claims)
+ABLATION_SEEDS = tuple(range(10))
+
+
+@pytest.fixture(scope="module")
+def ablation(paper):
+    """baseline and proposed, 10 fixed seeds, P = 300, analytic `paper` data (all path types)."""
+    scn, states, paths = paper
+    out = {}
+    for variant in ("baseline", "proposed"):
+        rows = []
+        for seed in ABLATION_SEEDS:
+            r = run_filter(scn, states, paths, variant=variant, particles=300, seed=seed)
+            m, v = r.metrics, r.vehicles
+            after = m["step"] >= 10
+            fused = after & (m["map"] == "fused")
+            rows.append({
+                "vs": float(m["gospa"][fused & (m["type"] == "VS")].mean()),
+                "va": float(m["gospa"][fused & (m["type"] == "VA")].mean()),
+                "rmse": _rmse(r, 10, scn.steps),
+            })
+        out[variant] = {k: np.array([row[k] for row in rows]) for k in rows[0]}
+    return out
+
+
+@pytest.mark.slow
+def test_ablation_proposed_lowers_fused_vs_gospa(ablation):
+    b, p = ablation["baseline"]["vs"].mean(), ablation["proposed"]["vs"].mean()
+    assert p < b, (p, b)
+
+
+@pytest.mark.slow
+def test_ablation_proposed_lowers_fused_va_gospa(ablation):
+    b, p = ablation["baseline"]["va"].mean(), ablation["proposed"]["va"].mean()
+    assert p < b, (p, b)
+
+
+@pytest.mark.slow
+def test_ablation_proposed_position_rmse_not_worse(ablation):
+    b, p = ablation["baseline"]["rmse"].mean(), ablation["proposed"]["rmse"].mean()
+    assert p <= b, (p, b)

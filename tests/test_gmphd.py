@@ -29,7 +29,12 @@ def test_ckf_update_equals_kalman_update_for_a_linear_measurement(d):
     P = _spd(rng, d, 0.1)
     Rm = _spd(rng, 5, 0.01)
     z = H @ m + rng.standard_normal(5) * 0.1
-    m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H.T)
+    if d == 7:  # marginal rule on the observed position (as the filter does for VS)
+        m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H[:, :3].T, obs_dims=3)
+        m_full, P_full, ll_full = kalman_update(m, P, z, Rm, lambda x: x @ H.T)  # full 7-D rule
+        assert np.allclose(m_full, m_ckf) and np.allclose(P_full, P_ckf) and np.isclose(ll_full, ll_ckf)
+    else:
+        m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H.T)
     S = H @ P @ H.T + Rm
     K = P @ H.T @ np.linalg.inv(S)
     r = z - H @ m
@@ -148,3 +153,25 @@ def test_batched_cholesky_and_triangular_inverse_match_lapack():
     bad = np.diag([1.0, -1.0, 1.0])[None]
     with pytest.raises(FloatingPointError, match="not positive definite in test stage"):
         safe_cholesky(bad, "test stage")
+
+
+def test_pruned_correction_equals_dense_correction_after_pruning():
+    rng = np.random.default_rng(11)
+    P_, Q = 5, 4
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
+    s[:, 0:2] += rng.standard_normal((P_, 2)) * 0.3
+    m = np.array([60.0, 20.0, 5.0]) + rng.standard_normal((P_, Q, 3)) * 2
+    g = GM(rng.uniform(0.01, 1, (P_, Q)), m, np.tile(np.eye(3) * 2, (P_, Q, 1, 1)), rng.random((P_, Q)) < 0.8)
+    Z = np.stack([measure(s[0], np.array([60.0, 20.0, 5.0]), SP, BS_POS), measure(s[0], np.array([61.0, 22.0, 4.0]), SP, BS_POS)])
+    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    lp = log_psi([tc], None, np.log(1.2832e-5), (P_, 2))
+    dense = corrected_gm(tc, Z, lp)
+    pruned = corrected_gm(tc, Z, lp, prune=0.05)
+    for p in range(P_):
+        keep = dense.mask[p] & (dense.w[p] >= 0.05)
+        assert pruned.mask[p].sum() == keep.sum()
+        n = keep.sum()
+        assert np.allclose(pruned.w[p, :n], dense.w[p][keep])
+        assert np.allclose(pruned.m[p, :n], dense.m[p][keep])
+        assert np.allclose(pruned.P[p, :n], dense.P[p][keep])
+    assert pruned.capacity < dense.capacity

@@ -1,0 +1,105 @@
+"""Benchmark: one vehicle-step of the MM-PHD-SLAM filter on the analytic ``paper`` data.
+
+Runs the cooperative filter loop (both vehicles, map fusion at the BS as in ``run_filter``) and
+times every :meth:`LocalFilter.step` call (predict + correct + reduce + estimate + resample) of
+vehicle 1 from step ``--warmup`` on, on one core (OMP / OpenBLAS / MKL threads set to 1 before
+NumPy is imported). Reports the median and quartiles per variant and particle count.
+
+    python benchmarks/bench_filter.py                  # baseline + proposed at P = 300, all 40 steps
+    python benchmarks/bench_filter.py --scaling        # also P = 100, 300, 1000, 3000 (first 20 steps)
+
+DESIGN.md section 8 targets: <= 10 ms median for ``proposed`` at P = 300; cost linear in P.
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
+from mmslam.scenes.scenario import load_preset  # noqa: E402
+from mmslam.scenes.trajectory import vehicle_trajectories  # noqa: E402
+from mmslam.slam.filter import FusionCenter, LocalFilter, _schedule  # noqa: E402
+from mmslam.slam.sensor import fov_detect_prob, simulate_measurements  # noqa: E402
+
+
+def paper_data(steps: int):
+    scn = load_preset("paper")
+    states = vehicle_trajectories(scn, steps)
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(steps)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    return scn, states, paths
+
+
+def time_steps(scn, states, paths, variant: str, particles: int, steps: int, warmup: int,
+               seed: int = 0) -> np.ndarray:
+    """Wall times (s) of vehicle 1's local steps ``warmup..steps-1`` in a full cooperative run."""
+    meas = simulate_measurements(scn, states[:steps], paths, np.random.default_rng(seed))
+    true = meas.true_states
+    R = scn.filter.r_scale * meas.R
+
+    def pd_fn(u, x, t):
+        return fov_detect_prob(u, x, t, scn.sensor)
+
+    n_veh = states.shape[1]
+    filters = [LocalFilter(scn, variant, particles, true[0, n], R, meas.clutter_intensity, pd_fn,
+                           np.random.default_rng(seed + 2 + n)) for n in range(n_veh)]
+    center = FusionCenter(scn, variant)
+    sched = _schedule(scn, n_veh, steps)
+    fov = [[] for _ in range(n_veh)]
+    times = []
+    for k in range(steps):
+        if k:
+            center.predict()
+        for n, f in enumerate(filters):
+            Z = meas.set(k, n)
+            args = (true[k - 1, n, 4], true[k - 1, n, 5]) if k else (None, None)
+            t0 = time.perf_counter()
+            est = f.step(Z, *args)
+            dt = time.perf_counter() - t0
+            if n == 0 and k >= warmup:
+                times.append(dt)
+            fov[n].append(est.mean[:3])
+            if k in sched[n]:
+                f.downlink(center.fuse(est.avg_maps, np.array(fov[n]), est.mean, est.cov))
+                fov[n] = []
+    return np.array(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--particles", type=int, default=300)
+    ap.add_argument("--variants", default="baseline,proposed")
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--scaling", action="store_true", help="also time P = 100, 300, 1000, 3000")
+    ap.add_argument("--scaling-steps", type=int, default=20)
+    args = ap.parse_args()
+
+    scn, states, paths = paper_data(max(args.steps, args.scaling_steps))
+    print(f"one vehicle-step (vehicle 1), analytic paper data, 1 thread; steps {args.warmup}..{args.steps - 1}")
+    for v in args.variants.split(","):
+        t = time_steps(scn, states, paths, v, args.particles, args.steps, args.warmup) * 1e3
+        q1, med, q3 = np.percentile(t, [25, 50, 75])
+        print(f"  {v:9s} P={args.particles:5d}: median {med:7.1f} ms  (IQR {q1:.1f}-{q3:.1f}, n={t.size})")
+    if args.scaling:
+        print(f"scaling (steps {args.warmup}..{args.scaling_steps - 1}):")
+        for v in args.variants.split(","):
+            base = None
+            for P in (100, 300, 1000, 3000):
+                t = time_steps(scn, states, paths, v, P, args.scaling_steps, args.warmup) * 1e3
+                med = float(np.median(t))
+                base = base or med / P
+                print(f"  {v:9s} P={P:5d}: median {med:8.1f} ms   ms/particle {med / P:.4f}  "
+                      f"(x{med / (base * P):.2f} of linear from P=100)")
+
+
+if __name__ == "__main__":
+    main()
