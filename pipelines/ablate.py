@@ -128,7 +128,8 @@ def is_finished(out_dir: str | Path, job: Job) -> bool:
 
 # ====================================================================== the cache
 def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | None = None,
-                  progress: bool = True, max_depth: int = 1, samples: int = 1_000_000) -> Path:
+                  progress: bool = True, max_depth: int = 1, samples: int = 1_000_000,
+                  seed: int = 0) -> Path:
     """Trace ``scenario`` with ``source`` into ``out_dir/cache`` (reused / resumed if present).
 
     Args:
@@ -137,7 +138,8 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
         out_dir: the ablation directory.
         steps: steps to trace (default: the scenario's).
         progress: show the trace progress bar.
-        max_depth, samples: Sionna solver settings (ignored by ``analytic``).
+        max_depth, samples, seed: Sionna solver settings (ignored by ``analytic``); the defaults
+            are those of ``mmslam trace``, so a cache traced by it under ``out_dir/cache`` is reused.
 
     Returns:
         The cache directory.
@@ -146,7 +148,7 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
     from mmslam.scenes.scenario import resolve_scenario
 
     scn = resolve_scenario(scenario)
-    src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=scn.seed)
+    src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
     return Path(trace_scenario(scn, src, Path(out_dir) / "cache", steps=steps, progress=progress))
 
 
@@ -268,7 +270,7 @@ def _dask_pool(scheduler: str | None, workers: int | None, n_jobs: int) -> Itera
             key = f"mmslam-{args[1]}-seed{args[2]}-{token}"
             return client.submit(fn, *args, pure=False, key=key)
 
-        yield _Pool(submit, lambda fs: as_completed(fs), lambda fs: client.cancel(fs), n_workers,
+        yield _Pool(submit, lambda fs: as_completed(fs, loop=client.loop), lambda fs: client.cancel(fs), n_workers,
                     f"dask ({where}), {n_workers} workers")
     finally:
         client.close()
@@ -353,7 +355,7 @@ def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int) -> None
         if k in meta and meta[k] != v:
             raise CacheError(f"{meta_path.parent}: holds {k}={meta[k]}, expected {v}; delete that "
                              "directory and re-run")
-    if "steps" in meta and meta["steps"] != steps:
+    if meta.get("steps") is not None and meta["steps"] != steps:
         raise CacheError(f"{meta_path.parent}: holds steps={meta['steps']}, expected {steps}; delete "
                          "that directory and re-run")
 
