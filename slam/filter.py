@@ -22,7 +22,9 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
    ``sensor.vehicle_noise_std``; static maps times ``p_S``; VS map (with its births) through
    ``predict_vs`` (CT, process noise, dithering);
 2. correction with ``Z_k`` (eqs. prevCorrPHD / propCorrPHD, CKF per Gaussian, filter noise
-   ``R = r_scale R_true``); particle log-weights ``+= sum_z log psi(z)`` (product form);
+   ``R = r_scale R_true``); particle log-weights ``+= sum_z log psi(z)`` (product form, as the
+   authors' code; the paper's eq. prevCorrComW writes a sum). Corrected components below the
+   prune threshold are never materialised (they would be pruned in step 3 anyway);
 3. reduction per type (``prune_merge``: prune, merge, cap, max_trace);
 4. estimates with the corrected weights: weighted-mean state, averaged maps (``average_map``
    with ``fusion.average_prune``), landmark estimates = averaged-map components with weight

@@ -9,8 +9,9 @@ The measurement update of a landmark Gaussian is a cubature Kalman filter (CKF) 
 ``2d`` cubature points of ``N(m, P)`` are pushed through ``h(s_p, ., type)`` for the particle's
 vehicle state ``s_p``; azimuth components are averaged and differenced with wrapping.
 VS Gaussians are 7-D ``[x, y, z, vx, vy, vz, xi]``; the measurement sees the position part only
-(SP geometry), and the CKF on the full 7-D state carries the correction to velocity and turn
-rate through the cross-covariance.
+(SP geometry): the cubature rule runs on the position marginal (6 points for every map type)
+and the correction reaches velocity and turn rate through the cross-covariance
+``P[:, :3] P_pos^-1 Pxz_pos`` (exact for a linear model; see :func:`ckf_moments`).
 
 The known BS is a single fixed landmark (weight 1, no map): it only adds
 ``p_D N(z; h(s_p, b, BS), R)`` to the normaliser ``psi(z)``.
@@ -24,7 +25,7 @@ import numpy as np
 
 from .dynamics import wrap_angle
 from .gm import GM, symmetrize
-from .measurement import AZIMUTH_COMPONENTS, BS, MEAS_DIM, measure
+from .measurement import AZIMUTH_COMPONENTS, BS, MEAS_DIM, VA, measure
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 _TWO_PI = 2.0 * np.pi
@@ -68,14 +69,18 @@ def tril_inverse(L: np.ndarray) -> np.ndarray:
 
 
 def safe_cholesky(P: np.ndarray, stage: str) -> np.ndarray:
-    """Batched lower Cholesky factor of ``P (..., d, d)``; FloatingPointError naming ``stage``."""
-    L = batched_cholesky(P)
-    diag = np.diagonal(L, axis1=-2, axis2=-1)
-    if np.isfinite(diag).all() and (diag > 0).all() and np.isfinite(L).all():
-        return L
+    """Batched lower Cholesky factor of ``P (..., d, d)``; FloatingPointError naming ``stage``.
+
+    LAPACK first; if some matrix is not numerically positive definite, one retry with a
+    relative jitter of ``1e-10`` of the largest diagonal entry (round-off on near-singular but
+    valid matrices), then FloatingPointError.
+    """
     if not np.isfinite(P).all():
         raise FloatingPointError(f"non-finite covariance in {stage}")
-    # one retry with a relative jitter (round-off on near-singular but valid matrices)
+    try:
+        return np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        pass
     d = P.shape[-1]
     scale = np.maximum(np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(-1), 1e-12)
     L = batched_cholesky(P + (1e-10 * scale)[..., None, None] * np.eye(d))
@@ -203,6 +208,10 @@ def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
 def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """Measurement function of landmark points for per-particle vehicle states.
 
+    The same model as :func:`mmslam.slam.measurement.measure` (DESIGN.md section 4), written
+    component-wise for speed (this is the filter's hot path); body-frame AOA azimuths are
+    wrapped to ``[-pi, pi]``.
+
     Args:
         states: ``(P, 7)`` vehicle states.
         lm_type: VA, SP or VS (VS: SP geometry on the first three state components).
@@ -212,9 +221,42 @@ def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np
         ``(P, Q, K, 5)`` measurements.
     """
     s = states[:, None, None, :]
+    ux, uy, uz, head, bias = s[..., 0], s[..., 1], s[..., 2], s[..., 3], s[..., 6]
+    bx, by, bz = (float(c) for c in np.asarray(bs, float))
+
+    def _norm(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        return np.sqrt(x * x + y * y + z * z)
+
+    def _el(z: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.arcsin(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0))
 
     def h(pts: np.ndarray) -> np.ndarray:
-        return measure(s, pts[..., 0:3], lm_type, bs)
+        x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+        out = np.empty(pts.shape[:-1] + (5,))
+        if lm_type == VA:
+            # v = image source; arrival direction u -> v; departure = (u - v) mirrored in the wall
+            ax, ay, az = x - ux, y - uy, z - uz
+            ra = _norm(ax, ay, az)
+            nx, ny, nz = x - bx, y - by, z - bz
+            nn = _norm(nx, ny, nz)
+            nn = np.where(nn > 0, nn, 1.0)
+            nx, ny, nz = nx / nn, ny / nn, nz / nn
+            proj = -(ax * nx + ay * ny + az * nz)  # (u - v) . n
+            dx, dy, dz = -ax - 2.0 * proj * nx, -ay - 2.0 * proj * ny, -az - 2.0 * proj * nz
+            out[..., 0] = ra + bias
+            out[..., 1] = np.arctan2(dy, dx)
+            out[..., 2] = _el(dz, ra)  # |d_dep| = |u - v| (a mirror keeps the length)
+        else:  # SP, VS: single scatter at the point
+            dx, dy, dz = x - bx, y - by, z - bz
+            rd = _norm(dx, dy, dz)
+            ax, ay, az = x - ux, y - uy, z - uz
+            ra = _norm(ax, ay, az)
+            out[..., 0] = rd + ra + bias
+            out[..., 1] = np.arctan2(dy, dx)
+            out[..., 2] = _el(dz, rd)
+        out[..., 3] = _wrap(np.arctan2(ay, ax) - head)
+        out[..., 4] = _el(az, ra)
+        return out
 
     return h
 

@@ -175,3 +175,23 @@ def test_pruned_correction_equals_dense_correction_after_pruning():
         assert np.allclose(pruned.m[p, :n], dense.m[p][keep])
         assert np.allclose(pruned.P[p, :n], dense.P[p][keep])
     assert pruned.capacity < dense.capacity
+
+
+@pytest.mark.parametrize("lm_type", [VA, SP, VS])
+def test_fast_landmark_h_equals_the_measurement_model(lm_type):
+    from mmslam.slam.dynamics import wrap_angle
+    from mmslam.slam.gmphd import landmark_h
+
+    rng = np.random.default_rng(lm_type)
+    s = np.column_stack([rng.uniform(-80, 80, (6, 2)), rng.uniform(0, 2, 6), rng.uniform(-4, 4, 6),
+                         np.full(6, 20.0), np.full(6, 0.3), rng.uniform(0, 300, 6)])
+    if lm_type == VA:
+        pts = np.array([[200.0, 0, 40], [0, -200.0, 40], [-200.0, 0, 40]])[rng.integers(0, 3, (6, 4, 5))]
+        pts = pts + rng.standard_normal(pts.shape)
+    else:
+        pts = np.concatenate([rng.uniform(-90, 90, (6, 4, 5, 2)), rng.uniform(0, 40, (6, 4, 5, 1))], -1)
+    got = landmark_h(s, lm_type, BS_POS)(pts)
+    ref = measure(s[:, None, None, :], pts, lm_type, BS_POS)
+    d = got - ref
+    d[..., 3] = wrap_angle(d[..., 3])
+    assert np.abs(d).max() < 1e-9
