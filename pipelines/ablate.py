@@ -186,6 +186,26 @@ def _single_thread_env() -> Iterator[None]:
                 os.environ[k] = v
 
 
+def _worker_init(parent_pid: int) -> None:
+    """Local-pool worker start-up: one BLAS thread, and exit when the parent process is gone.
+
+    A ``kill -9`` of the parent would otherwise leave the spawned workers blocked forever on
+    their task queue (they hold its write end too, so they never see EOF).
+    """
+    import threading
+
+    for k in _THREAD_VARS:
+        os.environ[k] = "1"
+
+    def watch() -> None:
+        while True:
+            time.sleep(0.5)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="mmslam-parent-watch", daemon=True).start()
+
+
 class _Pool:
     """Uniform submit / as_completed / cancel over concurrent.futures and dask.distributed."""
 
@@ -205,7 +225,8 @@ def _local_pool(workers: int | None, n_jobs: int) -> Iterator[_Pool]:
 
     n = max(1, min(int(workers or os.cpu_count() or 1), n_jobs))
     with _single_thread_env():
-        ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"))
+        ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"),
+                                    initializer=_worker_init, initargs=(os.getpid(),))
         try:
             yield _Pool(lambda fn, *a: ex.submit(fn, *a), lambda fs: cf.as_completed(fs),
                         lambda fs: [f.cancel() for f in fs], n, f"local pool, {n} processes")

@@ -75,7 +75,7 @@ def _plot_variants(ax: Any, summary: Summary, map: str, type: str, quantity: str
         y = s[column]
         ax.plot(s["step"], y, label=v, gid=f"variant:{v}", markersize=4, linewidth=1.6, **st)
         if band:
-            ax.fill_between(s["step"], y - s["std"], y + s["std"], color=st.get("color"), alpha=0.12,
+            ax.fill_between(s["step"], np.maximum(y - s["std"], 0.0), y + s["std"], color=st.get("color"), alpha=0.12,
                             linewidth=0)
     ax.grid(True, alpha=0.3)
 
@@ -84,7 +84,7 @@ def fig_gospa(summary: Summary, type: str = "VS", map: str = "fused", band: bool
     """Mean GOSPA (over Monte Carlo runs) of one map's ``type`` landmarks vs time step.
 
     One line per variant (label = variant, y = the summary's ``mean`` of ``gospa``), a shaded
-    +-1 std band, and the fusion start marked by a vertical line.
+    +-1 std band (clipped at 0), and the fusion start marked by a vertical line.
     """
     fig, ax = _figure()
     _plot_variants(ax, summary, map, type, "gospa", "mean", band)

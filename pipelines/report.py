@@ -219,16 +219,20 @@ def write_report(out_dir: str | Path) -> Path:
     return path
 
 
+_CONSOLE_HEADERS = {"gospa_VA": "VA", "gospa_SP": "SP", "gospa_VS": "VS", "pos_rmse": "pos RMSE",
+                    "wall_time_s": "s/run", "runs": "runs"}
+
+
 def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
     """The summary table as a :class:`rich.table.Table` (for the CLI)."""
     from rich.table import Table
 
     fs = summary.config.get("fusion_start")
-    t = Table(title=f"{title} (means over runs and steps k >= {fs})")
+    t = Table(title=f"{title}\nmean GOSPA [m] and position RMSE [m] over runs and steps k >= {fs}")
     t.add_column("variant")
     t.add_column("map")
-    for _, h in HEADLINE_COLUMNS:
-        t.add_column(h, justify="right")
+    for k, _ in HEADLINE_COLUMNS:
+        t.add_column(_CONSOLE_HEADERS[k], justify="right", no_wrap=True)
     for r in summary_rows(summary):
         t.add_row(r["variant"], r["map"], *[_fmt(r.get(k), k) for k, _ in HEADLINE_COLUMNS])
     return t

@@ -391,6 +391,22 @@ def test_e2e_resume_runs_only_missing_jobs(e2e: dict, tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_e2e_partial_grid_then_full_grid_runs_only_the_rest(e2e: dict, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    d = tmp_path / "grow"
+    base = ["ablate", "paper", "--out", str(d), "--source", "analytic", "--steps", str(STEPS), "--particles",
+            str(PARTICLES), "--quiet"]
+    code, out, _ = _run_cli(base + ["--variants", "proposed", "--mc", "1"], capsys)
+    assert code == 0 and "1 run, 0 reused" in out
+    first = (A.job_dir(d, A.Job("proposed", 0)) / "meta.json").stat().st_mtime_ns
+    code, out, _ = _run_cli(base + ["--mc", str(MC)], capsys)
+    assert code == 0 and f"{len(A.VARIANTS) * MC - 1} run, 1 reused" in out
+    assert (A.job_dir(d, A.Job("proposed", 0)) / "meta.json").stat().st_mtime_ns == first
+    for j, r in _jobs(d).items():
+        _same_result(r, e2e["jobs"][j])
+
+
+@pytest.mark.slow
 def test_e2e_demo_on_analytic_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     d = tmp_path / "demo"
     code, out, _ = _run_cli(["demo", "--source", "analytic", "--mc", "1", "--particles", "20", "--out", str(d),
