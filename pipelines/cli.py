@@ -28,7 +28,7 @@ def _print_summary(summary, title: str, extra: list[str]) -> None:
     con = Console()
     con.print(summary_console_table(summary, title))
     for line in extra:
-        con.print(line, highlight=False, soft_wrap=True)
+        con.print(line, highlight=False, soft_wrap=True, markup=False)
 
 
 def register(app: typer.Typer) -> None:

@@ -225,10 +225,11 @@ _CONSOLE_HEADERS = {"gospa_VA": "VA", "gospa_SP": "SP", "gospa_VS": "VS", "pos_r
 
 def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
     """The summary table as a :class:`rich.table.Table` (for the CLI)."""
+    from rich.markup import escape
     from rich.table import Table
 
     fs = summary.config.get("fusion_start")
-    t = Table(title=f"{title}\nmean GOSPA [m] and position RMSE [m] over runs and steps k >= {fs}")
+    t = Table(title=escape(f"{title}\nmean GOSPA [m] and position RMSE [m] over runs and steps k >= {fs}"))
     t.add_column("variant")
     t.add_column("map")
     for k, _ in HEADLINE_COLUMNS:
