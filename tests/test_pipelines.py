@@ -372,6 +372,24 @@ def test_e2e_dask_local_cluster_gives_identical_results(e2e: dict, tmp_path: Pat
 
 
 @pytest.mark.slow
+def test_e2e_dask_scheduler_address_gives_identical_results(e2e: dict, tmp_path: Path) -> None:
+    import logging
+
+    from distributed import LocalCluster
+
+    d = tmp_path / "dask-remote"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster:
+        code = main(["ablate", "paper", "--out", str(d), "--executor", "dask", "--scheduler",
+                     cluster.scheduler_address, "--variants", "proposed,baseline"] + SMALL)
+    assert code == 0
+    for v in ("proposed", "baseline"):
+        for seed in range(MC):
+            j = A.Job(v, seed)
+            _same_result(Result.load(A.job_dir(d, j)), e2e["jobs"][j])
+
+
+@pytest.mark.slow
 def test_e2e_resume_runs_only_missing_jobs(e2e: dict, tmp_path: Path) -> None:
     d = tmp_path / "resume"
     shutil.copytree(e2e["dir"], d)
