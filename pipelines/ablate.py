@@ -283,7 +283,12 @@ def _dask_pool(scheduler: str | None, workers: int | None, n_jobs: int) -> Itera
     try:
         from distributed import as_completed
 
-        n_workers = len(client.scheduler_info().get("workers", {})) or 1
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        if n_workers == 0:
+            import sys
+
+            print(f"note: the dask scheduler at {scheduler} has no workers yet; jobs wait until workers "
+                  "join (`dask worker <address>`)", file=sys.stderr)
         token = uuid.uuid4().hex[:8]
         where = "local cluster" if cluster is not None else scheduler
 
@@ -302,7 +307,12 @@ def _dask_pool(scheduler: str | None, workers: int | None, n_jobs: int) -> Itera
 # ====================================================================== the ablation
 @dataclass
 class AblationRun:
-    """What :func:`run_ablation` did."""
+    """What :func:`run_ablation` did.
+
+    ``jobs`` is the asked grid, ``ran`` the jobs run now (in completion order), ``skipped`` those
+    found finished; ``wall_time_s`` covers running and aggregating; ``executor`` describes the
+    pool used (e.g. ``"local pool, 2 processes"``).
+    """
 
     out_dir: Path
     jobs: list[Job]
@@ -388,6 +398,9 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     """Run the (variant x seed) grid on ``cache_dir``, store each job under ``out_dir/jobs``.
 
     Finished jobs are skipped. When all jobs are stored, :func:`aggregate` writes the summary.
+    ``DIR/ablation.json`` records the grid of this call (variants x seeds); the summary and
+    ``mmslam report`` cover that grid. A different trace, ``particles`` or ``steps`` than the
+    stored ones is refused (use another ``out_dir``); more seeds or variants extend the grid.
 
     Args:
         cache_dir: a path cache (see :func:`prepare_cache`).
