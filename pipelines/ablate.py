@@ -441,7 +441,9 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     done = [j for j in jobs if is_finished(out, j)]
     for j in done:
         _check_job_meta(out, j, int(particles), n_steps)
-    pending = [j for j in jobs if j not in done]
+    # longest first (variants with a VS map cost more than baseline): less idle time at the end;
+    # the order never changes a job's result
+    pending = sorted((j for j in jobs if j not in done), key=lambda j: (j.variant == "baseline", j.seed))
     t0 = time.perf_counter()
     ran: list[Job] = []
     desc = "nothing to run"
