@@ -187,7 +187,7 @@ def innovation(m: np.ndarray, P: np.ndarray, Z: np.ndarray, R: np.ndarray,
     y = r @ LinvT  # (..., J, 5): rows L^-1 r_j
     half_logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
     nz = Z.shape[-1]
-    loglik = -0.5 * (y * y).sum(-1) - half_logdet[..., None] - 0.5 * nz * _LOG_2PI
+    loglik = -0.5 * np.einsum("...i,...i->...", y, y) - half_logdet[..., None] - 0.5 * nz * _LOG_2PI
     A = Pxz @ LinvT  # Pxz L^-T
     P_post = symmetrize(P - A @ np.swapaxes(A, -1, -2))
     return Innovation(loglik, y, A, P_post)
