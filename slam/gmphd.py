@@ -261,6 +261,170 @@ def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np
     return h
 
 
+# ====================================================================== fast flat (SoA) kernel
+# The filter's hot path. Gaussians are flattened to one axis ``N`` (only those that can be
+# detected) and every small matrix is stored "structure of arrays": the batch axis is the last,
+# contiguous axis (``(d, d, N)``), so each arithmetic step of a closed-form Cholesky factor or
+# triangular solve is one vectorised operation over all ``N`` Gaussians instead of one tiny
+# LAPACK / BLAS call per matrix.
+
+def soa_cholesky(A: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factors of SPD matrices stored batch-last: ``A (d, d, N) -> L (d, d, N)``.
+
+    Cholesky-Crout, one column at a time, each step vectorised over ``N`` (the same arithmetic
+    as LAPACK's unblocked algorithm up to summation order). A non-positive pivot yields NaN or
+    a zero diagonal entry; the caller checks the diagonal.
+    """
+    d = A.shape[0]
+    L = np.zeros_like(A)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for j in range(d):
+            Lj = L[j, :j]  # (j, N)
+            piv = np.sqrt(A[j, j] - np.einsum("kn,kn->n", Lj, Lj)) if j else np.sqrt(A[j, j])
+            L[j, j] = piv
+            if j + 1 < d:
+                rest = A[j + 1:, j]
+                if j:
+                    rest = rest - np.einsum("ikn,kn->in", L[j + 1:, :j], Lj)
+                L[j + 1:, j] = rest / piv
+    return L
+
+
+def _soa_safe_cholesky(A: np.ndarray, stage: str) -> np.ndarray:
+    """:func:`soa_cholesky` with the checks and jitter retry of :func:`safe_cholesky` (``(d, d, N)``)."""
+    L = soa_cholesky(A)
+    diag = np.einsum("iin->in", L)
+    if np.isfinite(diag).all() and (diag > 0).all():
+        return L
+    # rare path: the generic routine raises with the stage name or retries with jitter
+    return np.ascontiguousarray(safe_cholesky(np.moveaxis(A, -1, 0), stage).transpose(1, 2, 0))
+
+
+def soa_forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``X = L^-1 B`` for lower-triangular ``L (d, d, N)`` and ``B (d, ..., N)`` (batch last).
+
+    ``B``'s first axis is the one multiplied by ``L``; the middle axes (e.g. ``J`` measurements)
+    broadcast against ``L``'s batch axis ``N``.
+    """
+    d = L.shape[0]
+    X = np.empty((d,) + np.broadcast_shapes(B.shape[1:], L.shape[2:]))
+    for a in range(d):
+        acc = B[a]
+        for b in range(a):
+            acc = acc - L[a, b] * X[b]
+        X[a] = acc / L[a, a]
+    return X
+
+
+def _h_soa(x: np.ndarray, y: np.ndarray, z: np.ndarray, u: np.ndarray, lm_type: int,
+           bs: np.ndarray) -> np.ndarray:
+    """Measurement model of landmark points, batch last: ``x, y, z (K, N)`` (m), ``u (7, N)``
+    vehicle states -> ``(5, K, N)``. Same formulas as :func:`landmark_h`."""
+    ux, uy, uz, head, bias = u[0], u[1], u[2], u[3], u[6]
+    bx, by, bz = (float(c) for c in np.asarray(bs, float))
+    out = np.empty((5,) + x.shape)
+
+    def _el(zc: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.arcsin(np.clip(zc / np.where(r > 0, r, 1.0), -1.0, 1.0))
+
+    ax, ay, az = x - ux, y - uy, z - uz
+    ra = np.sqrt(ax * ax + ay * ay + az * az)
+    if lm_type == VA:
+        nx, ny, nz = x - bx, y - by, z - bz
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        nn = np.where(nn > 0, nn, 1.0)
+        nx, ny, nz = nx / nn, ny / nn, nz / nn
+        proj = -(ax * nx + ay * ny + az * nz)
+        dx, dy, dz = -ax - 2.0 * proj * nx, -ay - 2.0 * proj * ny, -az - 2.0 * proj * nz
+        out[0] = ra + bias
+        out[1] = np.arctan2(dy, dx)
+        out[2] = _el(dz, ra)
+    else:
+        dx, dy, dz = x - bx, y - by, z - bz
+        rd = np.sqrt(dx * dx + dy * dy + dz * dz)
+        out[0] = rd + ra + bias
+        out[1] = np.arctan2(dy, dx)
+        out[2] = _el(dz, rd)
+    out[3] = _wrap(np.arctan2(ay, ax) - head)
+    out[4] = _el(az, ra)
+    return out
+
+
+@dataclass
+class FlatInnovation:
+    """CKF innovation of ``N`` flattened Gaussians against ``J`` measurements, batch axis last.
+
+    ``loglik (J, N)``: ``log N(z_j; zhat, S)``; ``y (5, J, N)``: whitened residuals
+    ``L^-1 (z_j - zhat)`` (``S = L L^T``); ``gain (d, 5, N)``: ``A = Pxz L^-T`` (``K r = A y``);
+    ``P_post (d, d, N) = P - A A^T``.
+    """
+
+    loglik: np.ndarray
+    y: np.ndarray
+    gain: np.ndarray
+    P_post: np.ndarray
+
+
+def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: int, bs: np.ndarray,
+                    Z: np.ndarray, R: np.ndarray, stage: str) -> FlatInnovation:
+    """CKF innovation of landmark Gaussians ``N(m, P)`` seen from per-Gaussian vehicle states.
+
+    The same computation as :func:`innovation` with ``h = landmark_h`` and ``obs_dims = 3``
+    (cubature rule on the position marginal, 6 points), written batch-last with closed-form
+    small-matrix kernels (:func:`soa_cholesky`, :func:`soa_forward_solve`).
+
+    Args:
+        m: ``(N, d)`` means (d = 3 for VA/SP, 7 for VS; position first, m).
+        P: ``(N, d, d)`` SPD covariances.
+        states: ``(N, 7)`` vehicle state of each Gaussian's particle.
+        Z: ``(J, 5)`` measurements; R: ``(5, 5)`` filter measurement covariance.
+
+    Raises:
+        FloatingPointError: a non-finite or non-positive-definite covariance (naming ``stage``).
+    """
+    n, d = m.shape
+    if not (np.isfinite(m).all() and np.isfinite(P).all()):
+        raise FloatingPointError(f"non-finite covariance in {stage}")
+    mT = m.T  # (d, N)
+    PT = P.transpose(1, 2, 0)  # (d, d, N) view
+    Lo = _soa_safe_cholesky(np.ascontiguousarray(PT[:3, :3]), stage)
+    c = Lo * np.sqrt(3.0)  # c[:, i] = sqrt(3) L e_i
+    pts = np.concatenate([mT[:3, None, :] + c, mT[:3, None, :] - c], axis=1)  # (3, 6, N)
+    hz = _h_soa(pts[0], pts[1], pts[2], np.ascontiguousarray(states.T), lm_type, bs)  # (5, 6, N)
+    dev = hz - hz[:, :1]
+    for a in AZIMUTH_COMPONENTS:
+        dev[a] = _wrap(dev[a])
+    mdev = dev.mean(axis=1)  # (5, N)
+    zhat = hz[:, 0] + mdev
+    for a in AZIMUTH_COMPONENTS:
+        zhat[a] = wrap_angle(zhat[a])
+    Dz = dev - mdev[:, None]
+    S = np.einsum("akn,bkn->abn", Dz, Dz) * (1.0 / 6.0) + R[:, :, None]
+    G = (Dz[:, :3] - Dz[:, 3:]) * (1.0 / 6.0)  # (5, 3, N): G[a, k]
+    if d == 3:
+        Pxz = np.einsum("ikn,akn->ian", c, G)  # sqrt(3) L G
+    else:
+        # Pxz = 3 P[:, :3] (sqrt(3) L)^-T G = sqrt(3) P[:, :3] L^-T G (see ckf_moments)
+        W = np.empty_like(G)  # W[a, k] = (L^-T G)[k, a]: back substitution with L^T
+        for k in (2, 1, 0):
+            acc = G[:, k]
+            for i in range(k + 1, 3):
+                acc = acc - Lo[i, k] * W[:, i]
+            W[:, k] = acc / Lo[k, k]
+        Pxz = np.sqrt(3.0) * np.einsum("ikn,akn->ian", PT[:, :3], W)
+    Ls = _soa_safe_cholesky(S, stage + " (innovation covariance)")
+    r = Z.T[:, :, None] - zhat[:, None, :]  # (5, J, N)
+    for a in AZIMUTH_COMPONENTS:
+        r[a] = _wrap(r[a])
+    y = soa_forward_solve(Ls, r)
+    half_logdet = np.log(np.einsum("iin->in", Ls)).sum(0)  # (N,)
+    loglik = -0.5 * np.einsum("ajn,ajn->jn", y, y) - half_logdet - 0.5 * Z.shape[1] * _LOG_2PI
+    A = soa_forward_solve(Ls, Pxz.transpose(1, 0, 2))  # (5, d, N): A^T
+    gain = np.ascontiguousarray(A.transpose(1, 0, 2))  # (d, 5, N)
+    P_post = PT - np.einsum("ian,jan->ijn", gain, gain)
+    return FlatInnovation(loglik, y, gain, P_post)
+
+
 def predict_static(g: GM, p_survival: float) -> GM:
     """Static landmark prediction (identity dynamics): weights times ``p_survival``."""
     return GM(g.w * p_survival, g.m, g.P, g.mask)
@@ -270,20 +434,28 @@ def predict_static(g: GM, p_survival: float) -> GM:
 class TypeCorrection:
     """Intermediate per-type correction terms: detection terms and innovation.
 
-    ``logq (P, Q, J)``: ``log(p_D w N(z_j; zhat, S))`` (``-inf`` where masked);
-    ``missed_w (P, Q)``: ``(1 - p_D) w``.
+    ``logq (P, Q, J)``: ``log(p_D w N(z_j; zhat, S))`` (``-inf`` where masked or ``p_D = 0``);
+    ``missed_w (P, Q)``: ``(1 - p_D) w``; ``det_index (P, Q)``: index of the Gaussian in the
+    flat innovation ``inn`` (``-1`` where masked or ``p_D = 0``: no innovation is computed for
+    a Gaussian that cannot be detected, its detection terms are exactly zero).
     """
 
     g: GM
     lm_type: int
     logq: np.ndarray
     missed_w: np.ndarray
-    inn: Innovation
+    inn: FlatInnovation
+    det_index: np.ndarray
 
 
 def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray]) -> TypeCorrection:
     """Detection terms of one map type (batched over particles, Gaussians and measurements).
+
+    Only the live Gaussians with ``p_D > 0`` (inside the FOV) go through the CKF innovation
+    (:func:`flat_innovation`, flattened over particles x Gaussians); the others keep
+    ``logq = -inf`` and their full weight as missed detection, exactly as the dense formula
+    gives with ``p_D = 0``.
 
     Args:
         g: predicted map of this type, batch ``(P,)``, ``Q`` slots, dim 3 (VA/SP) or 7 (VS).
@@ -291,15 +463,26 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         Z: ``(J, 5)`` measurements of this vehicle and step.
         pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
             probability evaluated at the Gaussian means.
+
+    Raises:
+        FloatingPointError: a non-finite mean or covariance in the map (also outside the FOV),
+            or a covariance that is not positive definite.
     """
-    inn = innovation(g.m, g.P, Z, R, landmark_h(states, lm_type, bs), f"{_tname(lm_type)} correction",
-                     obs_dims=3)
+    stage = f"{_tname(lm_type)} correction"
+    if not (np.isfinite(g.m).all() and np.isfinite(g.P).all()):  # masked slots hold 0 / I
+        raise FloatingPointError(f"non-finite mean or covariance in {stage}")
+    P_, Q = g.w.shape
+    J = Z.shape[0]
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     pd = np.where(g.mask, pd, 0.0)
-    with np.errstate(divide="ignore"):
-        logq = np.log(pd * g.w)[..., None] + inn.loglik
-    logq = np.where(g.mask[..., None], logq, -np.inf)
-    return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn)
+    det = pd > 0.0
+    pidx, qidx = np.nonzero(det)
+    det_index = np.full((P_, Q), -1)
+    det_index[pidx, qidx] = np.arange(pidx.size)
+    inn = flat_innovation(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], lm_type, bs, Z, R, stage)
+    logq = np.full((P_, Q, J), -np.inf)
+    logq[pidx, qidx] = np.log(pd[pidx, qidx] * g.w[pidx, qidx])[:, None] + inn.loglik.T
+    return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn, det_index)
 
 
 def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -350,7 +533,8 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     With ``prune=None`` the result has the dense layout: batch ``(P,)`` and ``Q (1 + J)``
     slots, the first ``Q`` holding ``(1 - p_D) w`` with the predicted moments, then ``Q x J``
     updated components ``(q, j)`` at slot ``Q + q J + j`` (``w = q / psi(z)``, ``m + K r``,
-    ``P - K S K^T``).
+    ``P - K S K^T``; a Gaussian that cannot be detected, ``p_D = 0``, has no innovation: its
+    updated slots hold weight 0 and the predicted moments).
 
     With a ``prune`` threshold only components of weight ``>= prune`` are materialised
     (the same rule as the first step of ``prune_merge``), compacted to the front (slot order:
@@ -376,15 +560,16 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     q_idx = np.where(is_det, (order - Q) // max(J, 1), order)
     j_idx = np.where(is_det, (order - Q) % max(J, 1), 0)
     pi = np.arange(P_)[:, None]
-    m = g.m[pi, q_idx]  # (P, K, d)
-    if J:
-        upd = (inn.gain_sqrt[pi, q_idx] @ inn.y[pi, q_idx, j_idx][..., None])[..., 0]
-        m = np.where(is_det[..., None], m + upd, m)
-        Pc = np.where(is_det[..., None, None], inn.P_post[pi, q_idx], g.P[pi, q_idx])
-    else:
-        Pc = g.P[pi, q_idx]
-    m = np.where(live[..., None], m, 0.0)
-    Pc = np.where(live[..., None, None], Pc, np.eye(d))
+    m = g.m[pi, q_idx]  # (P, K, d) predicted moments (missed detections; undetectable updates)
+    Pc = g.P[pi, q_idx]
+    n_idx = t.det_index[pi, q_idx]
+    upd = live & is_det & (n_idx >= 0)  # updated components with an innovation
+    if upd.any():
+        n_u, j_u = n_idx[upd], j_idx[upd]
+        m[upd] += np.einsum("iak,ak->ki", inn.gain[:, :, n_u], inn.y[:, j_u, n_u])
+        Pc[upd] = symmetrize(inn.P_post[:, :, n_u].transpose(2, 0, 1))
+    m[~live] = 0.0
+    Pc[~live] = np.eye(d)
     out = GM(w, m, Pc, live)
     if not np.isfinite(out.w.sum() + out.m.sum() + out.P.sum()):  # masked slots are 0 / I
         out.check(f"after the {_tname(t.lm_type)} correction")

@@ -195,3 +195,66 @@ def test_fast_landmark_h_equals_the_measurement_model(lm_type):
     d = got - ref
     d[..., 3] = wrap_angle(d[..., 3])
     assert np.abs(d).max() < 1e-9
+
+
+def test_soa_cholesky_and_forward_solve_match_lapack():
+    from mmslam.slam.gmphd import soa_cholesky, soa_forward_solve
+
+    rng = np.random.default_rng(21)
+    for d in (3, 5, 7):
+        A = np.stack([_spd(rng, d, 10.0 ** rng.uniform(-3, 2)) for _ in range(40)])  # (N, d, d)
+        L = soa_cholesky(np.ascontiguousarray(A.transpose(1, 2, 0)))
+        Lref = np.linalg.cholesky(A)
+        assert np.allclose(L.transpose(2, 0, 1), Lref, rtol=1e-12, atol=1e-14 * np.abs(Lref).max())
+        B = rng.standard_normal((d, 4, 40))  # (d, J, N)
+        X = soa_forward_solve(L, B)
+        ref = np.linalg.solve(Lref[:, None], B.transpose(2, 1, 0)[..., None])[..., 0]  # (N, J, d)
+        assert np.allclose(X.transpose(2, 1, 0), ref, rtol=1e-10, atol=1e-12)
+    bad = np.diag([1.0, -1.0, 1.0])[:, :, None]
+    assert not np.all(np.diagonal(soa_cholesky(bad), axis1=0, axis2=1) > 0)  # NaN or 0 pivot, caller checks
+
+
+@pytest.mark.parametrize("lm_type", [VA, SP, VS])
+def test_flat_innovation_equals_generic_ckf_innovation(lm_type):
+    """The batch-last kernel reproduces innovation(landmark_h, obs_dims=3) on a padded batch."""
+    from mmslam.slam.gmphd import flat_innovation, innovation, landmark_h
+
+    rng = np.random.default_rng(30 + lm_type)
+    P_, Q, d = 3, 4, (7 if lm_type == VS else 3)
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
+    s[:, 0:2] += rng.standard_normal((P_, 2))
+    s[:, 3] += 0.05 * rng.standard_normal(P_)
+    base = np.array([200.0, 10.0, 30.0]) if lm_type == VA else np.array([60.0, 20.0, 5.0])
+    m = np.zeros((P_, Q, d))
+    m[..., :3] = base + rng.standard_normal((P_, Q, 3)) * 3
+    if d == 7:
+        m[..., 3:] = rng.standard_normal((P_, Q, 4))
+    Pm = np.stack([_spd(rng, d, 0.3) for _ in range(P_ * Q)]).reshape(P_, Q, d, d)
+    Z = np.stack([measure(s[0], base + rng.standard_normal(3), lm_type, BS_POS) for _ in range(3)])
+    ref = innovation(m, Pm, Z, R, landmark_h(s, lm_type, BS_POS), "test", obs_dims=3)
+    fi = flat_innovation(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), lm_type, BS_POS, Z, R, "test")
+    assert np.allclose(fi.loglik.T.reshape(P_, Q, -1), ref.loglik, rtol=1e-9, atol=1e-9)
+    assert np.allclose(fi.y.transpose(2, 1, 0).reshape(P_, Q, -1, 5), ref.y, rtol=1e-8, atol=1e-9)
+    assert np.allclose(fi.gain.transpose(2, 0, 1).reshape(P_, Q, d, 5), ref.gain_sqrt, rtol=1e-8, atol=1e-10)
+    assert np.allclose(fi.P_post.transpose(2, 0, 1).reshape(P_, Q, d, d), ref.P_post, rtol=1e-8, atol=1e-10)
+
+
+def test_correction_skips_undetectable_gaussians_exactly():
+    """Gaussians with p_D = 0 get no innovation: weights and kept components are unchanged vs the
+    dense formula (pD = 0 -> detection weight 0, missed weight = w), the others are updated."""
+    rng = np.random.default_rng(12)
+    P_, Q = 3, 4
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
+    near = np.array([60.0, 20.0, 5.0])
+    m = np.where(np.arange(Q)[None, :, None] % 2 == 0, near, np.array([-60.0, -40.0, 5.0]))
+    m = m + rng.standard_normal((P_, Q, 3))
+    g = GM(np.full((P_, Q), 0.8), m, np.tile(np.eye(3), (P_, Q, 1, 1)), np.ones((P_, Q), bool))
+    Z = measure(s[0], near, SP, BS_POS)[None]
+    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    assert np.all(tc.det_index[:, 1::2] == -1) and np.all(tc.det_index[:, 0::2] >= 0)
+    assert np.all(np.isneginf(tc.logq[:, 1::2]))
+    lp = log_psi([tc], None, np.log(1.2832e-5), (P_, 1))
+    out = corrected_gm(tc, Z, lp)
+    assert np.allclose(out.w[:, 1:Q:2], 0.8)  # missed weight = full weight
+    det_w = out.w[:, Q:].reshape(P_, Q)
+    assert np.all(det_w[:, 1::2] == 0.0) and np.all(det_w[:, 0::2] > 0)
