@@ -7,6 +7,7 @@ NumPy is imported). Reports the median and quartiles per variant and particle co
 
     python benchmarks/bench_filter.py                  # baseline + proposed at P = 300, all 40 steps
     python benchmarks/bench_filter.py --scaling        # also P = 100, 300, 1000, 3000 (first 20 steps)
+    python benchmarks/bench_filter.py --cpu            # thread CPU time (busy machine)
 
 DESIGN.md section 8 targets: <= 10 ms median for ``proposed`` at P = 300; cost linear in P.
 """
@@ -39,8 +40,12 @@ def paper_data(steps: int):
 
 
 def time_steps(scn, states, paths, variant: str, particles: int, steps: int, warmup: int,
-               seed: int = 0) -> np.ndarray:
-    """Wall times (s) of vehicle 1's local steps ``warmup..steps-1`` in a full cooperative run."""
+               seed: int = 0, clock=time.perf_counter) -> np.ndarray:
+    """Times (s) of vehicle 1's local steps ``warmup..steps-1`` in a full cooperative run.
+
+    ``clock``: ``time.perf_counter`` (wall time) or ``time.thread_time`` (CPU time of this
+    thread: less sensitive to other processes on a busy machine).
+    """
     meas = simulate_measurements(scn, states[:steps], paths, np.random.default_rng(seed))
     true = meas.true_states
     R = scn.filter.r_scale * meas.R
@@ -61,9 +66,9 @@ def time_steps(scn, states, paths, variant: str, particles: int, steps: int, war
         for n, f in enumerate(filters):
             Z = meas.set(k, n)
             args = (true[k - 1, n, 4], true[k - 1, n, 5]) if k else (None, None)
-            t0 = time.perf_counter()
+            t0 = clock()
             est = f.step(Z, *args)
-            dt = time.perf_counter() - t0
+            dt = clock() - t0
             if n == 0 and k >= warmup:
                 times.append(dt)
             fov[n].append(est.mean[:3])
@@ -81,12 +86,15 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--scaling", action="store_true", help="also time P = 100, 300, 1000, 3000")
     ap.add_argument("--scaling-steps", type=int, default=20)
+    ap.add_argument("--cpu", action="store_true", help="time with the thread CPU clock instead of wall time")
     args = ap.parse_args()
+    clock = time.thread_time if args.cpu else time.perf_counter
 
     scn, states, paths = paper_data(max(args.steps, args.scaling_steps))
-    print(f"one vehicle-step (vehicle 1), analytic paper data, 1 thread; steps {args.warmup}..{args.steps - 1}")
+    print(f"one vehicle-step (vehicle 1), analytic paper data, 1 thread, {'CPU' if args.cpu else 'wall'} time; "
+          f"steps {args.warmup}..{args.steps - 1}")
     for v in args.variants.split(","):
-        t = time_steps(scn, states, paths, v, args.particles, args.steps, args.warmup) * 1e3
+        t = time_steps(scn, states, paths, v, args.particles, args.steps, args.warmup, clock=clock) * 1e3
         q1, med, q3 = np.percentile(t, [25, 50, 75])
         print(f"  {v:9s} P={args.particles:5d}: median {med:7.1f} ms  (IQR {q1:.1f}-{q3:.1f}, n={t.size})")
     if args.scaling:
@@ -94,7 +102,7 @@ def main() -> None:
         for v in args.variants.split(","):
             base = None
             for P in (100, 300, 1000, 3000):
-                t = time_steps(scn, states, paths, v, P, args.scaling_steps, args.warmup) * 1e3
+                t = time_steps(scn, states, paths, v, P, args.scaling_steps, args.warmup, clock=clock) * 1e3
                 med = float(np.median(t))
                 base = base or med / P
                 print(f"  {v:9s} P={P:5d}: median {med:8.1f} ms   ms/particle {med / P:.4f}  "

@@ -76,18 +76,61 @@ def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.n
     return mean, cov, ok
 
 
+def _invert_batch_last(states: np.ndarray, zpts: np.ndarray, lm_type: int,
+                       bs: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """:func:`invert_va` / :func:`invert_sp` of every particle x cubature point, component-wise.
+
+    ``states (P, 7)``, ``zpts (J, K, 5)`` -> positions ``(x, y, z)`` each ``(P, J, K)`` (m) and
+    ``valid (P, J, K)``; the same formulas as the public functions, without stacking the
+    3-vectors (the birth's hot path).
+    """
+    sh = (-1, 1, 1)
+    ux, uy, uz = (states[:, i].reshape(sh) for i in range(3))
+    az = zpts[None, :, :, 3] + states[:, 3].reshape(sh)
+    el = zpts[:, :, 4]  # (J, K): the elevation does not depend on the particle
+    ce = np.cos(el)
+    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)[None]  # global AOA unit direction
+    L = zpts[None, :, :, 0] - states[:, 6].reshape(sh)
+    if lm_type == VA:
+        return (ux + L * dx, uy + L * dy, uz + L * dz), L > 0.0
+    b = np.asarray(bs, float)
+    bx, by, bz = b[0] - ux, b[1] - uy, b[2] - uz
+    nbu2 = bx * bx + by * by + bz * bz
+    den = 2.0 * (L - (dx * bx + dy * by + dz * bz))
+    valid = (L * L > nbu2) & (L > 0.0) & (den > 0.0)
+    r = np.where(valid, (L * L - nbu2) / np.where(den > 0.0, den, 1.0), 0.0)
+    valid &= r > 0.0
+    return (ux + r * dx, uy + r * dy, uz + r * dz), valid
+
+
 def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,
                   bs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
 
     ``lm_type`` VA uses :func:`invert_va`, SP and VS :func:`invert_sp` (the same images: compute
-    once and pass to :func:`birth_from_moments` for both). No FOV gating here.
+    once and pass to :func:`birth_from_moments` for both). No FOV gating here. The equal-weight
+    moments of the 10 images are computed component-wise (closed-form 3x3 determinant for the
+    degeneracy check); ``ok`` is False for an invalid image, a non-finite moment or a
+    covariance with a non-positive determinant.
     """
     J = Z.shape[0]
     zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
-    inv = invert_va if lm_type == VA else invert_sp
-    pts, valid = inv(states[:, None, None, :], zpts[None], bs)  # (P, J, 10, 3)
-    return _image_moments(pts, valid)
+    xyz, valid = _invert_batch_last(states, zpts, lm_type, bs)  # 3 x (P, J, 10)
+    K = zpts.shape[1]
+    mean = np.stack([c.mean(axis=-1) for c in xyz], axis=-1)  # (P, J, 3)
+    dev = [c - mean[..., i, None] for i, c in enumerate(xyz)]
+    cov = np.empty(mean.shape + (3,))
+    for i in range(3):
+        for j in range(i + 1):
+            cov[..., i, j] = cov[..., j, i] = (dev[i] * dev[j]).sum(-1) / K
+    ok = valid.all(axis=-1) & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 0, 2]
+    e, f, i_ = cov[..., 1, 1], cov[..., 1, 2], cov[..., 2, 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        det = a * (e * i_ - f * f) - b * (b * i_ - c * f) + c * (b * f - c * e)
+    # guard against a degenerate (rank-deficient) spread: the determinant must be > 0
+    ok &= np.where(ok, det, 0.0) > 0.0
+    return mean, cov, ok
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,

@@ -74,19 +74,30 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     """Move live components to the front (by descending weight) and trim to ``capacity`` slots.
 
     ``capacity`` defaults to the largest live count in the batch. Components beyond the
-    capacity (the lowest weights) are dropped.
+    capacity (the lowest weights) are dropped. Ties keep their slot order (stable sort). If the
+    slots are already in that order (e.g. the output of a previous ``compact``), the result
+    holds views of the input's leading slots instead of gathered copies.
     """
     key = np.where(g.mask, -g.w, np.inf)
-    order = np.argsort(key, axis=-1, kind="stable")
     cap = int(g.count().max(initial=0)) if capacity is None else capacity
     cap = max(cap, 0)
-    order = order[..., :cap]
-    w = np.take_along_axis(g.w, order, -1)
-    mask = np.take_along_axis(g.mask, order, -1)
-    m = np.take_along_axis(g.m, order[..., None], -2)
-    P = np.take_along_axis(g.P, order[..., None, None], -3)
-    if order.shape[-1] < cap:  # pad when capacity exceeds current slots
-        pad = empty(g.batch_shape, cap - order.shape[-1], g.dim)
+    q = g.capacity
+    if cap <= q and (q < 2 or bool((key[..., 1:] >= key[..., :-1]).all())):
+        # identity permutation (a stable sort of non-decreasing keys): trim only
+        mask = g.mask[..., :cap]
+        return GM(np.where(mask, g.w[..., :cap], 0.0), g.m[..., :cap, :], g.P[..., :cap, :, :], mask)
+    order = np.argsort(key, axis=-1, kind="stable")[..., :cap]
+    B = g.batch_shape
+    n = int(np.prod(B, dtype=int))
+    k = order.shape[-1]
+    o = order.reshape(n, k)
+    rows = np.arange(n)[:, None]
+    w = g.w.reshape(n, q)[rows, o].reshape(B + (k,))
+    mask = g.mask.reshape(n, q)[rows, o].reshape(B + (k,))
+    m = g.m.reshape(n, q, g.dim)[rows, o].reshape(B + (k, g.dim))
+    P = g.P.reshape(n, q, g.dim, g.dim)[rows, o].reshape(B + (k, g.dim, g.dim))
+    if k < cap:  # pad when capacity exceeds current slots
+        pad = empty(B, cap - k, g.dim)
         return concat(GM(w, m, P, mask), pad)
     w = np.where(mask, w, 0.0)
     return GM(w, m, P, mask)

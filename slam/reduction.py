@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from .gm import GM, compact, empty, symmetrize
+from .gmphd import soa_cholesky, soa_forward_solve
 
 
 def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.ndarray:
@@ -49,16 +50,38 @@ def _inv_spd(P: np.ndarray) -> np.ndarray:
         inv[..., 2, 2] = a * e - b * b
         inv /= det[..., None, None]
     else:
-        try:
-            inv = symmetrize(np.linalg.inv(P))
-        except np.linalg.LinAlgError:
-            raise FloatingPointError("singular covariance in Gaussian-mixture merging") from None
+        inv = _inv_spd_cholesky(P)
+        if inv is None:  # not numerically positive definite: the generic inverse decides
+            try:
+                inv = symmetrize(np.linalg.inv(P))
+            except np.linalg.LinAlgError:
+                raise FloatingPointError("singular covariance in Gaussian-mixture merging") from None
     if not np.all(np.isfinite(inv)):
         raise FloatingPointError("singular covariance in Gaussian-mixture merging")
     return inv
 
 
+def _inv_spd_cholesky(P: np.ndarray) -> np.ndarray | None:
+    """``P^-1 = L^-T L^-1`` for SPD ``P (..., d, d)`` with batch-last closed-form kernels.
+
+    Returns None if some Cholesky pivot is not positive (the caller falls back to LAPACK).
+    The result is exactly symmetric.
+    """
+    sh, d = P.shape[:-2], P.shape[-1]
+    if P.size == 0:
+        return np.empty_like(P)
+    A = np.moveaxis(P.reshape(-1, d, d), 0, -1)  # (d, d, N)
+    L = soa_cholesky(np.ascontiguousarray(A))
+    diag = np.einsum("iin->in", L)
+    if not (np.isfinite(diag).all() and (diag > 0).all()):
+        return None
+    Linv = soa_forward_solve(L, np.broadcast_to(np.eye(d)[:, :, None], L.shape))  # (d, d, N)
+    inv = np.einsum("kin,kjn->nij", Linv, Linv)
+    return inv.reshape(sh + (d, d))
+
+
 _PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances
+_ONEHOT_BUDGET = 2_000_000  # max N*K*Q entries of the one-hot cluster-weight matrix
 
 
 def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarray, c: np.ndarray,
@@ -161,17 +184,28 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     wv = w[valid]
     W = np.bincount(flat, weights=wv, minlength=n * n_it).reshape(n, n_it)
     Wsafe = np.where(W > 0, W, 1.0)
-    head_of = np.take_along_axis(heads, np.maximum(label, 0), axis=-1)  # (N, Q)
-    diff = (mc - np.take_along_axis(mc, head_of[..., None], axis=-2))[valid]  # (M, d) offset from head
-    acc1 = np.zeros((n * n_it, d))
-    np.add.at(acc1, flat, wv[:, None] * diff)
+    head_of = heads[rows[:, None], np.maximum(label, 0)]  # (N, Q)
+    diff = (mc - mc[rows[:, None], head_of])[valid]  # (M, d) offset from head
+    if n > 1 and n * n_it * q <= _ONEHOT_BUDGET:
+        # small clusters per mixture (the particle maps): weighted one-hot matrix products
+        # instead of the slower unbuffered scatter-add (same sums up to summation order)
+        Wm = np.where(label[:, None, :] == np.arange(n_it)[None, :, None], w[:, None, :], 0.0)  # (N, K, Q)
+        diff_all = np.zeros((n, q, d))
+        diff_all[valid] = diff
+        acc1 = Wm @ diff_all  # (N, K, d)
+        second = np.zeros((n, q, d, d))
+        second[valid] = P[valid] + diff[:, :, None] * diff[:, None, :]
+        acc2 = Wm @ second.reshape(n, q, d * d)  # (N, K, d * d)
+    else:
+        acc1 = np.zeros((n * n_it, d))
+        np.add.at(acc1, flat, wv[:, None] * diff)
+        second = P[valid] + diff[:, :, None] * diff[:, None, :]  # (M, d, d)
+        acc2 = np.zeros((n * n_it, d, d))
+        np.add.at(acc2, flat, wv[:, None, None] * second)
     dbar = acc1.reshape(n, n_it, d) / Wsafe[..., None]  # mean offset from the head
-    second = P[valid] + diff[:, :, None] * diff[:, None, :]  # (M, d, d)
-    acc2 = np.zeros((n * n_it, d, d))
-    np.add.at(acc2, flat, wv[:, None, None] * second)
     S = acc2.reshape(n, n_it, d, d) / Wsafe[..., None, None]
     Pbar = S - dbar[..., :, None] * dbar[..., None, :]
-    mhead = np.take_along_axis(mc, heads[:, :n_it, None], axis=-2)  # (N, K, d)
+    mhead = mc[rows[:, None], heads[:, :n_it]]  # (N, K, d)
     act = out_mask[:, :n_it]
     out_w[:, :n_it] = np.where(act, W, 0.0)
     out_m[:, :n_it] = np.where(act[..., None], mhead + dbar + centre[:, None, :], 0.0)

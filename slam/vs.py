@@ -48,11 +48,13 @@ def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
             raise ValueError(f"dither must have shape ({VS_DIM},), got {dither.shape}")
         add = add + np.diag(dither)
     live = g.mask
-    m = np.where(live[..., None], g.m, 0.0)
+    idx = np.nonzero(live)  # only live components are propagated (masked slots: 0 / I)
+    m = g.m[idx]
     J = vs_ct_jacobian(m, dt)
-    m_new = np.where(live[..., None], vs_ct(m, dt), 0.0)
-    P_new = symmetrize(J @ g.P @ np.swapaxes(J, -1, -2) + add)
-    P_new = np.where(live[..., None, None], P_new, np.eye(VS_DIM))
+    m_new = np.zeros_like(g.m)
+    m_new[idx] = vs_ct(m, dt)
+    P_new = np.broadcast_to(np.eye(VS_DIM), g.P.shape).copy()
+    P_new[idx] = symmetrize(J @ g.P[idx] @ np.swapaxes(J, -1, -2) + add)
     w_new = np.where(live, g.w * p_survival, 0.0)
     out = GM(w_new, m_new, P_new, live.copy())
     out.check("after VS prediction")

@@ -94,3 +94,25 @@ def test_birth_with_no_measurements_is_empty():
     s = np.zeros((3, 7))
     g = birth_gm(s, np.zeros((0, 5)), R, SP, BS_POS, 1.5e-5, _pd)
     assert g.w.shape == (3, 0) and g.m.shape == (3, 0, 3)
+
+
+@pytest.mark.parametrize("lm_type", [VA, SP])
+def test_birth_moments_equal_the_stacked_reference(lm_type):
+    """Component-wise birth_moments == invert_* on stacked points + _image_moments."""
+    from mmslam.slam.birth import _image_moments, birth_moments
+    from mmslam.slam.gmphd import cubature_points
+
+    rng = np.random.default_rng(4 + lm_type)
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (5, 1))
+    s[:, 0:2] += rng.standard_normal((5, 2))
+    R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+    Z = np.stack([measure(s[0], p, lm_type, BS_POS) for p in
+                  ([60.0, 20.0, 5.0], [-30.0, 50.0, 2.0], [200.0, 0.0, 40.0])])
+    Z = np.concatenate([Z, [[10.0, 0.1, 0.1, 0.2, 0.1]]])  # invalid for SP (TOA too short)
+    mean, cov, ok = birth_moments(s, Z, R, lm_type, BS_POS)
+    zpts = cubature_points(Z, np.broadcast_to(R, (4, 5, 5)))
+    inv = invert_va if lm_type == VA else invert_sp
+    rm, rc, rok = _image_moments(*inv(s[:, None, None, :], zpts[None], BS_POS))
+    assert np.array_equal(ok, rok) and ok.any()
+    assert np.allclose(mean[ok], rm[ok], rtol=1e-12, atol=1e-9)
+    assert np.allclose(cov[ok], rc[ok], rtol=1e-9, atol=1e-12)
