@@ -76,21 +76,32 @@ def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.n
     return mean, cov, ok
 
 
-def _invert_batch_last(states: np.ndarray, zpts: np.ndarray, lm_type: int,
-                       bs: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """:func:`invert_va` / :func:`invert_sp` of every particle x cubature point, component-wise.
+def _aoa_rays(states: np.ndarray, zpts: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Global AOA unit directions and ``L = TOA - B`` for every particle x cubature point.
 
-    ``states (P, 7)``, ``zpts (J, K, 5)`` -> positions ``(x, y, z)`` each ``(P, J, K)`` (m) and
-    ``valid (P, J, K)``; the same formulas as the public functions, without stacking the
-    3-vectors (the birth's hot path).
+    ``states (P, 7)``, ``zpts (J, K, 5)`` -> ``dx, dy, dz, L`` each ``(P, J, K)`` (the
+    components of :func:`aoa_direction`, not stacked).
     """
     sh = (-1, 1, 1)
-    ux, uy, uz = (states[:, i].reshape(sh) for i in range(3))
     az = zpts[None, :, :, 3] + states[:, 3].reshape(sh)
     el = zpts[:, :, 4]  # (J, K): the elevation does not depend on the particle
     ce = np.cos(el)
-    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)[None]  # global AOA unit direction
+    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)[None]
     L = zpts[None, :, :, 0] - states[:, 6].reshape(sh)
+    return dx, dy, dz, L
+
+
+def _invert_batch_last(states: np.ndarray, rays: tuple[np.ndarray, ...], lm_type: int,
+                       bs: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """:func:`invert_va` / :func:`invert_sp` of every particle x cubature point, component-wise.
+
+    ``states (P, 7)``, ``rays`` from :func:`_aoa_rays` -> positions ``(x, y, z)`` each
+    ``(P, J, K)`` (m) and ``valid (P, J, K)``; the same formulas as the public functions,
+    without stacking the 3-vectors (the birth's hot path).
+    """
+    dx, dy, dz, L = rays
+    sh = (-1, 1, 1)
+    ux, uy, uz = (states[:, i].reshape(sh) for i in range(3))
     if lm_type == VA:
         return (ux + L * dx, uy + L * dy, uz + L * dz), L > 0.0
     b = np.asarray(bs, float)
@@ -103,20 +114,10 @@ def _invert_batch_last(states: np.ndarray, zpts: np.ndarray, lm_type: int,
     return (ux + r * dx, uy + r * dy, uz + r * dz), valid
 
 
-def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,
-                  bs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
-
-    ``lm_type`` VA uses :func:`invert_va`, SP and VS :func:`invert_sp` (the same images: compute
-    once and pass to :func:`birth_from_moments` for both). No FOV gating here. The equal-weight
-    moments of the 10 images are computed component-wise (closed-form 3x3 determinant for the
-    degeneracy check); ``ok`` is False for an invalid image, a non-finite moment or a
-    covariance with a non-positive determinant.
-    """
-    J = Z.shape[0]
-    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
-    xyz, valid = _invert_batch_last(states, zpts, lm_type, bs)  # 3 x (P, J, 10)
-    K = zpts.shape[1]
+def _moments_batch_last(xyz: tuple[np.ndarray, np.ndarray, np.ndarray],
+                        valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Equal-weight moments of images given component-wise (``3 x (P, J, K)``); see :func:`birth_moments`."""
+    K = valid.shape[-1]
     mean = np.stack([c.mean(axis=-1) for c in xyz], axis=-1)  # (P, J, 3)
     dev = [c - mean[..., i, None] for i, c in enumerate(xyz)]
     cov = np.empty(mean.shape + (3,))
@@ -131,6 +132,30 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     # guard against a degenerate (rank-deficient) spread: the determinant must be > 0
     ok &= np.where(ok, det, 0.0) > 0.0
     return mean, cov, ok
+
+
+def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
+                          bs: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`birth_moments` for several inversion kinds (VA, SP) sharing the cubature points
+    and AOA rays: ``{kind: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}``."""
+    J = Z.shape[0]
+    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
+    rays = _aoa_rays(states, zpts)
+    return {k: _moments_batch_last(*_invert_batch_last(states, rays, VA if k == VA else SP, bs))
+            for k in kinds}
+
+
+def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,
+                  bs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
+
+    ``lm_type`` VA uses :func:`invert_va`, SP and VS :func:`invert_sp` (the same images: compute
+    once and pass to :func:`birth_from_moments` for both). No FOV gating here. The equal-weight
+    moments of the 10 images are computed component-wise (closed-form 3x3 determinant for the
+    degeneracy check); ``ok`` is False for an invalid image, a non-finite moment or a
+    covariance with a non-positive determinant.
+    """
+    return birth_moments_by_kind(states, Z, R, (lm_type,), bs)[lm_type]
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,

@@ -54,7 +54,7 @@ import numpy as np
 from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario
 
-from .birth import birth_from_moments, birth_moments
+from .birth import birth_from_moments, birth_moments_by_kind
 from .dynamics import wrap_angle
 from .gm import GM, compact, concat, empty
 from .gmphd import bs_logterm, corrected_gm, log_psi, predict_static, type_terms
@@ -154,11 +154,10 @@ class LocalFilter:
         fp = self.fp
         births: dict[int, GM] = {}
         if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
-            moments = {}
+            kinds = tuple(sorted({VA if t == VA else SP for t in self.types}))  # SP and VS share the inversion
+            moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t in self.types:
-                kind = VA if t == VA else SP  # SP and VS share the single-scatter inversion
-                if kind not in moments:
-                    moments[kind] = birth_moments(self.s, self._prev_Z, self.R, kind, self.bs)
+                kind = VA if t == VA else SP
                 births[t] = birth_from_moments(self.s, *moments[kind], t, fp.birth_weight, self.pd_fn,
                                                fp.vs_birth_velocity_var, fp.vs_birth_turn_std)
         self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),

@@ -48,6 +48,8 @@ class GM:
 
     def check(self, where: str = "") -> None:
         """Raise FloatingPointError if a live component has a NaN/inf weight, mean or covariance."""
+        if np.isfinite(self.w).all() and np.isfinite(self.m).all() and np.isfinite(self.P).all():
+            return  # fast path: everything (live or not) finite
         live = self.mask
         bad = ~np.isfinite(self.w) & live
         bad |= ~np.isfinite(self.m).all(-1) & live

@@ -386,8 +386,8 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
     if not (np.isfinite(m).all() and np.isfinite(P).all()):
         raise FloatingPointError(f"non-finite covariance in {stage}")
     mT = m.T  # (d, N)
-    PT = P.transpose(1, 2, 0)  # (d, d, N) view
-    Lo = _soa_safe_cholesky(np.ascontiguousarray(PT[:3, :3]), stage)
+    PT = np.ascontiguousarray(P.transpose(1, 2, 0))  # (d, d, N)
+    Lo = _soa_safe_cholesky(PT[:3, :3], stage)
     c = Lo * np.sqrt(3.0)  # c[:, i] = sqrt(3) L e_i
     pts = np.concatenate([mT[:3, None, :] + c, mT[:3, None, :] - c], axis=1)  # (3, 6, N)
     hz = _h_soa(pts[0], pts[1], pts[2], np.ascontiguousarray(states.T), lm_type, bs)  # (5, 6, N)
@@ -411,16 +411,19 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
             for i in range(k + 1, 3):
                 acc = acc - Lo[i, k] * W[:, i]
             W[:, k] = acc / Lo[k, k]
-        Pxz = np.sqrt(3.0) * np.einsum("ikn,akn->ian", PT[:, :3], W)
+        Pxz = np.sqrt(3.0) * (PT[:, 0, None] * W[None, :, 0] + PT[:, 1, None] * W[None, :, 1]
+                              + PT[:, 2, None] * W[None, :, 2])  # (d, 5, N)
     Ls = _soa_safe_cholesky(S, stage + " (innovation covariance)")
     r = Z.T[:, :, None] - zhat[:, None, :]  # (5, J, N)
     for a in AZIMUTH_COMPONENTS:
         r[a] = _wrap(r[a])
-    y = soa_forward_solve(Ls, r)
+    J = r.shape[1]
+    # one triangular solve for the residuals and the gain: L^-1 [r_1 .. r_J, Pxz^T]
+    X = soa_forward_solve(Ls, np.concatenate([r, Pxz.transpose(1, 0, 2)], axis=1))  # (5, J + d, N)
+    y = X[:, :J]
     half_logdet = np.log(np.einsum("iin->in", Ls)).sum(0)  # (N,)
     loglik = -0.5 * np.einsum("ajn,ajn->jn", y, y) - half_logdet - 0.5 * Z.shape[1] * _LOG_2PI
-    A = soa_forward_solve(Ls, Pxz.transpose(1, 0, 2))  # (5, d, N): A^T
-    gain = np.ascontiguousarray(A.transpose(1, 0, 2))  # (d, 5, N)
+    gain = np.ascontiguousarray(X[:, J:].transpose(1, 0, 2))  # (d, 5, N): A = Pxz L^-T
     P_post = PT - np.einsum("ian,jan->ijn", gain, gain)
     return FlatInnovation(loglik, y, gain, P_post)
 
@@ -550,12 +553,20 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     if prune is None:
         keep = mask_all
         order = np.broadcast_to(np.arange(Q * (1 + J)), (P_, Q * (1 + J)))
+        live = keep
+        w = np.where(live, w_all, 0.0)
     else:
+        # stable compaction of the kept slots to the front of each row (slot order kept)
         keep = mask_all & (w_all >= prune)
-        K = int(keep.sum(1).max(initial=0))
-        order = np.argsort(~keep, axis=1, kind="stable")[:, :K]
-    live = np.take_along_axis(keep, order, 1)
-    w = np.where(live, np.take_along_axis(w_all, order, 1), 0.0)
+        cnt = keep.sum(1)
+        K = int(cnt.max(initial=0))
+        pp, cc = np.nonzero(keep)  # row-major: ascending slot within each row
+        rank = np.arange(pp.size) - (np.cumsum(cnt) - cnt)[pp]
+        order = np.zeros((P_, K), dtype=np.intp)  # dead slots point at slot 0 (zeroed below)
+        order[pp, rank] = cc
+        live = np.arange(K)[None, :] < cnt[:, None]
+        w = np.zeros((P_, K))
+        w[pp, rank] = w_all[pp, cc]
     is_det = order >= Q
     q_idx = np.where(is_det, (order - Q) // max(J, 1), order)
     j_idx = np.where(is_det, (order - Q) % max(J, 1), 0)

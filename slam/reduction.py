@@ -82,6 +82,7 @@ def _inv_spd_cholesky(P: np.ndarray) -> np.ndarray | None:
 
 _PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances
 _ONEHOT_BUDGET = 2_000_000  # max N*K*Q entries of the one-hot cluster-weight matrix
+_ONEHOT_MAX_CLUSTERS = 64  # beyond, the O(K Q d^2) products cost more than the scatter-add
 
 
 def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarray, c: np.ndarray,
@@ -137,8 +138,11 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     cnt = keep.sum(-1, keepdims=True)
     centre = np.where(keep[..., None], m, 0.0).sum(-2) / np.maximum(cnt, 1)  # (N, d)
     mc = np.where(keep[..., None], m - centre[:, None, :], 0.0)
-    A = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
-    A[keep] = _inv_spd(P[keep])
+    if 2 * int(keep.sum()) >= keep.size:  # mostly live: invert in place (identity in dead slots)
+        A = _inv_spd(np.where(keep[..., None, None], P, np.eye(d)))
+    else:
+        A = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
+        A[keep] = _inv_spd(P[keep])
     Aflat = A.reshape(n, q, d * d)
     b = np.einsum("nqij,nqj->nqi", A, mc)  # (N, Q, d)  A_i m_i
     c = np.einsum("nqi,nqi->nq", b, mc)  # (N, Q)     m_i^T A_i m_i
@@ -185,18 +189,16 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     W = np.bincount(flat, weights=wv, minlength=n * n_it).reshape(n, n_it)
     Wsafe = np.where(W > 0, W, 1.0)
     head_of = heads[rows[:, None], np.maximum(label, 0)]  # (N, Q)
-    diff = (mc - mc[rows[:, None], head_of])[valid]  # (M, d) offset from head
-    if n > 1 and n * n_it * q <= _ONEHOT_BUDGET:
-        # small clusters per mixture (the particle maps): weighted one-hot matrix products
-        # instead of the slower unbuffered scatter-add (same sums up to summation order)
+    diff_all = np.where(valid[..., None], mc - mc[rows[:, None], head_of], 0.0)  # (N, Q, d) offset from head
+    if n_it <= _ONEHOT_MAX_CLUSTERS and n * n_it * q <= _ONEHOT_BUDGET:
+        # few clusters per mixture (the usual case): weighted one-hot matrix products instead
+        # of the slower unbuffered scatter-add (the same sums up to summation order)
         Wm = np.where(label[:, None, :] == np.arange(n_it)[None, :, None], w[:, None, :], 0.0)  # (N, K, Q)
-        diff_all = np.zeros((n, q, d))
-        diff_all[valid] = diff
         acc1 = Wm @ diff_all  # (N, K, d)
-        second = np.zeros((n, q, d, d))
-        second[valid] = P[valid] + diff[:, :, None] * diff[:, None, :]
+        second = np.where(valid[..., None, None], P + diff_all[..., :, None] * diff_all[..., None, :], 0.0)
         acc2 = Wm @ second.reshape(n, q, d * d)  # (N, K, d * d)
     else:
+        diff = diff_all[valid]  # (M, d)
         acc1 = np.zeros((n * n_it, d))
         np.add.at(acc1, flat, wv[:, None] * diff)
         second = P[valid] + diff[:, :, None] * diff[:, None, :]  # (M, d, d)
