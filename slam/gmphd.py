@@ -308,11 +308,14 @@ def soa_forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     """
     d = L.shape[0]
     X = np.empty((d,) + np.broadcast_shapes(B.shape[1:], L.shape[2:]))
-    for a in range(d):
-        acc = B[a]
+    tmp = np.empty(X.shape[1:])
+    for a in range(d):  # in place, the same operations as X[a] = (B[a] - sum_b L[a, b] X[b]) / L[a, a]
+        Xa = X[a]
+        Xa[...] = B[a]
         for b in range(a):
-            acc = acc - L[a, b] * X[b]
-        X[a] = acc / L[a, a]
+            np.multiply(L[a, b], X[b], out=tmp)
+            np.subtract(Xa, tmp, out=Xa)
+        np.divide(Xa, L[a, a], out=Xa)
     return X
 
 
@@ -385,6 +388,25 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
     n, d = m.shape
     if not (np.isfinite(m).all() and np.isfinite(P).all()):
         raise FloatingPointError(f"non-finite covariance in {stage}")
+    if n <= INNOVATION_BLOCK:
+        return _flat_innovation_block(m, P, states, lm_type, bs, Z, R, stage)
+    # blocks of Gaussians: the temporaries stay small (fewer page faults from large short-lived
+    # allocations); every Gaussian's arithmetic is the same as in one pass
+    blocks = [_flat_innovation_block(m[i:i + INNOVATION_BLOCK], P[i:i + INNOVATION_BLOCK],
+                                     states[i:i + INNOVATION_BLOCK], lm_type, bs, Z, R, stage)
+              for i in range(0, n, INNOVATION_BLOCK)]
+    return FlatInnovation(*(np.concatenate([getattr(b, f) for b in blocks], axis=-1)
+                            for f in ("loglik", "y", "gain", "P_post")))
+
+
+INNOVATION_BLOCK = 1024
+"""Gaussians per block in :func:`flat_innovation` (a speed setting; results do not depend on it)."""
+
+
+def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: int, bs: np.ndarray,
+                           Z: np.ndarray, R: np.ndarray, stage: str) -> FlatInnovation:
+    """:func:`flat_innovation` of one block of Gaussians (inputs already checked finite)."""
+    n, d = m.shape
     mT = m.T  # (d, N)
     PT = np.ascontiguousarray(P.transpose(1, 2, 0))  # (d, d, N)
     Lo = _soa_safe_cholesky(PT[:3, :3], stage)

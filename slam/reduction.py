@@ -118,7 +118,8 @@ def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarra
 def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
                 merge: float, pairwise: bool | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Greedy merging on a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``Q`` slots.
+    """Greedy merging on a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``K <= Q``
+    slots (``K`` = the largest number of clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I).
 
     The loop runs over merge iterations (at most ``Q``), never over batch members: iteration
     ``it`` picks every member's current highest-weight remaining component (the cluster head)
@@ -129,12 +130,9 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     are computed at once (one-hot matrix products), spreads taken relative to the cluster head.
     """
     n, q, d = m.shape
-    out_w = np.zeros((n, q))
-    out_m = np.zeros((n, q, d))
-    out_P = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
-    out_mask = np.zeros((n, q), bool)
     if n == 0 or q == 0 or not keep.any():
-        return out_w, out_m, out_P, out_mask
+        return np.zeros((n, 0)), np.zeros((n, 0, d)), np.zeros((n, 0, d, d)), np.zeros((n, 0), bool)
+    out_mask = np.zeros((n, q), bool)
     cnt = keep.sum(-1, keepdims=True)
     centre = np.where(keep[..., None], m, 0.0).sum(-2) / np.maximum(cnt, 1)  # (N, d)
     mc = np.where(keep[..., None], m - centre[:, None, :], 0.0)
@@ -208,11 +206,11 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     S = acc2.reshape(n, n_it, d, d) / Wsafe[..., None, None]
     Pbar = S - dbar[..., :, None] * dbar[..., None, :]
     mhead = mc[rows[:, None], heads[:, :n_it]]  # (N, K, d)
-    act = out_mask[:, :n_it]
-    out_w[:, :n_it] = np.where(act, W, 0.0)
-    out_m[:, :n_it] = np.where(act[..., None], mhead + dbar + centre[:, None, :], 0.0)
-    out_P[:, :n_it] = np.where(act[..., None, None], symmetrize(Pbar), np.eye(d))
-    return out_w, out_m, out_P, out_mask
+    act = out_mask[:, :n_it].copy()
+    out_w = np.where(act, W, 0.0)
+    out_m = np.where(act[..., None], mhead + dbar + centre[:, None, :], 0.0)
+    out_P = np.where(act[..., None, None], symmetrize(Pbar), np.eye(d))
+    return out_w, out_m, out_P, act
 
 
 def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
@@ -260,12 +258,13 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     n = int(np.prod(B, dtype=int))
     w, m, P, mask = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d),
                                 keep.reshape(n, q), merge)
-    out = GM(w.reshape(B + (q,)), m.reshape(B + (q, d)), P.reshape(B + (q, d, d)), mask.reshape(B + (q,)))
+    k = w.shape[-1]
+    out = GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)))
     if fixed_capacity:
         out = compact(out, cap)
     else:
         out = compact(out, min(cap, int(out.count().max(initial=0))))
-    out.P = symmetrize(out.P)
+    # covariances are exactly symmetric already (symmetrised cluster moments, I in dead slots)
     out.check("after prune_merge")
     return out
 

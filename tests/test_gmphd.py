@@ -258,3 +258,21 @@ def test_correction_skips_undetectable_gaussians_exactly():
     assert np.allclose(out.w[:, 1:Q:2], 0.8)  # missed weight = full weight
     det_w = out.w[:, Q:].reshape(P_, Q)
     assert np.all(det_w[:, 1::2] == 0.0) and np.all(det_w[:, 0::2] > 0)
+
+
+def test_flat_innovation_blocks_equal_one_pass(monkeypatch):
+    """Blocked evaluation (many Gaussians) gives exactly the single-pass result."""
+    import mmslam.slam.gmphd as gm_mod
+
+    rng = np.random.default_rng(40)
+    n = 37
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (n, 1))
+    s[:, 0:2] += rng.standard_normal((n, 2))
+    m = np.array([60.0, 20.0, 5.0]) + rng.standard_normal((n, 3)) * 3
+    P = np.stack([_spd(rng, 3, 0.3) for _ in range(n)])
+    Z = np.stack([measure(s[0], np.array([60.0, 20.0, 5.0]), SP, BS_POS), np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
+    one = gm_mod.flat_innovation(m, P, s, SP, BS_POS, Z, R, "test")
+    monkeypatch.setattr(gm_mod, "INNOVATION_BLOCK", 8)
+    blk = gm_mod.flat_innovation(m, P, s, SP, BS_POS, Z, R, "test")
+    for f in ("loglik", "y", "gain", "P_post"):
+        assert np.array_equal(getattr(one, f), getattr(blk, f))
