@@ -271,6 +271,7 @@ def landmark_h(states: np.ndarray, lm_type: int, bs: np.ndarray) -> Callable[[np
 def soa_cholesky(A: np.ndarray) -> np.ndarray:
     """Lower Cholesky factors of SPD matrices stored batch-last: ``A (d, d, N) -> L (d, d, N)``.
 
+    Reads the lower triangle of ``A`` only.
     Cholesky-Crout, one column at a time, each step vectorised over ``N`` (the same arithmetic
     as LAPACK's unblocked algorithm up to summation order). A non-positive pivot yields NaN or
     a zero diagonal entry; the caller checks the diagonal.
@@ -291,27 +292,37 @@ def soa_cholesky(A: np.ndarray) -> np.ndarray:
 
 
 def _soa_safe_cholesky(A: np.ndarray, stage: str) -> np.ndarray:
-    """:func:`soa_cholesky` with the checks and jitter retry of :func:`safe_cholesky` (``(d, d, N)``)."""
+    """:func:`soa_cholesky` with the checks and jitter retry of :func:`safe_cholesky` (``(d, d, N)``).
+
+    Only the lower triangle of ``A`` is read (the upper one may be unset).
+    """
     L = soa_cholesky(A)
     diag = np.einsum("iin->in", L)
     if np.isfinite(diag).all() and (diag > 0).all():
         return L
     # rare path: the generic routine raises with the stage name or retries with jitter
-    return np.ascontiguousarray(safe_cholesky(np.moveaxis(A, -1, 0), stage).transpose(1, 2, 0))
+    full = np.array(A)
+    for i in range(full.shape[0]):
+        full[:i, i] = full[i, :i]  # mirror the lower triangle
+    return np.ascontiguousarray(safe_cholesky(np.moveaxis(full, -1, 0), stage).transpose(1, 2, 0))
 
 
-def soa_forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+def soa_forward_solve(L: np.ndarray, B: np.ndarray, overwrite: bool = False) -> np.ndarray:
     """``X = L^-1 B`` for lower-triangular ``L (d, d, N)`` and ``B (d, ..., N)`` (batch last).
 
     ``B``'s first axis is the one multiplied by ``L``; the middle axes (e.g. ``J`` measurements)
-    broadcast against ``L``'s batch axis ``N``.
+    broadcast against ``L``'s batch axis ``N``. With ``overwrite=True`` (``B`` a float array of
+    the full result shape) the solution is written into ``B`` and returned.
     """
     d = L.shape[0]
-    X = np.empty((d,) + np.broadcast_shapes(B.shape[1:], L.shape[2:]))
+    if overwrite:
+        X = B
+    else:
+        X = np.empty((d,) + np.broadcast_shapes(B.shape[1:], L.shape[2:]))
+        X[...] = B
     tmp = np.empty(X.shape[1:])
     for a in range(d):  # in place, the same operations as X[a] = (B[a] - sum_b L[a, b] X[b]) / L[a, a]
         Xa = X[a]
-        Xa[...] = B[a]
         for b in range(a):
             np.multiply(L[a, b], X[b], out=tmp)
             np.subtract(Xa, tmp, out=Xa)
@@ -421,7 +432,13 @@ def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_
     for a in AZIMUTH_COMPONENTS:
         zhat[a] = wrap_angle(zhat[a])
     Dz = dev - mdev[:, None]
-    S = np.einsum("akn,bkn->abn", Dz, Dz) * (1.0 / 6.0) + R[:, :, None]
+    # innovation covariance, lower triangle only (all soa_cholesky reads; row-wise einsum is much
+    # faster than one "akn,bkn->abn" einsum over the whole matrix)
+    S = np.empty((5, 5, n))
+    for a in range(5):
+        S[a, :a + 1] = np.einsum("kn,bkn->bn", Dz[a], Dz[:a + 1])
+    S *= 1.0 / 6.0
+    S += R[:, :, None]
     G = (Dz[:, :3] - Dz[:, 3:]) * (1.0 / 6.0)  # (5, 3, N): G[a, k]
     if d == 3:
         Pxz = np.einsum("ikn,akn->ian", c, G)  # sqrt(3) L G
@@ -436,12 +453,15 @@ def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_
         Pxz = np.sqrt(3.0) * (PT[:, 0, None] * W[None, :, 0] + PT[:, 1, None] * W[None, :, 1]
                               + PT[:, 2, None] * W[None, :, 2])  # (d, 5, N)
     Ls = _soa_safe_cholesky(S, stage + " (innovation covariance)")
-    r = Z.T[:, :, None] - zhat[:, None, :]  # (5, J, N)
+    # one triangular solve for the residuals and the gain: L^-1 [r_1 .. r_J, Pxz^T], in one buffer
+    J = Z.shape[0]
+    X = np.empty((5, J + d, n))
+    r = X[:, :J]
+    np.subtract(Z.T[:, :, None], zhat[:, None, :], out=r)  # (5, J, N) residuals
     for a in AZIMUTH_COMPONENTS:
         r[a] = _wrap(r[a])
-    J = r.shape[1]
-    # one triangular solve for the residuals and the gain: L^-1 [r_1 .. r_J, Pxz^T]
-    X = soa_forward_solve(Ls, np.concatenate([r, Pxz.transpose(1, 0, 2)], axis=1))  # (5, J + d, N)
+    X[:, J:] = Pxz.transpose(1, 0, 2)
+    soa_forward_solve(Ls, X, overwrite=True)  # (5, J + d, N)
     y = X[:, :J]
     half_logdet = np.log(np.einsum("iin->in", Ls)).sum(0)  # (N,)
     loglik = -0.5 * np.einsum("ajn,ajn->jn", y, y) - half_logdet - 0.5 * Z.shape[1] * _LOG_2PI
