@@ -56,7 +56,7 @@ from mmslam.scenes.scenario import Scenario
 
 from .birth import birth_from_moments, birth_moments_by_kind
 from .dynamics import wrap_angle
-from .gm import GM, compact, concat, empty
+from .gm import GM, concat, empty
 from .gmphd import bs_logterm, corrected_gm, log_psi, predict_static, type_terms
 from .measurement import BS, SP, TYPE_NAMES, VA, VS
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
@@ -196,11 +196,7 @@ class LocalFilter:
         fp = self.fp
         for t in self.types:
             g = self.maps[t]
-            # pruning first on the padded batch (same rule as prune_merge's step 1), then trim the
-            # slots to the largest live count so the merge works on live components only
-            live = g.mask & (g.w >= fp.prune)
-            g = compact(GM(np.where(live, g.w, 0.0), g.m, g.P, live))
-            if g.capacity:
+            if g.capacity:  # prune_merge prunes first and trims the slots to the live count
                 g = prune_merge(g, fp.prune, fp.merge, fp.max_gaussians, fp.max_trace, pos_dims=3)
             self.maps[t] = g
 
