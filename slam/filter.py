@@ -329,8 +329,17 @@ def estimates_of(g: GM, threshold: float) -> tuple[np.ndarray, np.ndarray]:
     return g.m[sel][:, 0:3], g.w[sel]
 
 
-def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int) -> dict[int, list[dict[str, tuple[int, np.ndarray]]]]:
-    """type -> per vehicle: landmark id -> (first step it appears in that vehicle's paths, position)."""
+def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
+                sensor: Any) -> dict[int, list[dict[str, tuple[int, np.ndarray]]]]:
+    """type -> per vehicle: landmark id -> (first step it could be detected by that vehicle, position).
+
+    A landmark counts from the first step it is in the vehicle's paths *and* inside its FOV
+    (``fov_detect_prob > 0`` at the true antenna ``positions (steps, n_veh, 3)``): a ray tracer
+    reports scatterers at any range, but the sensor (and so the filter) only sees them within
+    ``fov_range``; a landmark the vehicle could never measure is not a missed one.
+    """
+    from .sensor import fov_detect_prob
+
     out: dict[int, list[dict[str, tuple[int, np.ndarray]]]] = {VA: [{} for _ in range(n_veh)],
                                                                SP: [{} for _ in range(n_veh)]}
     step = np.asarray(paths["step"])
@@ -340,6 +349,11 @@ def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int) -> dict[in
     xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
                     np.asarray(paths["lm_z"], float)], -1)
     sel = np.nonzero(((typ == VA) | (typ == SP)) & (step < steps))[0]
+    if sel.size:
+        u = positions[step[sel], rx[sel]]
+        pd = np.where(typ[sel] == VA, fov_detect_prob(u, xyz[sel], VA, sensor),
+                      fov_detect_prob(u, xyz[sel], SP, sensor))
+        sel = sel[np.asarray(pd, float) > 0]
     for i in sel[np.argsort(step[sel], kind="stable")]:
         d = out[int(typ[i])][int(rx[i])]
         if ids[i] not in d:
@@ -466,7 +480,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     center = FusionCenter(scn, variant) if measurement_update else None
     sched = _schedule(scn, n_veh, steps)
     acc_fov: list[list[np.ndarray]] = [[] for _ in range(n_veh)]
-    seen = _first_seen(sub, n_veh, steps)
+    seen = _first_seen(sub, n_veh, steps, true[:steps, :, 0:3], sensor)
     seen_all = {t: _merge_seen(seen[t]) for t in (VA, SP)}
     ev = scn.evaluation
     thresholds = {VA: scn.filter.threshold_va, SP: scn.filter.threshold_sp, VS: scn.filter.threshold_vs}

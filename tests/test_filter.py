@@ -181,3 +181,38 @@ def test_ablation_proposed_lowers_fused_va_gospa(ablation):
 def test_ablation_proposed_position_rmse_not_worse(ablation):
     b, p = ablation["baseline"]["rmse"].mean(), ablation["proposed"]["rmse"].mean()
     assert p <= b, (p, b)
+
+
+def test_sp_truth_only_counts_scatterers_inside_the_fov():
+    """A ray tracer reports SPs at any range; the evaluation truth must only hold those the
+    vehicle could measure (inside fov_range), else far SPs count as missed for every variant."""
+    import dataclasses
+
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.scenes.scenario import load_preset
+    from mmslam.scenes.trajectory import vehicle_trajectories
+    from mmslam.slam.filter import _first_seen
+
+    scn = load_preset("paper")
+    states = vehicle_trajectories(scn, 12)
+    src = AnalyticSource(dataclasses.replace(scn, sensor=dataclasses.replace(scn.sensor, fov_range=1e9)))
+    parts = [src.trace_step(k, states[k]) for k in range(12)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    seen = _first_seen(paths, 2, 12, states[:, :, :3], scn.sensor)
+    # every SP is in the (FOV-free) paths from step 0 ...
+    assert len({i for i, t in zip(paths["landmark_id"], paths["type"]) if t == 2}) == 4
+    for n in range(2):
+        for lid, (k0, pos) in seen[2][n].items():
+            # ... but counts only from the first step it is within 50 m of the antenna
+            d = np.linalg.norm(states[:, n, :3] - pos, axis=1)
+            assert d[k0] <= 50.0 and np.all(d[:k0] > 50.0)
+        far = [lid for lid, p in zip(paths["landmark_id"], paths["type"]) if p == 2
+               and np.all(np.linalg.norm(states[:, n, :3] - paths_pos(paths, lid), axis=1) > 50.0)]
+        assert not set(far) & set(seen[2][n])
+    # VAs have no range limit: all four counted from step 0
+    assert all(k0 == 0 for k0, _ in seen[1][0].values()) and len(seen[1][0]) == 4
+
+
+def paths_pos(paths, lid):
+    i = int(np.nonzero(np.asarray(paths["landmark_id"]) == lid)[0][0])
+    return np.array([paths["lm_x"][i], paths["lm_y"][i], paths["lm_z"][i]])
