@@ -223,7 +223,8 @@ def _read_table(path: Path, expect_sha: str, schema: dict[str, str]) -> dict[str
     if hashlib.sha256(data).hexdigest() != expect_sha:
         raise CacheError(f"{path}: sha256 mismatch (truncated or modified); {FORCE_HINT}")
     try:
-        tbl = pq.read_table(pa.BufferReader(data))
+        # ParquetFile.read: ~2x less per-file overhead than read_table's dataset layer (small chunks)
+        tbl = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False)
     except Exception as e:  # pyarrow raises several types for corrupt files
         raise CacheError(f"{path}: unreadable Parquet ({e.__class__.__name__}); {FORCE_HINT}") from None
     if tbl.column_names != list(schema):
