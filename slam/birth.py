@@ -77,31 +77,32 @@ def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def _aoa_rays(states: np.ndarray, zpts: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Global AOA unit directions and ``L = TOA - B`` for every particle x cubature point.
+    """Global AOA unit directions and ``L = TOA - B`` for every cubature point x particle.
 
-    ``states (P, 7)``, ``zpts (J, K, 5)`` -> ``dx, dy, dz, L`` each ``(P, J, K)`` (the
-    components of :func:`aoa_direction`, not stacked).
+    ``states (P, 7)``, ``zpts (J, K, 5)`` -> ``dx, dy, dz, L`` each ``(K, J, P)`` (the
+    components of :func:`aoa_direction`, not stacked; cubature point first so that the
+    moments over the ``K`` points are sums of contiguous ``(J, P)`` slabs, particles last so
+    that every elementwise loop runs over ``P``).
     """
-    sh = (-1, 1, 1)
-    az = zpts[None, :, :, 3] + states[:, 3].reshape(sh)
-    el = zpts[:, :, 4]  # (J, K): the elevation does not depend on the particle
+    zk = zpts.transpose(1, 0, 2)[..., None]  # (K, J, 5, 1)
+    az = zk[:, :, 3] + states[:, 3]
+    el = zk[:, :, 4]  # (K, J, 1): the elevation does not depend on the particle
     ce = np.cos(el)
-    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)[None]
-    L = zpts[None, :, :, 0] - states[:, 6].reshape(sh)
+    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)
+    L = zk[:, :, 0] - states[:, 6]
     return dx, dy, dz, L
 
 
 def _invert_batch_last(states: np.ndarray, rays: tuple[np.ndarray, ...], lm_type: int,
                        bs: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """:func:`invert_va` / :func:`invert_sp` of every particle x cubature point, component-wise.
+    """:func:`invert_va` / :func:`invert_sp` of every cubature point x particle, component-wise.
 
     ``states (P, 7)``, ``rays`` from :func:`_aoa_rays` -> positions ``(x, y, z)`` each
-    ``(P, J, K)`` (m) and ``valid (P, J, K)``; the same formulas as the public functions,
+    ``(K, J, P)`` (m) and ``valid (K, J, P)``; the same formulas as the public functions,
     without stacking the 3-vectors (the birth's hot path).
     """
     dx, dy, dz, L = rays
-    sh = (-1, 1, 1)
-    ux, uy, uz = (states[:, i].reshape(sh) for i in range(3))
+    ux, uy, uz = (states[:, i] for i in range(3))
     if lm_type == VA:
         return (ux + L * dx, uy + L * dy, uz + L * dz), L > 0.0
     b = np.asarray(bs, float)
@@ -114,17 +115,47 @@ def _invert_batch_last(states: np.ndarray, rays: tuple[np.ndarray, ...], lm_type
     return (ux + r * dx, uy + r * dy, uz + r * dz), valid
 
 
+def _sum_first(a: np.ndarray) -> np.ndarray:
+    """``a.sum(axis=0)`` for ``a (K, ...)`` as whole-slab additions, in NumPy's order for a
+    contiguous reduction of ``K`` values (sequential below 8; from 8 to 128 eight partial sums
+    combined pairwise, then the remainder in sequence), so the result equals
+    ``np.moveaxis(a, 0, -1).sum(-1)`` bit for bit for ``K <= 128`` (NumPy's pairwise summation;
+    beyond, ``a.sum(axis=0)``, equal up to rounding). Here ``K = 10`` cubature points."""
+    k = a.shape[0]
+    if k < 8 or k > 128:
+        return a.sum(axis=0) if k > 128 else _seq_sum(a)
+    r = [a[j].copy() for j in range(8)]
+    i = 8
+    while i + 8 <= k:
+        for j in range(8):
+            r[j] += a[i + j]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    for j in range(i, k):
+        res += a[j]
+    return res
+
+
+def _seq_sum(a: np.ndarray) -> np.ndarray:
+    res = a[0].copy() if a.shape[0] else np.zeros(a.shape[1:])
+    for j in range(1, a.shape[0]):
+        res += a[j]
+    return res
+
+
 def _moments_batch_last(xyz: tuple[np.ndarray, np.ndarray, np.ndarray],
                         valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Equal-weight moments of images given component-wise (``3 x (P, J, K)``); see :func:`birth_moments`."""
-    K = valid.shape[-1]
-    mean = np.stack([c.mean(axis=-1) for c in xyz], axis=-1)  # (P, J, 3)
-    dev = [c - mean[..., i, None] for i, c in enumerate(xyz)]
+    """Equal-weight moments of images given component-wise (``3 x (K, J, P)``, ``valid (K, J, P)``);
+    see :func:`birth_moments`. Returns ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``."""
+    K = valid.shape[0]
+    mean_t = [_sum_first(c) / K for c in xyz]  # 3 x (J, P)
+    dev = [c - mt for c, mt in zip(xyz, mean_t)]
+    mean = np.stack(mean_t, axis=-1).transpose(1, 0, 2)  # (P, J, 3)
     cov = np.empty(mean.shape + (3,))
     for i in range(3):
         for j in range(i + 1):
-            cov[..., i, j] = cov[..., j, i] = (dev[i] * dev[j]).sum(-1) / K
-    ok = valid.all(axis=-1) & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
+            cov[..., i, j] = cov[..., j, i] = (_sum_first(dev[i] * dev[j]) / K).T
+    ok = valid.all(axis=0).T & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 0, 2]
     e, f, i_ = cov[..., 1, 1], cov[..., 1, 2], cov[..., 2, 2]
     with np.errstate(invalid="ignore", over="ignore"):

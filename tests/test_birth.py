@@ -116,3 +116,18 @@ def test_birth_moments_equal_the_stacked_reference(lm_type):
     assert np.array_equal(ok, rok) and ok.any()
     assert np.allclose(mean[ok], rm[ok], rtol=1e-12, atol=1e-9)
     assert np.allclose(cov[ok], rc[ok], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [1, 3, 7, 8, 10, 17, 24, 130])
+def test_sum_first_equals_numpy_sum(k):
+    """_sum_first (slab additions) == the contiguous NumPy reduction (bit for bit for k <= 128)."""
+    from mmslam.slam.birth import _sum_first
+
+    rng = np.random.default_rng(k)
+    a = rng.normal(size=(k, 4, 9)) * 10.0 ** rng.integers(-6, 6, size=(k, 4, 9))
+    ref = np.ascontiguousarray(np.moveaxis(a, 0, -1)).sum(-1)
+    got = _sum_first(a)
+    if k <= 128:
+        np.testing.assert_array_equal(got, ref)
+    else:
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=0)
