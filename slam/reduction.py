@@ -65,7 +65,7 @@ def _inv_spd_cholesky(P: np.ndarray) -> np.ndarray | None:
     """``P^-1 = L^-T L^-1`` for SPD ``P (..., d, d)`` with batch-last closed-form kernels.
 
     Returns None if some Cholesky pivot is not positive (the caller falls back to LAPACK).
-    The result is exactly symmetric.
+    The result is exactly symmetric (lower triangle computed, mirrored).
     """
     sh, d = P.shape[:-2], P.shape[-1]
     if P.size == 0:
@@ -75,9 +75,34 @@ def _inv_spd_cholesky(P: np.ndarray) -> np.ndarray | None:
     diag = np.einsum("iin->in", L)
     if not (np.isfinite(diag).all() and (diag > 0).all()):
         return None
-    Linv = soa_forward_solve(L, np.broadcast_to(np.eye(d)[:, :, None], L.shape))  # (d, d, N)
-    inv = np.einsum("kin,kjn->nij", Linv, Linv)
-    return inv.reshape(sh + (d, d))
+    Linv = soa_tril_inverse(L)  # (d, d, N), exact zeros above the diagonal
+    # (L^-T L^-1)[i, j] = sum_k Linv[k, i] Linv[k, j]: only k >= max(i, j) is non-zero
+    inv = np.empty_like(Linv)
+    for i in range(d):
+        inv[i, :i + 1] = np.einsum("kn,kbn->bn", Linv[i:, i], Linv[i:, :i + 1])
+        inv[:i, i] = inv[i, :i]
+    return inv.transpose(2, 0, 1).reshape(sh + (d, d))
+
+
+def soa_tril_inverse(L: np.ndarray) -> np.ndarray:
+    """Inverses of lower-triangular ``L (d, d, N)`` (batch last) by forward substitution.
+
+    The same operations as ``soa_forward_solve(L, I)`` restricted to the lower triangle (the
+    entries above the diagonal are exactly 0 there too), so the result is bit-identical to it
+    at about half the cost. Returns ``(d, d, N)``, lower triangular.
+    """
+    d = L.shape[0]
+    X = np.zeros_like(L)
+    tmp = np.empty(L.shape[1:])
+    for a in range(d):
+        Xa = X[a, :a + 1]  # row a of L^-1, columns 0..a
+        Xa[a] = 1.0
+        for b in range(a):  # row b is non-zero in columns 0..b only
+            t = tmp[:b + 1]
+            np.multiply(L[a, b], X[b, :b + 1], out=t)
+            np.subtract(Xa[:b + 1], t, out=Xa[:b + 1])
+        np.divide(Xa, L[a, a], out=Xa)
+    return X
 
 
 _PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances

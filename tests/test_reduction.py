@@ -246,3 +246,22 @@ def test_compact_equals_stable_argsort_gather(presorted):
         assert np.array_equal(out.w[..., :k], np.where(out.mask[..., :k], np.take_along_axis(g.w, order, -1), 0.0))
         assert np.array_equal(out.m[..., :k, :], np.take_along_axis(g.m, order[..., None], -2))
         assert np.array_equal(out.P[..., :k, :, :], np.take_along_axis(g.P, order[..., None, None], -3))
+
+
+def test_soa_tril_inverse_equals_forward_solve_of_identity():
+    """soa_tril_inverse == soa_forward_solve(L, I) bit for bit, and == the LAPACK inverse."""
+    from mmslam.slam.gmphd import soa_cholesky, soa_forward_solve
+    from mmslam.slam.reduction import _inv_spd_cholesky, soa_tril_inverse
+
+    rng = np.random.default_rng(3)
+    for d in (2, 3, 5, 7):
+        X = rng.normal(size=(40, d, d + 2))
+        P = X @ X.transpose(0, 2, 1) + 1e-3 * np.eye(d)
+        L = soa_cholesky(np.ascontiguousarray(P.transpose(1, 2, 0)))
+        Li = soa_tril_inverse(L)
+        ref = soa_forward_solve(L, np.broadcast_to(np.eye(d)[:, :, None], L.shape))
+        np.testing.assert_array_equal(Li, ref)
+        assert np.all(np.triu(Li.transpose(2, 0, 1), 1) == 0.0)
+        inv = _inv_spd_cholesky(P)
+        np.testing.assert_array_equal(inv, np.swapaxes(inv, -1, -2))
+        np.testing.assert_allclose(inv, np.linalg.inv(P), rtol=1e-8, atol=1e-10 * np.abs(inv).max())
