@@ -101,7 +101,11 @@ def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | 
         ``(...)``: ``p_detect`` for BS / VA (always in the FOV) and for SP / VS within
         ``fov_range`` (distance <= range) of the vehicle; 0 for SP / VS beyond it.
     """
-    d = np.linalg.norm(np.asarray(lm_pos, float) - np.asarray(vehicle_pos, float), axis=-1)
+    x, u = np.asarray(lm_pos, float), np.asarray(vehicle_pos, float)
+    # component-wise distance: the same arithmetic as np.linalg.norm(x - u, axis=-1), without
+    # NumPy's slow inner loops over the length-3 axis
+    dx, dy, dz = x[..., 0] - u[..., 0], x[..., 1] - u[..., 1], x[..., 2] - u[..., 2]
+    d = np.sqrt(dx * dx + dy * dy + dz * dz)
     t = np.asarray(lm_type)
     gated = (t == SP) | (t == VS)
     inside = ~gated | (d <= params.fov_range)

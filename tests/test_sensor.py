@@ -223,3 +223,15 @@ def test_fov_detect_prob(paper):
     pd = fov_detect_prob(np.zeros((4, 1, 3)), np.array([[10, 0, 0], [70, 0, 0]]), SP, sp)
     assert pd.shape == (4, 2)
     np.testing.assert_allclose(pd, [[0.95, 0.0]] * 4)
+
+
+def test_fov_detect_prob_matches_norm_reference(paper):
+    """Component-wise distance == np.linalg.norm(x - u, axis=-1) (same p_D), with broadcasting."""
+    sp = paper.sensor
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(6, 1, 3)) * 5.0
+    lm = rng.normal(size=(6, 4, 3)) * sp.fov_range
+    for t in (VA, SP, VS):
+        d = np.linalg.norm(lm - u, axis=-1)
+        ref = np.where((t in (SP, VS)) & (d > sp.fov_range), 0.0, sp.p_detect)
+        np.testing.assert_array_equal(fov_detect_prob(u, lm, t, sp), ref)
