@@ -276,3 +276,19 @@ def test_flat_innovation_blocks_equal_one_pass(monkeypatch):
     blk = gm_mod.flat_innovation(m, P, s, SP, BS_POS, Z, R, "test")
     for f in ("loglik", "y", "gain", "P_post"):
         assert np.array_equal(getattr(one, f), getattr(blk, f))
+
+
+@pytest.mark.parametrize("Q,J", [(1, 1), (5, 1), (12, 1), (3, 2), (11, 3), (18, 7), (40, 9)])
+def test_logsumexp_slots_equals_direct_form(Q, J):
+    """_logsumexp_slots == the direct max / exp / sum over axis 1, bit for bit (-inf rows kept)."""
+    from mmslam.slam.gmphd import _logsumexp_slots
+
+    rng = np.random.default_rng(Q * 10 + J)
+    lq = rng.normal(size=(50, Q, J)) * 20.0
+    lq[rng.random(lq.shape) < 0.4] = -np.inf
+    lq[0] = -np.inf
+    mx = lq.max(axis=1)
+    safe = np.where(np.isfinite(mx), mx, 0.0)
+    with np.errstate(divide="ignore"):
+        ref = safe + np.log(np.exp(lq - safe[:, None, :]).sum(axis=1))
+    np.testing.assert_array_equal(_logsumexp_slots(lq), ref)
