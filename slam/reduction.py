@@ -143,6 +143,12 @@ def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarra
     return label, np.asarray(heads, dtype=int)
 
 
+def _outer(a: np.ndarray) -> np.ndarray:
+    """Outer products ``a a^T``: ``(..., d) -> (..., d, d)``, one multiplication per entry (the same
+    values as ``a[..., :, None] * a[..., None, :]``, without broadcasting loops over ``d``)."""
+    return np.einsum("...i,...j->...ij", a, a)
+
+
 def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
                 merge: float, pairwise: bool | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -175,7 +181,7 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
     if pairwise is None:
         pairwise = n * q * q <= _PAIRWISE_BUDGET
     if pairwise:
-        outer_all = (mc[..., :, None] * mc[..., None, :]).reshape(n, q, d * d)
+        outer_all = _outer(mc).reshape(n, q, d * d)
         # Dt[n, j, i] = distance of candidate i to head j (P_i used); head-major for contiguous rows
         Dt = outer_all @ np.swapaxes(Aflat, -1, -2) - 2.0 * (mc @ np.swapaxes(b, -1, -2)) + c[:, None, :]
     remaining = keep.copy()
@@ -221,7 +227,9 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
         # of the slower unbuffered scatter-add (the same sums up to summation order)
         Wm = np.where(label[:, None, :] == np.arange(n_it)[None, :, None], w[:, None, :], 0.0)  # (N, K, Q)
         acc1 = Wm @ diff_all  # (N, K, d)
-        second = np.where(valid[..., None, None], P + diff_all[..., :, None] * diff_all[..., None, :], 0.0)
+        second = _outer(diff_all)
+        second += P
+        second[~valid] = 0.0
         acc2 = Wm @ second.reshape(n, q, d * d)  # (N, K, d * d)
     else:
         diff = diff_all[valid]  # (M, d)
@@ -232,7 +240,7 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
         np.add.at(acc2, flat, wv[:, None, None] * second)
     dbar = acc1.reshape(n, n_it, d) / Wsafe[..., None]  # mean offset from the head
     S = acc2.reshape(n, n_it, d, d) / Wsafe[..., None, None]
-    Pbar = S - dbar[..., :, None] * dbar[..., None, :]
+    Pbar = S - _outer(dbar)
     mhead = mc[rows[:, None], heads[:, :n_it]]  # (N, K, d)
     act = out_mask[:, :n_it].copy()
     out_w = np.where(act, W, 0.0)

@@ -286,3 +286,10 @@ def test_closed_form_3x3_inverse_matches_reference():
     np.testing.assert_allclose(inv, np.linalg.inv(P), rtol=1e-8, atol=1e-10 * np.abs(inv).max())
     with pytest.raises(FloatingPointError):
         _inv_spd(np.diag([1.0, -1.0, 1.0])[None])
+
+
+def test_outer_equals_broadcast_product():
+    from mmslam.slam.reduction import _outer
+
+    a = np.random.default_rng(2).normal(size=(5, 4, 7))
+    np.testing.assert_array_equal(_outer(a), a[..., :, None] * a[..., None, :])
