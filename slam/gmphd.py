@@ -424,14 +424,16 @@ def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_
     c = Lo * np.sqrt(3.0)  # c[:, i] = sqrt(3) L e_i
     pts = np.concatenate([mT[:3, None, :] + c, mT[:3, None, :] - c], axis=1)  # (3, 6, N)
     hz = _h_soa(pts[0], pts[1], pts[2], np.ascontiguousarray(states.T), lm_type, bs)  # (5, 6, N)
-    dev = hz - hz[:, :1]
+    # in place where a fresh (5, 6, N) temporary would be allocated (same values; fewer page faults)
+    h0 = hz[:, 0].copy()  # (5, N)
+    dev = np.subtract(hz, h0[:, None], out=hz)  # hz - hz[:, :1]
     for a in AZIMUTH_COMPONENTS:
         dev[a] = _wrap(dev[a])
     mdev = dev.mean(axis=1)  # (5, N)
-    zhat = hz[:, 0] + mdev
+    zhat = h0 + mdev
     for a in AZIMUTH_COMPONENTS:
         zhat[a] = wrap_angle(zhat[a])
-    Dz = dev - mdev[:, None]
+    Dz = np.subtract(dev, mdev[:, None], out=dev)  # dev - mdev
     # innovation covariance, lower triangle only (all soa_cholesky reads; row-wise einsum is much
     # faster than one "akn,bkn->abn" einsum over the whole matrix)
     S = np.empty((5, 5, n))
@@ -439,7 +441,8 @@ def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_
         S[a, :a + 1] = np.einsum("kn,bkn->bn", Dz[a], Dz[:a + 1])
     S *= 1.0 / 6.0
     S += R[:, :, None]
-    G = (Dz[:, :3] - Dz[:, 3:]) * (1.0 / 6.0)  # (5, 3, N): G[a, k]
+    G = Dz[:, :3] - Dz[:, 3:]  # (5, 3, N): G[a, k]
+    G *= 1.0 / 6.0
     if d == 3:
         Pxz = np.einsum("ikn,akn->ian", c, G)  # sqrt(3) L G
     else:
@@ -608,7 +611,8 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     g, inn = t.g, t.inn
     P_, Q, d = g.m.shape
     J = Z.shape[0]
-    w_det = np.exp(t.logq - logpsi[:, None, :])  # (P, Q, J); 0 where masked (logq = -inf)
+    w_det = np.subtract(t.logq, logpsi[:, None, :])
+    np.exp(w_det, out=w_det)  # (P, Q, J); 0 where masked (logq = -inf); in place: no second buffer
     w_all = np.concatenate([np.where(g.mask, t.missed_w, 0.0), w_det.reshape(P_, Q * J)], axis=1)
     mask_all = np.concatenate([g.mask, np.repeat(g.mask, J, axis=1)], axis=1)
     if prune is None:
