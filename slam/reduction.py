@@ -128,10 +128,18 @@ def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarra
     alive = alive[np.argsort(-w[alive], kind="stable")]
     # Euclidean gate: D^T A_i D <= merge implies |D|^2 <= merge * lambda_max(P_i) <= merge * trace(P_i)
     r2 = merge * tr * (1.0 + 1e-9) + 1e-12
+    cols = np.ascontiguousarray(mc.T)  # (d, Q): the gate's squared distance summed column by column
     while alive.size:
         j = alive[0]
         mj = mc[j]
-        near = np.nonzero(np.sum((mc[alive] - mj) ** 2, axis=-1) <= r2[alive])[0]
+        ca = cols[:, alive]  # (d, A)
+        e2 = ca[0] - mj[0]
+        e2 *= e2
+        for k in range(1, d):  # the same sequential sum as np.sum(..., axis=-1) over d < 8 terms
+            t = ca[k] - mj[k]
+            t *= t
+            e2 += t
+        near = np.nonzero(e2 <= r2[alive])[0]
         cand = alive[near]
         dist = Aflat[cand] @ np.outer(mj, mj).reshape(d * d) - 2.0 * (b[cand] @ mj) + c[cand]
         L = np.zeros(alive.size, bool)
