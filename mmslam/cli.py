@@ -31,8 +31,19 @@ def _register_all() -> None:
 _register_all()
 
 
+def _click_modules() -> tuple:
+    """The click packages typer may raise from (typer >= 0.17 vendors click as ``typer._click``)."""
+    mods = []
+    for name in ("typer._click", "click"):
+        try:
+            mods.append(__import__(name, fromlist=["exceptions"]))
+        except ImportError:
+            pass
+    return tuple(mods)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point; returns the exit code (2 for user errors)."""
+    """Console entry point; returns the exit code (2 for user errors, no traceback)."""
     try:
         app(args=argv, standalone_mode=False)
     except MmslamError as e:
@@ -41,16 +52,20 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; finished work is kept, re-run to resume", file=sys.stderr)
         return 130
-    except SystemExit as e:  # typer/click usage errors and --help
+    except SystemExit as e:  # --help and explicit exits
         return int(e.code or 0)
-    except Exception as e:  # click's own usage errors in non-standalone mode
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            return 2
-        if isinstance(e, click.exceptions.Abort):
-            return 1
+    except OSError as e:  # an output path that is a file, a missing or read-only directory, a full disk
+        where = e.filename if e.filename is not None else "output"
+        print(f"error: {where}: {e.strerror or e}; choose a writable path (parent directories must exist "
+              "and not be files)", file=sys.stderr)
+        return 2
+    except Exception as e:
+        for mod in _click_modules():  # usage errors: bad option values, missing arguments
+            if isinstance(e, mod.exceptions.ClickException):
+                e.show()
+                return 2
+            if isinstance(e, mod.exceptions.Abort):
+                return 1
         raise
     return 0
 
