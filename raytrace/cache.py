@@ -216,6 +216,23 @@ def read_manifest(cache_dir: Path) -> dict:
     return m
 
 
+def checked_chunks(m: dict, mp: Path) -> list[dict]:
+    """The manifest's chunks, checked to run contiguously from step 0 to ``steps_completed``.
+
+    Raises :class:`CacheError` naming the manifest ``mp`` on a gap, an overlap or a mismatch.
+    """
+    expect = 0
+    for c in m["chunks"]:
+        if c["step_start"] != expect:
+            raise CacheError(f"{mp}: chunk {c['index']} starts at step {c['step_start']}, expected "
+                             f"{expect}; {FORCE_HINT}")
+        expect = c["step_stop"]
+    if expect != int(m["steps_completed"]):
+        raise CacheError(f"{mp}: chunks cover {expect} steps but steps_completed is "
+                         f"{m['steps_completed']}; {FORCE_HINT}")
+    return list(m["chunks"])
+
+
 def _read_table(path: Path, expect_sha: str, schema: dict[str, str]) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise CacheError(f"{path}: chunk file missing; {FORCE_HINT}")
@@ -292,12 +309,7 @@ def load_cache(path: str | Path) -> PathCache:
     names = list(m["vehicle_names"])
     n_done = int(m["steps_completed"])
     vparts, pparts = [], []
-    expect = 0
-    for c in m["chunks"]:
-        if c["step_start"] != expect:
-            raise CacheError(f"{mp}: chunk {c['index']} starts at step {c['step_start']}, expected "
-                             f"{expect}; {FORCE_HINT}")
-        expect = c["step_stop"]
+    for c in checked_chunks(m, mp):
         vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], VEHICLE_COLUMNS))
         pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], PATH_COLUMNS))
         for table, part in (("vehicles", vparts[-1]), ("paths", pparts[-1])):
@@ -305,8 +317,6 @@ def load_cache(path: str | Path) -> PathCache:
             if st.size and (st.min() < c["step_start"] or st.max() >= c["step_stop"]):
                 raise CacheError(f"{d / c['files'][table]}: steps {int(st.min())}..{int(st.max())} outside the "
                                  f"chunk's range {c['step_start']}..{c['step_stop'] - 1}; {FORCE_HINT}")
-    if expect != n_done:
-        raise CacheError(f"{mp}: chunks cover {expect} steps but steps_completed is {n_done}; {FORCE_HINT}")
     veh = _concat(vparts, VEHICLE_COLUMNS)
     paths = sort_paths(_concat(pparts, PATH_COLUMNS))
     nv = len(names)

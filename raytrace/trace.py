@@ -24,7 +24,7 @@ import numpy as np
 from mmslam.errors import BackendError, CacheError, ConfigError
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
-    FORCE_HINT, MANIFEST, cache_dir_for, check_paths_finite, config_hash, read_manifest, remove_temp_files, sha256_file,
+    FORCE_HINT, MANIFEST, cache_dir_for, check_paths_finite, checked_chunks, config_hash, read_manifest, remove_temp_files, sha256_file,
     vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, sort_paths
@@ -94,21 +94,13 @@ def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: Any) -> Non
     if m["config_hash"] != want or m["source"] != source.name:
         raise CacheError(f"{mp}: config hash {m['config_hash']} ({m['source']}) differs from this run's "
                          f"{want} ({source.name}); {FORCE_HINT}")
-    expect = 0
-    for c in m["chunks"]:
-        if c["step_start"] != expect:
-            raise CacheError(f"{mp}: chunk {c['index']} starts at step {c['step_start']}, expected {expect}; "
-                             f"{FORCE_HINT}")
-        expect = c["step_stop"]
+    for c in checked_chunks(m, mp):
         for table in ("vehicles", "paths"):
             f = cache_dir / c["files"][table]
             if not f.is_file():
                 raise CacheError(f"{f}: chunk file missing; {FORCE_HINT}")
             if sha256_file(f) != c["sha256"][table]:
                 raise CacheError(f"{f}: sha256 mismatch (truncated or modified); {FORCE_HINT}")
-    if expect != m["steps_completed"]:
-        raise CacheError(f"{mp}: chunks cover {expect} steps but steps_completed is "
-                         f"{m['steps_completed']}; {FORCE_HINT}")
 
 
 def _check_step_output(cols: dict[str, np.ndarray], step: int, source: Any) -> dict[str, np.ndarray]:

@@ -366,3 +366,15 @@ def test_writer_lock_blocks_a_live_writer_and_takes_over_a_dead_ones(tmp_path, p
     # that process is gone now: its lock is stale and taken over
     trace_scenario(paper, src, tmp_path, steps=2, progress=False)
     assert load_cache(d).steps == 2 and not lock.exists()
+
+
+def test_chunk_gap_is_refused_on_load_and_on_resume(tmp_path):
+    paper = load_preset("paper")
+    d = trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=6, chunk_steps=2, progress=False)
+    m = json.loads((d / MANIFEST).read_text())
+    del m["chunks"][1]  # steps 2..3 missing: chunk 2 then starts at 4, not 2
+    write_manifest(d, m)
+    with pytest.raises(CacheError, match=r"chunk 2 starts at step 4, expected 2; .*--force"):
+        load_cache(d)
+    with pytest.raises(CacheError, match=r"chunk 2 starts at step 4, expected 2"):
+        trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=8, chunk_steps=2, progress=False)
