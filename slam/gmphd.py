@@ -575,17 +575,18 @@ def log_psi(terms: list[TypeCorrection], bs_term: np.ndarray | None, log_clutter
 def _logsumexp_slots(logq: np.ndarray) -> np.ndarray:
     """``log sum_q exp(logq[:, q, :])`` of ``logq (P, Q, J)`` -> ``(P, J)`` (``-inf`` if all are).
 
-    For ``J > 1`` the slots are moved to the front (one copy) so that the max and the sum run
-    over contiguous ``(P, J)`` slabs: NumPy then adds the slots in the same sequential order
-    as ``logq.sum(axis=1)`` (bit-identical) without its slow short inner loops. ``J == 1``
-    (where NumPy sums the slots pairwise) keeps the direct form.
+    For ``J > 1`` the slots are moved to the front into a fresh buffer so that the max and the
+    sum run over contiguous ``(P, J)`` slabs. ``logq`` is never written: the caller
+    (:func:`corrected_gm`) reads it again. ``np.ascontiguousarray`` must not be used here, since
+    it returns a *view* when ``P == 1`` or ``Q == 1`` and the in-place exp below then rewrote
+    ``logq`` (landmark weights of ~1/clutter intensity on city scenes).
     """
     if logq.shape[2] == 1:
         mx = logq.max(axis=1)
         safe = np.where(np.isfinite(mx), mx, 0.0)
         with np.errstate(divide="ignore"):
             return safe + np.log(np.exp(logq - safe[:, None, :]).sum(axis=1))
-    t = np.ascontiguousarray(logq.transpose(1, 0, 2))  # (Q, P, J)
+    t = logq.transpose(1, 0, 2).copy()  # (Q, P, J), always a new array
     mx = t.max(axis=0)
     safe = np.where(np.isfinite(mx), mx, 0.0)
     t -= safe

@@ -292,3 +292,23 @@ def test_logsumexp_slots_equals_direct_form(Q, J):
     with np.errstate(divide="ignore"):
         ref = safe + np.log(np.exp(lq - safe[:, None, :]).sum(axis=1))
     np.testing.assert_array_equal(_logsumexp_slots(lq), ref)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 4), (5, 1, 2), (1, 1, 3), (4, 3, 2), (3, 2, 1), (1, 1, 1)])
+def test_logsumexp_slots_equals_reference_and_leaves_its_input_alone(shape):
+    """Regression: P == 1 or Q == 1 with J >= 2 made the slot-first copy a view of ``logq`` and
+    the in-place exp rewrote it (corrected_gm reads it afterwards: weights of ~1/clutter)."""
+    from scipy.special import logsumexp
+
+    from mmslam.slam.gmphd import _logsumexp_slots
+
+    rng = np.random.default_rng(sum(shape))
+    logq = rng.normal(-20.0, 5.0, size=shape)
+    logq[rng.random(shape) < 0.2] = -np.inf
+    before = logq.copy()
+    with np.errstate(divide="ignore"):
+        ref = logsumexp(logq, axis=1)
+    got = _logsumexp_slots(logq)
+    assert np.array_equal(logq, before)
+    assert np.allclose(got, ref, rtol=1e-12, atol=0.0) or np.array_equal(got, ref)
+    assert np.array_equal(np.isneginf(got), np.isneginf(ref))
