@@ -39,7 +39,9 @@ def register(app: typer.Typer) -> None:
         variant: str = typer.Option("baseline", help="Filter variant: baseline | cm1 | proposed."),
         particles: int = typer.Option(300, help="Particles per vehicle."),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)."),
-        out: Path = typer.Option(..., "--out", help="Result directory to write (replaced atomically)."),
+        out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
+                                 "directory is replaced only if it is empty or a previous result."),
+        force: bool = typer.Option(False, "--force", help="Replace --out even if it is not a previous result."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache."),
     ) -> None:
         """Run cooperative MM-PHD-SLAM on a path cache and write the Result (vehicles, metrics, landmarks)."""
@@ -55,8 +57,12 @@ def register(app: typer.Typer) -> None:
             raise MmslamError(f"--particles {particles}: expected at least 1")
         if steps is not None and steps < 1:
             raise MmslamError(f"--steps {steps}: expected a positive number of steps")
+        from mmslam.outputs import check_target
+        from mmslam.slam.result import RESULT_KIND
+
+        check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
         res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
-        path = res.save(out)
+        path = res.save(out, force=force)
         con = Console()
         tab = Table(title=f"mmslam slam: {variant}, P={particles}, seed={seed}, "
                           f"{res.meta['steps']} steps (GOSPA means from step {res.meta.get('fusion_start', 0)})")

@@ -20,12 +20,13 @@
 wall_time_s, mmslam version.
 
 Saved as ``vehicles.parquet``, ``metrics.parquet``, ``landmarks.parquet`` and ``meta.json`` in
-one directory, written to a temporary sibling and renamed (atomic).
+one directory, with the output marker of :mod:`mmslam.outputs` (kind ``"result"``), written to a
+temporary sibling and renamed (atomic). An existing target is replaced only if it is empty or a
+previous result (or with ``force``); a user's folder is never deleted.
 """
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -35,8 +36,10 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import CacheError
+from mmslam.outputs import check_target, replace_dir, write_marker
 
 TABLES = ("vehicles", "metrics", "landmarks")
+RESULT_KIND = "result"
 
 
 @dataclass
@@ -46,12 +49,17 @@ class Result:
     landmarks: dict[str, np.ndarray]
     meta: dict[str, Any] = field(default_factory=dict)
 
-    def save(self, out_dir: str | Path) -> Path:
-        """Write atomically to ``out_dir`` (replaced if it exists). Returns the path."""
+    def save(self, out_dir: str | Path, force: bool = False) -> Path:
+        """Write atomically to ``out_dir``. Returns the path.
+
+        An existing ``out_dir`` is replaced only when it is empty or a previous result; anything
+        else raises a one-line :class:`~mmslam.errors.MmslamError` unless ``force``.
+        """
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         out = Path(out_dir)
+        check_target(out, RESULT_KIND, force)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
         try:
@@ -61,14 +69,8 @@ class Result:
                                               else np.asarray(v)) for k, v in cols.items()})
                 pq.write_table(table, tmp / f"{name}.parquet")
             (tmp / "meta.json").write_text(json.dumps(self.meta, indent=2, default=_jsonable))
-            if out.exists():
-                old = out.with_name(f".{out.name}.old")
-                shutil.rmtree(old, ignore_errors=True)
-                os.replace(out, old)
-                os.replace(tmp, out)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, out)
+            write_marker(tmp, RESULT_KIND)
+            replace_dir(tmp, out, RESULT_KIND, force)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

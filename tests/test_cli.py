@@ -26,3 +26,36 @@ def test_plot_into_missing_directory(tmp_path, capsys):
     assert main(["paths", str(tmp_path / "c"), "--plot", str(bad)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "missing" in err and "\n" not in err
+
+
+def _tree(p):
+    return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+
+
+def test_slam_out_never_deletes_a_user_folder_or_the_cache(tmp_path, capsys):
+    cache = tmp_path / "c"
+    assert main(["trace", "paper", "--source", "analytic", "--out", str(cache), "--steps", "3", "--quiet"]) == 0
+    (cdir,) = [p for p in cache.iterdir() if p.is_dir()]
+    user = tmp_path / "thesis"
+    user.mkdir()
+    (user / "thesis.tex").write_text("\\documentclass{article}")
+    before = _tree(user)
+    capsys.readouterr()
+    args = ["slam", str(cdir), "--particles", "5", "--steps", "2"]
+    assert main(args + ["--out", str(user)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "--force" in err and "\n" not in err
+    assert _tree(user) == before
+    cache_before = _tree(cache)
+    for target in (cdir, cache):  # the cache just read, or a folder holding it: refused even with --force
+        assert main(args + ["--out", str(target), "--force"]) == 2
+    assert _tree(cache) == cache_before
+    afile = tmp_path / "notes.txt"
+    afile.write_text("keep me")
+    assert main(args + ["--out", str(afile)]) == 2
+    assert afile.read_text() == "keep me" and not list(tmp_path.glob(".notes.txt*"))
+    run = tmp_path / "run"
+    assert main(args + ["--out", str(run)]) == 0
+    assert main(args + ["--seed", "1", "--out", str(run)]) == 0  # a previous result is replaced
+    from mmslam.slam.result import Result
+    assert Result.load(run).meta["seed"] == 1
