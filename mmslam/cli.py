@@ -6,10 +6,13 @@ User errors (:class:`~mmslam.errors.MmslamError`) print one line ``error: ...`` 
 """
 from __future__ import annotations
 
+import os
 import sys
+from pathlib import Path
 
 import typer
 
+from mmslam import __version__
 from mmslam.errors import MmslamError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -31,43 +34,60 @@ def _register_all() -> None:
 _register_all()
 
 
-def _click_modules() -> tuple:
-    """The click packages typer may raise from (typer >= 0.17 vendors click as ``typer._click``)."""
-    mods = []
-    for name in ("typer._click", "click"):
-        try:
-            mods.append(__import__(name, fromlist=["exceptions"]))
-        except ImportError:
-            pass
-    return tuple(mods)
+def _log_traceback(exc: BaseException) -> Path:
+    """Write ``exc``'s traceback to a fresh log file; return its path."""
+    import tempfile
+    import traceback
+
+    fd, name = tempfile.mkstemp(prefix="mmslam-crash-", suffix=".log")
+    with os.fdopen(fd, "w") as f:
+        f.write(f"mmslam {__version__}, python {sys.version.split()[0]}\nargv: {sys.argv!r}\n\n")
+        f.write("".join(traceback.format_exception(exc)))
+    return Path(name)
+
+
+def _interrupted() -> int:
+    print("interrupted: finished work is kept (atomic writes); re-run the same command to resume",
+          file=sys.stderr)
+    return 130
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point; returns the exit code (2 for user errors, no traceback)."""
+    """Console entry point; returns the exit code.
+
+    0 success; 2 a user error (one line ``error: ...``, no traceback); 130 interrupted (one line);
+    1 a bug (one line with the path of a log file holding the traceback).
+    """
     try:
-        app(args=argv, standalone_mode=False)
+        rc = app(args=argv, standalone_mode=False)
     except MmslamError as e:
         print(f"error: {e}", file=sys.stderr)
         return e.exit_code
-    except KeyboardInterrupt:
-        print("interrupted; finished work is kept, re-run to resume", file=sys.stderr)
-        return 130
+    except (KeyboardInterrupt, typer.Abort):
+        return _interrupted()
+    except typer.Exit as e:
+        return int(e.exit_code or 0)
     except SystemExit as e:  # --help and explicit exits
-        return int(e.code or 0)
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
     except OSError as e:  # an output path that is a file, a missing or read-only directory, a full disk
         where = e.filename if e.filename is not None else "output"
         print(f"error: {where}: {e.strerror or e}; choose a writable path (parent directories must exist "
               "and not be files)", file=sys.stderr)
         return 2
-    except Exception as e:
-        for mod in _click_modules():  # usage errors: bad option values, missing arguments
-            if isinstance(e, mod.exceptions.ClickException):
-                e.show()
-                return 2
-            if isinstance(e, mod.exceptions.Abort):
-                return 1
-        raise
-    return 0
+    except typer.TyperException as e:  # usage errors: bad option values, missing arguments
+        ctx = getattr(e, "ctx", None)
+        cmd = ctx.command_path if ctx is not None else "mmslam"
+        msg = " ".join(e.format_message().split()) if hasattr(e, "format_message") else str(e)
+        print(f"error: {cmd}: {msg} (see '{cmd} --help')", file=sys.stderr)
+        return 2
+    except Exception as e:  # a bug: one line, the traceback in a log file
+        log = _log_traceback(e)
+        print(f"error: internal error ({type(e).__name__}: {' '.join(str(e).split())[:200]}); this is a bug, "
+              f"the traceback is in {log}", file=sys.stderr)
+        return 1
+    if rc == 130:  # click turns Ctrl-C into exit code 130 when not standalone
+        return _interrupted()
+    return int(rc or 0) if isinstance(rc, int) else 0
 
 
 if __name__ == "__main__":

@@ -59,3 +59,32 @@ def test_slam_out_never_deletes_a_user_folder_or_the_cache(tmp_path, capsys):
     assert main(args + ["--seed", "1", "--out", str(run)]) == 0  # a previous result is replaced
     from mmslam.slam.result import Result
     assert Result.load(run).meta["seed"] == 1
+
+
+def test_a_bug_is_one_line_with_a_log_and_ctrl_c_is_130(monkeypatch, capsys):
+    import mmslam.slam.filter as F
+
+    def boom(*a, **k):
+        raise RuntimeError("kaboom")
+
+    monkeypatch.setattr(F, "run_slam", boom)
+    assert main(["slam", "nowhere", "--out", "/nonexistent-dir-xyz/r"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "kaboom" in err and "Traceback" not in err
+    log = err.rsplit(" ", 1)[-1]
+    text = open(log).read()
+    assert "Traceback" in text and "RuntimeError: kaboom" in text
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(F, "run_slam", interrupt)
+    assert main(["slam", "nowhere", "--out", "/nonexistent-dir-xyz/r"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "interrupted" in err
+
+
+def test_usage_error_is_one_line(capsys):
+    assert main(["slam"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "--help" in err
