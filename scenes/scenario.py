@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import ConfigError
+from mmslam.scenes.params import check_value, iter_params, param, param_rows, parse_override
 
 MATERIALS = ("concrete", "metal", "brick", "wood", "glass", "marble", "plasterboard", "ceiling_board",
              "floorboard", "chipboard", "very_dry_ground")
@@ -96,67 +97,88 @@ class Vehicle:
 class SensorParams:
     """Sensor model (per Monte Carlo run): noise, detection, FOV, clutter, clock bias.
 
-    Std's in m (TOA) and rad (angles). ``clutter_toa_max`` bounds the uniform clutter TOA (m).
-    ``fov_range`` is the SP/VS visibility radius (m); BS and VAs are always in the FOV.
-    ``vehicle_noise_std`` is the process noise std of ``[x, y, z, heading, speed, turn, bias]``;
-    the true clock bias follows a random walk with its last entry. ``true_process_noise`` adds
-    the other entries to the true trajectory too (off: the traced trajectory is the truth).
+    The true clock bias follows a random walk with the last entry of ``vehicle_noise_std``.
     """
 
-    toa_std: float = 0.1
-    angle_std: float = 0.01
-    p_detect: float = 0.95
-    fov_range: float = 50.0
-    clutter_mean: float = 1.0
-    clutter_toa_max: float = 200.0
-    vehicle_noise_std: tuple[float, ...] = (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2)
-    true_process_noise: bool = False
-    emit_other: bool = False
+    toa_std: float = param(0.1, "measurement noise std of the TOA", "m", lo=0.0, lo_open=True, hi=100.0)
+    angle_std: float = param(0.01, "measurement noise std of each of the four angles", "rad", lo=0.0,
+                             lo_open=True, hi=1.0)
+    p_detect: float = param(0.95, "detection probability of a landmark inside the FOV", "", probability=True)
+    fov_range: float = param(50.0, "SP/VS visibility radius (BS and VAs are always in the FOV)", "m",
+                             lo=0.0, lo_open=True, hi=1e5)
+    clutter_mean: float = param(1.0, "Poisson mean of clutter measurements per vehicle and step", "",
+                                lo=0.0, hi=1000.0)
+    clutter_toa_max: float = param(200.0, "upper end of the uniform clutter TOA", "m", lo=0.0,
+                                   lo_open=True, hi=1e6)
+    vehicle_noise_std: tuple[float, ...] = param(
+        (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2), "process noise std of [x, y, z, heading, speed, turn rate, "
+        "clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3, length=7)
+    true_process_noise: bool = param(False, "add the process noise (all but the clock bias) to the "
+                                     "true, traced trajectory too (off: the traced trajectory is the truth)")
+    emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")
 
 
 @dataclass(frozen=True)
 class FilterParams:
     """MM-PHD-SLAM parameters (TWC2020 values for ``paper``)."""
 
-    particles: int = 300
-    r_scale: float = 9.0
-    prior_std: tuple[float, ...] = (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3)
-    p_survival: float = 0.99
-    birth_weight: float = 1.5e-5
-    prune: float = 1e-4
-    merge: float = 49.0
-    max_gaussians: int = 50
-    max_trace: float = 50.0
-    threshold_va: float = 0.7
-    threshold_sp: float = 0.55
-    threshold_vs: float = 0.55
-    resample_ess: float = 0.5
-    vs_process_std: tuple[float, ...] = (1.0, 1.0, 0.1, 3.0, 3.0, 0.1, 0.05)
-    vs_birth_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09)
-    vs_birth_turn_std: float = math.pi / 2
-    vs_dither: tuple[float, ...] = (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18)
+    particles: int = param(300, "particles per vehicle", "", lo=1, hi=100_000)
+    r_scale: float = param(9.0, "the filter's measurement covariance is r_scale x the true R (tuning)", "",
+                           lo=0.0, lo_open=True, hi=1e6)
+    prior_std: tuple[float, ...] = param(
+        (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3), "std of the initial vehicle prior around the true state "
+        "[x, y, z, heading, speed, turn rate, clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3,
+        length=7)
+    p_survival: float = param(0.99, "landmark survival probability per step", "", probability=True)
+    birth_weight: float = param(1.5e-5, "weight of each birth Gaussian", "", lo=0.0, lo_open=True, hi=1.0)
+    prune: float = param(1e-4, "prune Gaussians of weight below this", "", lo=0.0, hi=1.0)
+    merge: float = param(49.0, "merge gate U (squared Mahalanobis distance) in the reduction", "",
+                         lo=0.0, hi=1e6)
+    max_gaussians: int = param(50, "at most this many Gaussians per type and particle", "", lo=1, hi=10_000)
+    max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this", "m^2",
+                             lo=0.0, lo_open=True, hi=1e9)
+    threshold_va: float = param(0.7, "estimate-extraction weight threshold for VAs", "", lo=0.0, hi=10.0)
+    threshold_sp: float = param(0.55, "estimate-extraction weight threshold for SPs", "", lo=0.0, hi=10.0)
+    threshold_vs: float = param(0.55, "estimate-extraction weight threshold for VSs", "", lo=0.0, hi=10.0)
+    resample_ess: float = param(0.5, "resample when the effective sample size falls below this fraction "
+                                "of the particles", "", probability=True)
+    vs_process_std: tuple[float, ...] = param(
+        (1.0, 1.0, 0.1, 3.0, 3.0, 0.1, 0.05), "VS process noise std of [x, y, z, vx, vy, vz, turn rate]",
+        "m, m, m, m/s, m/s, m/s, rad/s", lo=0.0, hi=1e3, length=7)
+    vs_birth_velocity_var: tuple[float, ...] = param(
+        (100.0, 100.0, 0.09), "variance of the VS birth velocity [vx, vy, vz]", "m^2/s^2", lo=0.0, hi=1e6,
+        length=3)
+    vs_birth_turn_std: float = param(math.pi / 2, "std of the VS birth turn rate", "rad/s", lo=0.0,
+                                     lo_open=True, hi=100.0)
+    vs_dither: tuple[float, ...] = param(
+        (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18), "dithering T_d added to VS covariances at prediction "
+        "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
 
 
 @dataclass(frozen=True)
 class FusionParams:
     """Map fusion at the BS: schedule (steps) and thresholds."""
 
-    period: int = 2
-    start: tuple[int, ...] = (5, 6)
-    msm_position: float = 20.0
-    msm_velocity: float = 20.0
-    beta_inside_fov: float = 0.25
-    average_prune: float = 0.1
-    gamma_detect: float = 0.9
+    period: int = param(2, "each vehicle talks to the BS every this many steps", "steps", lo=1, hi=100_000)
+    start: tuple[int, ...] = param((5, 6), "first fusion step of each vehicle (one value, or one per "
+                                   "vehicle; default 5 + vehicle index)", "steps", lo=0, hi=1e6)
+    msm_position: float = param(20.0, "MSM threshold T_MD^L on positions", "", lo=0.0, lo_open=True, hi=1e9)
+    msm_velocity: float = param(20.0, "MSM threshold T_MD^V on velocities", "", lo=0.0, lo_open=True, hi=1e9)
+    beta_inside_fov: float = param(0.25, "fusion weight of an unmatched BS Gaussian inside the "
+                                   "accumulated FOV", "", probability=True)
+    average_prune: float = param(0.1, "pruning threshold of the averaged and fused map PHDs", "", lo=0.0,
+                                 hi=1.0)
+    gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV", "",
+                                probability=True)
 
 
 @dataclass(frozen=True)
 class EvalParams:
-    """GOSPA parameters (p, c in m, alpha)."""
+    """GOSPA parameters."""
 
-    gospa_p: float = 2.0
-    gospa_c: float = 20.0
-    gospa_alpha: float = 2.0
+    gospa_p: float = param(2.0, "GOSPA order p", "", lo=1.0, hi=100.0)
+    gospa_c: float = param(20.0, "GOSPA cut-off distance c", "m", lo=0.0, lo_open=True, hi=1e6)
+    gospa_alpha: float = param(2.0, "GOSPA alpha", "", lo=0.0, lo_open=True, hi=2.0)
 
 
 @dataclass(frozen=True)
@@ -266,41 +288,20 @@ def _name(src: str, key: str, v: Any) -> str:
 
 
 def _params(src: str, section: str, cls: type, table: Any) -> Any:
-    """Fill a flat parameter dataclass from a TOML table, checking names and types."""
+    """Fill a parameter dataclass from a TOML table; names, types and bounds come from :func:`param`."""
     if table is None:
         return cls()
     if not isinstance(table, dict):
         raise _err(src, section, "expected a table")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f, _ in iter_params(cls)}
     _check_keys(src, f"{section}.", table, set(fields))
-    defaults = cls()
     kw: dict[str, Any] = {}
     for k, v in table.items():
-        key = f"{section}.{k}"
-        dv = getattr(defaults, k)
-        if isinstance(dv, bool):
-            if not isinstance(v, bool):
-                raise _err(src, key, f"expected true or false, got {v!r}")
-            kw[k] = v
-        elif isinstance(dv, tuple):
-            if k == "start":
-                if not isinstance(v, list) or not v:
-                    raise _err(src, key, f"expected a non-empty list of integers, got {v!r}")
-                kw[k] = tuple(_num(src, f"{key}[{i}]", x, lo=0, integer=True) for i, x in enumerate(v))
-            else:
-                vals = _vec(src, key, v, len(dv))
-                if any(x < 0 for x in vals):
-                    raise _err(src, key, f"expected non-negative values, got {v!r}")
-                kw[k] = vals
-        elif isinstance(dv, int):
-            kw[k] = _num(src, key, v, lo=1, integer=True)
-        else:
-            kw[k] = _num(src, key, v, lo=0.0)
-    out = cls(**kw)
-    for k in ("p_detect", "p_survival", "resample_ess", "gamma_detect", "beta_inside_fov"):
-        if hasattr(out, k) and not 0.0 <= getattr(out, k) <= 1.0:
-            raise _err(src, f"{section}.{k}", f"expected a probability in [0, 1], got {getattr(out, k)!r}")
-    return out
+        try:
+            kw[k] = check_value(fields[k], v)
+        except ValueError as e:
+            raise _err(src, f"{section}.{k}", str(e)) from None
+    return cls(**kw)
 
 
 def _material(src: str, key: str, v: Any) -> str:
@@ -476,6 +477,47 @@ def dict_from_resolved(d: dict[str, Any]) -> dict[str, Any]:
 def scenario_from_resolved(d: dict[str, Any], source: str = "<manifest>") -> Scenario:
     """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache)."""
     return scenario_from_dict(dict_from_resolved(d), source)
+
+
+PARAM_SECTIONS: dict[str, type] = {"sensor": SensorParams, "filter": FilterParams,
+                                   "fusion": FusionParams, "evaluation": EvalParams}
+"""Scenario sections made of declared parameters (see :mod:`mmslam.scenes.params`)."""
+
+
+def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario:
+    """``scn`` with ``section.key=value`` overrides applied and validated like the TOML file.
+
+    ``sets`` are strings such as ``"filter.merge=4"`` or ``"fusion.beta_inside_fov=0.5"``
+    (values read as TOML). Raises a one-line :class:`~mmslam.errors.ConfigError` naming the key.
+    """
+    if not sets:
+        return scn
+    d = dict_from_resolved(scn.to_dict())
+    for text in sets:
+        try:
+            key, value = parse_override(text)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        section, _, name = key.partition(".")
+        cls = PARAM_SECTIONS.get(section)
+        names = [f.name for f, _ in iter_params(cls)] if cls is not None else []
+        if name not in names:
+            known = [f"{s}.{f.name}" for s, c in PARAM_SECTIONS.items() for f, _ in iter_params(c)]
+            raise ConfigError(f"--set {key}: unknown parameter; expected section.key with one of "
+                              f"{', '.join(known)} (see docs/scenario.md)")
+        d.setdefault(section, {})[name] = value
+    return scenario_from_dict(d, f"{scn.source_file} with --set")
+
+
+def parameter_reference() -> str:
+    """Markdown tables of every declared parameter (key, default, unit, bounds, meaning)."""
+    out = []
+    for section, cls in PARAM_SECTIONS.items():
+        out.append(f"### [{section}]\n\n{(cls.__doc__ or '').strip().splitlines()[0]}\n")
+        out.append("| key | default | unit | bounds | meaning |\n|---|---|---|---|---|")
+        out.extend(f"| `{k}` | {d} | {u} | {b} | {doc} |" for k, d, u, b, doc in param_rows(cls, section))
+        out.append("")
+    return "\n".join(out)
 
 
 def load_scenario(path: str | Path, seed_override: int | None = None) -> Scenario:

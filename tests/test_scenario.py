@@ -164,3 +164,59 @@ def test_true_process_noise_changes_truth_and_hash():
     assert np.array_equal(clean[0], a[0]) and not np.allclose(clean[5, :, :2], a[5, :, :2])
     assert np.all(a[:, :, 6] == 300.0)  # the clock bias walk is the sensor model's, not here
     assert noisy.geometry_hash() != scn.geometry_hash()
+
+
+def test_every_filter_section_parameter_is_declared_with_doc_and_bounds():
+    import dataclasses
+
+    from mmslam.scenes.params import spec_of
+    from mmslam.scenes.scenario import PARAM_SECTIONS
+
+    for section, cls in PARAM_SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            spec = spec_of(f)
+            assert spec is not None and spec.doc, f"{section}.{f.name} has no declaration"
+            if not isinstance(f.default, (bool, str)):
+                assert spec.lo is not None and spec.hi is not None, f"{section}.{f.name} is unbounded"
+
+
+@pytest.mark.parametrize("sets,needle", [
+    (["evaluation.gospa_c=0"], "evaluation.gospa_c"),
+    (["evaluation.gospa_p=0.5"], "evaluation.gospa_p"),
+    (["evaluation.gospa_alpha=3"], "evaluation.gospa_alpha"),
+    (["sensor.clutter_mean=1e9"], "sensor.clutter_mean"),
+    (["filter.particles=1000000000"], "filter.particles"),
+    (["filter.p_survival=1.5"], "probability"),
+    (["filter.vs_dither=[1, 2]"], "filter.vs_dither"),
+    (["filter.nonsense=1"], "unknown parameter"),
+    (["filter.merge"], "section.key=value"),
+])
+def test_overrides_are_validated_like_the_file(sets, needle):
+    from mmslam.scenes.scenario import load_preset, with_overrides
+
+    with pytest.raises(ConfigError) as e:
+        with_overrides(load_preset("paper"), sets)
+    msg = str(e.value)
+    assert needle in msg and "\n" not in msg
+
+
+def test_overrides_change_only_the_named_keys():
+    from mmslam.scenes.scenario import load_preset, with_overrides
+
+    base = load_preset("paper")
+    s = with_overrides(base, ["filter.merge=4", "fusion.beta_inside_fov=0.5", "filter.vs_dither=[1,1,1,1,1,1,1]"])
+    assert s.filter.merge == 4.0 and s.fusion.beta_inside_fov == 0.5 and s.filter.vs_dither == (1.0,) * 7
+    assert s.geometry_hash() == base.geometry_hash()
+    assert s.scatterers == base.scatterers and s.fusion.start == base.fusion.start
+    assert s.filter.p_survival == base.filter.p_survival
+
+
+def test_parameter_reference_lists_every_key():
+    import dataclasses
+
+    from mmslam.scenes.scenario import PARAM_SECTIONS, parameter_reference
+
+    text = parameter_reference()
+    for section, cls in PARAM_SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            assert f"`{section}.{f.name}`" in text
