@@ -220,3 +220,12 @@ def test_parameter_reference_lists_every_key():
     for section, cls in PARAM_SECTIONS.items():
         for f in dataclasses.fields(cls):
             assert f"`{section}.{f.name}`" in text
+
+
+def test_city_presets_ship_with_the_package():
+    canyon, munich = load_preset("canyon"), load_preset("munich")
+    assert canyon.xml_scene == "sionna:simple_street_canyon" and len(canyon.vehicles) == 3
+    assert munich.xml_scene == "sionna:munich" and len(munich.vehicles) == 5 and munich.steps == 40
+    assert np.allclose(munich.bs, [8.5, 21.0, 30.0])
+    assert all(4.0 <= v.initial_state[4] <= 7.0 for v in munich.vehicles)
+    assert all(v.motion == "waypoints" for v in (*canyon.vehicles, *munich.vehicles))
