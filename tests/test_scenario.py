@@ -142,7 +142,7 @@ def test_missing_file_and_bad_toml(tmp_path):
 
 
 def test_unknown_preset():
-    with pytest.raises(ConfigError, match=r"unknown scenario 'nope'; expected a preset \(paper, street"):
+    with pytest.raises(ConfigError, match=r"unknown scenario 'nope'; expected a preset \(canyon, munich, paper, street\) or a path to a \.toml file"):
         load_preset("nope")
 
 
