@@ -12,6 +12,12 @@ loads it with ``merge_shapes=False`` (one Sionna object per scenario object) and
 
 Receivers and the transmitter are created once and only moved; geometry changes only by
 rewriting vertex buffers of constant size, so the solver's kernels are traced once and reused.
+Two things would otherwise become literal constants in Dr.Jit kernels and force a re-trace
+(an LLVM/CUDA compile) at almost every step: receiver positions and car velocities (set as
+opaque Dr.Jit variables here) and the number of paths of the busiest receiver, which Sionna's
+``Paths`` uses as the last tensor dimension and in its scatter indices. That dimension is rounded
+up to a per-source capacity (:class:`_PathCapacity`, grown by doubling, so it changes only a few
+times per run); the extra slots are invalid paths and never read.
 Object ids reported by Sionna are mapped to names inside each step (never cached).
 
 Global frame, metres, radians throughout. Angles returned are global (AOA azimuth not
@@ -43,6 +49,48 @@ def _rx_name(vehicle: str) -> str:
 def _step_seed(seed: int, step: int) -> int:
     """Solver seed for one step: a deterministic function of (seed, step), in [0, 2**31)."""
     return int(np.random.SeedSequence([int(seed), int(step)]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+class _PathCapacity:
+    """Round Sionna's per-link path count up to a capacity that rarely changes (see module doc).
+
+    ``Paths._build_from_buffer`` sizes its tensors ``[..., max_num_paths]`` with ``max_num_paths``
+    baked into the generated kernels; while this context is active the count is replaced by
+    ``capacity``: at the first step the smallest power of two >= ``minimum`` and >= twice the count,
+    later doubled only when a step needs more. The padded paths have ``valid == False``.
+    """
+
+    def __init__(self, minimum: int = 1024) -> None:
+        self.minimum = int(minimum)
+        self.capacity = 0
+        self.grown = 0  # times the capacity grew after the first step (each costs one re-trace)
+
+    def round_up(self, count: int) -> int:
+        if self.capacity == 0:
+            self.capacity = self.minimum
+            while self.capacity < 2 * count:
+                self.capacity *= 2
+        while self.capacity < count:
+            self.capacity *= 2
+            self.grown += 1
+        return self.capacity
+
+    def __enter__(self) -> "_PathCapacity":
+        from sionna.rt.path_solvers.paths import Paths
+
+        self._cls = Paths
+        self._orig = Paths.__dict__["_build_from_buffer"]
+        capacity = self
+
+        def build_padded(paths, *args, **kwargs):
+            paths._max_num_paths = capacity.round_up(int(paths._max_num_paths))
+            return capacity._orig(paths, *args, **kwargs)
+
+        Paths._build_from_buffer = build_padded
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._cls._build_from_buffer = self._orig
 
 
 class SionnaSource:
@@ -150,6 +198,15 @@ class SionnaSource:
             off += len(fc)
         self._normals = np.concatenate(blocks) if blocks else np.zeros((0, 3))
         self._steps_traced = 0
+        self._capacity = _PathCapacity()
+        # Sionna creates a car's velocity attribute with literal values on the first assignment and
+        # updates it with the given (opaque) array afterwards: assign twice so that step 0 already
+        # compiles the kernels every later step reuses.
+        import drjit as dr
+
+        for v in scn.vehicles:
+            for _ in range(2):
+                self.scene.objects[v.name].velocity = dr.opaque(mi.Vector3f, [0.0, 0.0, 0.0])
 
     # ------------------------------------------------------------------ protocol
     def settings(self) -> dict:
@@ -172,6 +229,9 @@ class SionnaSource:
 
     # ------------------------------------------------------------------ per step
     def _move(self, states: np.ndarray) -> None:
+        """Car meshes, velocities and receivers to ``states (n_vehicles, 7)``; opaque values (no re-trace)."""
+        import drjit as dr
+
         mi = self._mi
         params = self.scene.mi_scene_params
         for i, v in enumerate(self.scn.vehicles):
@@ -182,8 +242,8 @@ class SionnaSource:
         self.scene.scene_geometry_updated()
         for i, v in enumerate(self.scn.vehicles):
             x, y, z, h, sp = (float(a) for a in states[i, :5])
-            self.scene.objects[v.name].velocity = mi.Vector3f(float(sp * np.cos(h)), float(sp * np.sin(h)), 0.0)
-            self.scene.receivers[_rx_name(v.name)].position = mi.Point3f(x, y, z)
+            self.scene.objects[v.name].velocity = dr.opaque(mi.Vector3f, [sp * np.cos(h), sp * np.sin(h), 0.0])
+            self.scene.receivers[_rx_name(v.name)].position = dr.opaque(mi.Point3f, [x, y, z])
 
     def raw_paths(self, step: int, states: np.ndarray) -> dict[str, np.ndarray]:
         """Move vehicles/receivers to ``states`` and trace; unlabelled valid paths as NumPy.
@@ -200,10 +260,11 @@ class SionnaSource:
         if not np.all(np.isfinite(states[:, :5])):
             raise MmslamError(f"trace_step: step {step}: non-finite vehicle state; check the trajectory")
         self._move(states)
-        p = self.solver(self.scene, max_depth=self.max_depth, samples_per_src=self.samples_per_src,
-                        max_num_paths_per_src=max(self.samples_per_src, 1000), synthetic_array=True,
-                        los=True, specular_reflection=True, diffuse_reflection=True, refraction=False,
-                        diffraction=False, seed=_step_seed(self.seed, step))
+        with self._capacity:
+            p = self.solver(self.scene, max_depth=self.max_depth, samples_per_src=self.samples_per_src,
+                            max_num_paths_per_src=max(self.samples_per_src, 1000), synthetic_array=True,
+                            los=True, specular_reflection=True, diffuse_reflection=True, refraction=False,
+                            diffraction=False, seed=_step_seed(self.seed, step))
         self._steps_traced += 1
         valid = np.asarray(p.valid.numpy(), bool).reshape(nv, -1)  # one tx
         r_idx, p_idx = np.nonzero(valid)

@@ -278,6 +278,48 @@ def test_moving_vehicles_does_not_recompile(traced):
     assert sum(not h["cache_hit"] for h in hist) == 0
 
 
+_FRESH_CACHE_SCRIPT = """
+import json, sys
+import drjit as dr
+from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.trajectory import vehicle_trajectories
+from mmslam.raytrace.sionna_adapter import SionnaSource
+out = {}
+for name, steps in (("paper", (0, 1, 13, 29)), ("canyon", (0, 1, 21))):
+    scn = load_preset(name)
+    states = vehicle_trajectories(scn)
+    src = SionnaSource(scn, max_depth=1, samples_per_src=10**5, seed=0)
+    misses = []
+    for k in steps:
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history_clear()
+            src.trace_step(k, states[k])
+            misses.append(sum(not h["cache_hit"] for h in dr.kernel_history([dr.KernelType.JIT])))
+    out[name] = misses
+print(json.dumps(out))
+"""
+
+
+def test_no_kernel_is_retraced_after_the_first_step_with_an_empty_kernel_cache(tmp_path):
+    """Fresh Dr.Jit kernel cache (HOME is an empty folder): step 0 compiles, later steps of the
+    same scene compile nothing (receiver positions, car velocities and path counts would otherwise
+    be literal constants in the kernels, one compile per step)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, HOME=str(tmp_path))
+    run = subprocess.run([sys.executable, "-c", _FRESH_CACHE_SCRIPT], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    misses = json.loads(run.stdout.strip().splitlines()[-1])
+    assert (tmp_path / ".drjit").is_dir()  # the cache really was the empty folder
+    for name, per_step in misses.items():
+        assert per_step[0] > 0, (name, per_step)  # the first step did compile (the cache was empty)
+        assert per_step[1:] == [0] * (len(per_step) - 1), (name, per_step)
+
+
 def test_bs_va_rows_agree_with_analytic_source(traced):
     """Cross-check against the closed-form source: same BS/VA ids, TOA, angles; LOS power = Friis."""
     from mmslam.raytrace.analytic import AnalyticSource
