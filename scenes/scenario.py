@@ -153,6 +153,14 @@ class FilterParams:
     vs_dither: tuple[float, ...] = param(
         (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18), "dithering T_d added to VS covariances at prediction "
         "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
+    vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
+                                 "newborn (only this step's births, whose velocity and turn rate are "
+                                 "unobserved) or all (every VS Gaussian at every step, the paper read "
+                                 "literally); see docs/vs-fusion.md", choices=("newborn", "all"))
+    extraction: str = param("threshold", "landmark estimate extraction from a map PHD: threshold (one "
+                            "estimate per Gaussian with weight above threshold_<type>, TWC2020) or "
+                            "vo_ma (round(w) estimates per Gaussian with w > 0.5, Vo & Ma 2006)",
+                            choices=("threshold", "vo_ma"))
 
 
 @dataclass(frozen=True)
@@ -170,6 +178,16 @@ class FusionParams:
                                  hi=1.0)
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV", "",
                                 probability=True)
+    vs_reduction: str = param("matched", "reduction of the fused VS map after each upload: matched (merge "
+                              "only the pairs F'_AA matched, then prune and cap) or gate (prune_merge with "
+                              "the gate vs_merge_gate over all pairs, the local filter's reduction)",
+                              choices=("matched", "gate"))
+    downlink_ego: str = param("remove", "what a vehicle does with its own Gaussian in the fused VS map it "
+                              "receives: remove (the F'_AA ego match, c_q = 1 -> beta = 0, applied at the "
+                              "downlink as at the upload) or keep (it then decays in the local map and "
+                              "can be merged with a nearby vehicle's Gaussian)", choices=("remove", "keep"))
+    vs_merge_gate: float = param(49.0, "merge gate U of the fused VS map when vs_reduction = gate "
+                                 "(squared Mahalanobis distance over the 7-D state)", "", lo=0.0, hi=1e6)
 
 
 @dataclass(frozen=True)

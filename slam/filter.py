@@ -52,7 +52,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from mmslam.errors import MmslamError
-from mmslam.scenes.scenario import Scenario
+from mmslam.scenes.scenario import Scenario, with_overrides
 
 from .birth import birth_from_moments, birth_moments_by_kind
 from .dynamics import wrap_angle
@@ -61,7 +61,7 @@ from .gmphd import bs_logterm, corrected_gm, log_psi, predict_static, type_terms
 from .measurement import BS, SP, TYPE_NAMES, VA, VS
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
                    weighted_state_cov, weighted_state_mean)
-from .reduction import average_map, prune_merge
+from .reduction import average_map, merge_pairs, prune_merge
 from .result import Result
 
 VARIANTS = ("baseline", "cm1", "proposed")
@@ -167,11 +167,13 @@ class LocalFilter:
         for t in self.types:
             g = self.maps[t]
             if t == VS:
-                if t in births:
-                    g = concat(g, births[t])
+                q, dither = np.asarray(fp.vs_process_std), np.asarray(fp.vs_dither)
+                # dithering T_d: every VS Gaussian (scope "all") or only the births (scope "newborn")
+                old_dither = dither if fp.vs_dither_scope == "all" else None
                 if g.capacity:
-                    g = self._predict_vs(g, self.dt, fp.p_survival, np.asarray(fp.vs_process_std),
-                                         np.asarray(fp.vs_dither))
+                    g = self._predict_vs(g, self.dt, fp.p_survival, q, old_dither)
+                if t in births and births[t].capacity:
+                    g = concat(g, self._predict_vs(births[t], self.dt, fp.p_survival, q, dither))
             else:
                 g = predict_static(g, fp.p_survival)
                 if t in births:
@@ -246,11 +248,23 @@ class LocalFilter:
         self._prev_Z = Z
         return StepEstimate(mean, cov, avg, e, res)
 
-    def downlink(self, fused: dict[int, GM]) -> None:
-        """Overwrite every particle's map of each type in ``fused`` by the fused map (paper III-B2)."""
+    def downlink(self, fused: dict[int, GM], ego: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Overwrite every particle's map of each type in ``fused`` by the fused map (paper III-B2).
+
+        ``ego``: this vehicle's posterior as a VS Gaussian (mean ``(7,)``, covariance ``(7, 7)``);
+        with ``fusion.downlink_ego = "remove"`` (variant ``proposed``, part of its ``F'_AA``
+        countermeasure) the VS components matched to it are dropped first.
+        """
+        fu = self.scn.fusion
         for t, g in fused.items():
-            if t in self.maps:
-                self.maps[t] = _broadcast_gm(g, self.P)
+            if t not in self.maps:
+                continue
+            if (t == VS and ego is not None and self.variant == "proposed" and fu.downlink_ego == "remove"
+                    and g.capacity):
+                from .fusion import remove_ego
+
+                g = remove_ego(g, ego[0], ego[1], fu.msm_position)
+            self.maps[t] = _broadcast_gm(g, self.P)
 
 
 # ====================================================================== fusion center
@@ -310,23 +324,51 @@ class FusionCenter:
             ue = avg_maps.get(t, empty((), 0, _dims(t)))
             radius = np.inf if t == VA else r_fov
             inside = fm.in_accumulated_fov(bs_map.m[..., 0:3], fov_positions, radius)
+            pairs = None
             if t == VS and self.variant == "proposed":
                 em, ec = ego_gaussian(ego_mean, ego_cov, fp.vs_process_std)
                 ue = fm.ego_vs_average(ue, em, ec, fu.msm_position)
-                fused = fm.fuse_vs(bs_map, ue, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov)
+                fused, pairs = fm.fuse_vs(bs_map, ue, inside, fu.msm_position, fu.msm_velocity,
+                                          fu.beta_inside_fov, with_pairs=True)
             else:
-                fused = fm.fuse_aa(bs_map, ue, inside, fu.msm_position)
+                fused, pairs = fm.fuse_aa(bs_map, ue, inside, fu.msm_position, with_pairs=True)
+            gate = fp.merge
+            if t == VS:  # fusion.vs_reduction: merge the matched pairs only, or every pair within a gate
+                if fu.vs_reduction == "matched":
+                    fused, gate = merge_pairs(fused, pairs), 0.0
+                else:
+                    gate = fu.vs_merge_gate
             if fused.capacity:
-                fused = prune_merge(fused, fu.average_prune, fp.merge, fp.max_gaussians, fp.max_trace, pos_dims=3)
+                fused = prune_merge(fused, fu.average_prune, gate, fp.max_gaussians, fp.max_trace, pos_dims=3)
             self.maps[t] = fused
         return dict(self.maps)
 
 
 # ====================================================================== evaluation helpers
-def estimates_of(g: GM, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """Landmark estimates of a single mixture: positions ``(n, 3)`` and weights of components with ``w > threshold``."""
-    sel = g.mask & (g.w > threshold)
-    return g.m[sel][:, 0:3], g.w[sel]
+EXTRACTIONS = ("threshold", "vo_ma")
+
+
+def estimates_of(g: GM, threshold: float, extraction: str = "threshold") -> tuple[np.ndarray, np.ndarray]:
+    """Landmark estimates of one mixture: positions ``(n, 3)`` and the weight of the Gaussian behind each.
+
+    ``threshold`` (TWC2020): one estimate per component with ``w > threshold``.
+    ``vo_ma`` (Vo & Ma 2006, Table III): ``round(w)`` estimates at the mean of each component with
+    ``w > 0.5``, so a Gaussian of weight ~2 (two merged targets) counts twice.
+    """
+    if extraction not in EXTRACTIONS:
+        raise MmslamError(f"extraction={extraction!r}: expected one of {', '.join(EXTRACTIONS)}")
+    if extraction == "threshold":
+        sel = g.mask & (g.w > threshold)
+        return g.m[sel][:, 0:3], g.w[sel]
+    sel = np.nonzero(g.mask & (g.w > 0.5))[0]
+    reps = np.maximum(np.rint(g.w[sel]).astype(int), 1)
+    idx = np.repeat(sel, reps)
+    return g.m[idx][:, 0:3], g.w[idx]
+
+
+def cardinality(g: GM) -> float:
+    """Expected number of landmarks of a map PHD: the sum of its weights."""
+    return float(np.sum(np.where(g.mask, g.w, 0.0)))
 
 
 def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
@@ -408,7 +450,7 @@ _VEH_DT = {"step": np.int32, "vehicle": np.int16, "x": float, "y": float, "z": f
            "bias": float, "true_x": float, "true_y": float, "true_z": float, "true_heading": float,
            "true_bias": float, "pos_err": float, "heading_err": float, "bias_err": float}
 _MET_DT = {"step": np.int32, "map": object, "type": object, "gospa": float, "loc": float, "missed": float,
-           "false": float, "n_est": np.int32, "n_true": np.int32}
+           "false": float, "n_est": np.int32, "n_true": np.int32, "card": float}
 _LM_DT = {"step": np.int32, "map": object, "type": object, "x": float, "y": float, "z": float,
           "weight": float}
 
@@ -491,13 +533,14 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     def record_map(k: int, name: str, maps: dict[int, GM], truth: dict[int, np.ndarray]) -> None:
         for t in EVAL_TYPES:
             if t in maps:
-                X, wts = estimates_of(maps[t], thresholds[t])
+                X, wts = estimates_of(maps[t], thresholds[t], scn.filter.extraction)
+                card = cardinality(maps[t])
             else:
-                X, wts = empty3, np.zeros(0)
+                X, wts, card = empty3, np.zeros(0), 0.0
             Y = truth[t]
             g = gospa(Y, X, ev.gospa_c, ev.gospa_p, ev.gospa_alpha)  # (truth, estimates)
             mt.add(step=k, map=name, type=TYPE_NAMES[t], gospa=float(g.d), loc=float(g.loc),
-                   missed=float(g.missed), false=float(g.false), n_est=len(X), n_true=len(Y))
+                   missed=float(g.missed), false=float(g.false), n_est=len(X), n_true=len(Y), card=card)
             for x, wv in zip(X, wts):
                 lt.add(step=k, map=name, type=TYPE_NAMES[t], x=x[0], y=x[1], z=x[2], weight=float(wv))
 
@@ -520,7 +563,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
             acc_fov[n].append(est.mean[0:3])
             if center is not None and k in sched[n]:
                 fused = center.fuse(est.avg_maps, np.array(acc_fov[n]), est.mean, est.cov)
-                f.downlink(fused)
+                f.downlink(fused, ego_gaussian(est.mean, est.cov, scn.filter.vs_process_std))
                 acc_fov[n] = []
         fused_maps = center.maps if center is not None else {}
         record_map(k, "fused", fused_maps, {VA: _truth_static(seen_all[VA], k), SP: _truth_static(seen_all[SP], k),
@@ -540,8 +583,13 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
 
 
 def run_slam(cache_dir: str | Path, variant: str = "baseline", particles: int = 300, seed: int = 0,
-             steps: int | None = None, include_types: Sequence[int] = (BS, VA, SP, VS)) -> Result:
+             steps: int | None = None, include_types: Sequence[int] = (BS, VA, SP, VS),
+             overrides: Sequence[str] = ()) -> Result:
     """Load a path cache and run :func:`run_filter` on it.
+
+    ``overrides``: ``section.key=value`` strings (e.g. ``"fusion.vs_reduction=gate"``) applied to
+    the cached scenario's [sensor], [filter], [fusion] and [evaluation] parameters
+    (:func:`mmslam.scenes.scenario.with_overrides`); they change the filter run, never the trace.
 
     Raises:
         CacheError: the cache is missing, corrupt or of another schema (from ``load_cache``).
@@ -553,7 +601,11 @@ def run_slam(cache_dir: str | Path, variant: str = "baseline", particles: int = 
     from mmslam.raytrace.cache import load_cache
 
     cache = load_cache(cache_dir)
+    scn = with_overrides(cache.scenario, list(overrides))
+    if scn.geometry_hash() != cache.scenario.geometry_hash():
+        raise MmslamError(f"--set {', '.join(overrides)}: changes the traced scenario (the cache's truth); "
+                          "trace a new cache with that scenario instead")
     meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
-            "cache_path": str(cache.path)}
-    return run_filter(cache.scenario, cache.states, cache.paths, variant=variant, particles=particles,
+            "cache_path": str(cache.path), "overrides": list(overrides)}
+    return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
                       seed=seed, steps=steps, include_types=include_types, meta=meta)

@@ -108,7 +108,12 @@ def _match(C: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[r[ok]], cols[c[ok]]
 
 
-def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d) -> GM:
+def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None):
+    """Union of the two weighted sets, live components only, sorted by weight.
+
+    With ``pairs = (r, c)`` (matched BS / uploaded indices into ``wb`` / ``wu``) also returns the
+    ``(n, 2)`` slots of each matched pair in the output (pairs with a dropped member are left out).
+    """
     w = np.concatenate([wb * beta_b, wu * beta_u])
     m = np.concatenate([mb.reshape(-1, d), mu.reshape(-1, d)])
     P = np.concatenate([Pb.reshape(-1, d, d), Pu.reshape(-1, d, d)])
@@ -116,7 +121,13 @@ def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d) -> GM:
     order = np.argsort(-w[keep], kind="stable")
     out = GM(w[keep][order], m[keep][order], symmetrize(P[keep][order]), np.ones(int(keep.sum()), bool))
     out.check("after map fusion")
-    return out
+    if pairs is None:
+        return out
+    slot = np.full(w.shape[0], -1)
+    slot[np.nonzero(keep)[0][order]] = np.arange(order.shape[0])
+    r, c = (np.asarray(a, int) for a in pairs)
+    sp = np.stack([slot[r], slot[wb.shape[0] + c]], axis=1).reshape(-1, 2)
+    return out, sp[(sp >= 0).all(axis=1)]
 
 
 def _check_inside(bs: GM, inside: np.ndarray) -> np.ndarray:
@@ -132,7 +143,8 @@ def _check_dims(bs: GM, ue: GM) -> int:
     return bs.dim
 
 
-def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float) -> GM:
+def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
+            with_pairs: bool = False) -> GM | tuple[GM, np.ndarray]:
     """TWC2020 arithmetic-average fusion ``F_AA`` of the BS map and an uploaded averaged map.
 
     Proximity: ``C[q1, q2] = 1`` iff the MSM distance of the *position* marginals (first three
@@ -150,9 +162,12 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float) -
         ue_fov_inside: ``(bs.capacity,)`` bool, per BS-map slot, inside the accumulated FOV
             (see :func:`in_accumulated_fov`); masked slots are ignored.
         match_threshold: MSM threshold (dimensionless).
+        with_pairs: also return the matched pairs (see Returns).
 
     Returns:
-        The union with weights ``beta * w`` (live components only, sorted by weight).
+        The union with weights ``beta * w`` (live components only, sorted by weight); with
+        ``with_pairs``, ``(union, pairs)`` where ``pairs (n, 2)`` are the union slots of the BS and
+        the uploaded member of each matched pair (for :func:`~mmslam.slam.reduction.merge_pairs`).
     """
     d = _check_dims(bs, ue)
     inside = _check_inside(bs, ue_fov_inside)
@@ -164,7 +179,41 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float) -
     beta_u = np.ones(wu.shape[0])
     beta_b[r] = 0.5
     beta_u[c] = 0.5
-    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d)
+    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None)
+
+
+def _ego_match(m: np.ndarray, P: np.ndarray, ego_mean: np.ndarray, ego_cov: np.ndarray,
+               threshold: float) -> np.ndarray:
+    """``c_q`` of eq. (Pro_aveVSPHD): position-marginal MSM distance to the ego Gaussian ``< threshold``."""
+    return msm_distance(m[:, POS], P[:, POS, POS], ego_mean[None, POS], ego_cov[None, POS, POS])[:, 0] < threshold
+
+
+def _ego(ego_mean: np.ndarray, ego_cov: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
+    ego_mean = np.asarray(ego_mean, float).reshape(d)
+    ego_cov = symmetrize(np.asarray(ego_cov, float).reshape(d, d))
+    if not (np.all(np.isfinite(ego_mean)) and np.all(np.isfinite(ego_cov))):
+        raise FloatingPointError("non-finite ego Gaussian")
+    return ego_mean, ego_cov
+
+
+def remove_ego(vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: float) -> GM:
+    """The VS map without the components matched to the ego vehicle (``c_q = 1``, ``beta_1 = 0``).
+
+    The first half of ``F'_AA`` (:func:`ego_vs_average`) on its own: used on the fused VS map a
+    vehicle receives (``fusion.downlink_ego = "remove"``), where the vehicle's own Gaussian,
+    uploaded by itself, is not a scatterer of its own paths.
+
+    Args:
+        vs: one VS mixture (batch ``()``, ``d = 7``).
+        ego_mean, ego_cov: ``(7,)`` / ``(7, 7)`` the ego state as a VS Gaussian.
+        threshold: ``T_MD^L`` (dimensionless).
+    """
+    ego_mean, ego_cov = _ego(ego_mean, ego_cov, vs.dim)
+    _, w, m, P = _live(vs)
+    keep = ~_ego_match(m, P, ego_mean, ego_cov, threshold)
+    out = GM(w[keep], m[keep], P[keep], np.ones(int(keep.sum()), bool))
+    out.check("after remove_ego")
+    return out
 
 
 def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: float) -> GM:
@@ -186,13 +235,9 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
         The resulting mixture (live components only, sorted by weight).
     """
     d = avg_vs.dim
-    ego_mean = np.asarray(ego_mean, float).reshape(d)
-    ego_cov = symmetrize(np.asarray(ego_cov, float).reshape(d, d))
-    if not (np.all(np.isfinite(ego_mean)) and np.all(np.isfinite(ego_cov))):
-        raise FloatingPointError("non-finite ego Gaussian in ego_vs_average")
+    ego_mean, ego_cov = _ego(ego_mean, ego_cov, d)
     _, w, m, P = _live(avg_vs)
-    dist = msm_distance(m[:, POS], P[:, POS, POS], ego_mean[None, POS], ego_cov[None, POS, POS])[:, 0]
-    beta = np.where(dist < threshold, 0.0, 1.0)
+    beta = np.where(_ego_match(m, P, ego_mean, ego_cov, threshold), 0.0, 1.0)
     return _union(w, m, P, beta, np.ones(1), ego_mean[None], ego_cov[None], np.ones(1), d)
 
 
@@ -213,7 +258,7 @@ def predict_bs_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray, n_step
 
 
 def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel: float,
-            beta_inside_fov: float) -> GM:
+            beta_inside_fov: float, with_pairs: bool = False) -> GM | tuple[GM, np.ndarray]:
     """``F'_AA`` at the BS for the VS map (paper eq. (pro_ULMF), (CompAFW)).
 
     Proximity: ``C[q1, q2] = 1`` iff the MSM distance of the position marginals (dims 0:3) is
@@ -234,9 +279,12 @@ def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel:
         ue_fov_inside: ``(bs_pred.capacity,)`` bool per BS-map slot (masked slots ignored).
         t_pos, t_vel: MSM thresholds (dimensionless).
         beta_inside_fov: weight factor of unmatched BS components inside the accumulated FOV.
+        with_pairs: also return the matched pairs, as :func:`fuse_aa`.
 
     Returns:
-        The union with weights ``beta * w`` (live components only, sorted by weight).
+        The union with weights ``beta * w`` (live components only, sorted by weight), and with
+        ``with_pairs`` the ``(n, 2)`` union slots of each matched pair. The paper: matched
+        densities "need to be merged"; unmatched ones are distinct targets.
     """
     d = _check_dims(bs_pred, ue)
     if d < 6:
@@ -254,4 +302,4 @@ def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel:
     ib_inv, iu_inv = 1.0 / rho_b[r], 1.0 / rho_u[c]
     beta_b[r] = ib_inv / (ib_inv + iu_inv)
     beta_u[c] = iu_inv / (ib_inv + iu_inv)
-    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d)
+    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None)

@@ -313,6 +313,43 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     return out
 
 
+def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
+    """Merge given disjoint pairs of components of one mixture by moment matching.
+
+    For a pair ``(i, j)``: ``w = w_i + w_j``, ``m = (w_i m_i + w_j m_j) / w``,
+    ``P = sum_{l in (i, j)} w_l (P_l + (m_l - m)(m_l - m)^T) / w`` (Vo & Ma 2006, Table II, step 2,
+    for a cluster of two); the merged component takes slot ``i`` and slot ``j`` is freed. Used
+    for the fused VS map (``fusion.vs_reduction = "matched"``): only the pairs the fusion operator
+    matched are one target; every other component stays as it is.
+
+    Args:
+        g: one mixture (batch ``()``), ``Q`` slots, dimension ``d``.
+        pairs: ``(n, 2)`` slot indices of live components, each slot in at most one pair.
+
+    Returns:
+        A mixture with the same slots (freed slots masked, ``w = 0``, ``m = 0``, ``P = I``).
+    """
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    if g.w.ndim != 1:
+        raise ValueError(f"merge_pairs works on one mixture (batch shape ()), got {g.batch_shape}")
+    if np.unique(pairs).size != pairs.size or not g.mask[pairs].all():
+        raise ValueError("merge_pairs: pairs must be disjoint and refer to live components")
+    out = g.copy()
+    if pairs.shape[0] == 0:
+        return out
+    i, j = pairs[:, 0], pairs[:, 1]
+    wi, wj = g.w[i], g.w[j]
+    w = wi + wj
+    m = (wi[:, None] * g.m[i] + wj[:, None] * g.m[j]) / w[:, None]
+    di, dj = g.m[i] - m, g.m[j] - m
+    P = (wi[:, None, None] * (g.P[i] + di[:, :, None] * di[:, None, :])
+         + wj[:, None, None] * (g.P[j] + dj[:, :, None] * dj[:, None, :])) / w[:, None, None]
+    out.w[i], out.m[i], out.P[i] = w, m, symmetrize(P)
+    out.w[j], out.m[j], out.P[j], out.mask[j] = 0.0, 0.0, np.eye(g.dim), False
+    out.check("after merge_pairs")
+    return out
+
+
 def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,
                 max_trace: float | None = None, pos_dims: int = 3) -> GM:
     """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (prevMFave)).

@@ -11,7 +11,8 @@
     step int32, map string (a vehicle name for its local averaged map, or "fused" for the BS
     map), type string ("VA" | "SP" | "VS"), gospa, loc, missed, false [m] (GOSPA p=2, c, alpha=2,
     with its localisation / missed / false parts; gospa**2 = loc + missed + false),
-    n_est int32, n_true int32
+    n_est int32, n_true int32, card (the PHD mass: sum of the map's weights, the expected
+    number of landmarks of that type)
 
 ``landmarks`` (estimated landmarks, one row per step, map, type and estimate)
     step int32, map string, type string, x, y, z [m], weight float64

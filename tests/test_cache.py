@@ -23,7 +23,7 @@ from mmslam.raytrace.cache import (
 from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS
 from mmslam.raytrace.trace import make_source, trace_scenario
 from mmslam.scenes.scenario import load_preset
-from mmslam.scenes.trajectory import vehicle_trajectories
+from mmslam.scenes.trajectory import true_trajectories, vehicle_trajectories
 from mmslam.slam.measurement import BS, VA
 
 
@@ -75,7 +75,7 @@ def test_roundtrip_matches_source(tmp_path, paper):
     assert m["geometry_hash"] == paper.geometry_hash()
     assert c.vehicle_names == ["veh1", "veh2"]
     assert c.scenario.to_dict() == {**paper.to_dict(), "steps": 7}
-    np.testing.assert_array_equal(c.states, vehicle_trajectories(paper, 7))
+    np.testing.assert_array_equal(c.states, true_trajectories(paper, 7))  # with the preset's process noise
     assert c.states.shape == (7, 2, 7)
     assert set(c.vehicles) == set(VEHICLE_COLUMNS) and len(c.vehicles["step"]) == 14
     np.testing.assert_allclose(c.vehicles["t"], np.repeat(np.arange(7) * 0.5, 2))

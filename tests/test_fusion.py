@@ -170,3 +170,39 @@ def test_fuse_vs_matched_weights_sum_to_one_and_equal_rho_half():
     ue = _gm([0.6], m + 0.1, _iso(m, 3.0))
     out = fuse_vs(bs, ue, np.array([True]), 20.0, 20.0, 0.25)
     np.testing.assert_allclose(np.sort(out.w), [0.3, 0.3])
+
+
+def test_fuse_vs_with_pairs_names_the_union_slots_of_each_matched_pair():
+    mb = np.array([[0, 0, 0, 10, 0, 0, 0], [0, 80, 0, 0, 0, 0, 0]], float)
+    mu = np.array([[50, 50, 0, 0, 0, 0, 0], [1, 0, 0, 11, 0, 0, 0]], float)
+    bs, ue = _gm([0.8, 0.5], mb, _iso(mb, 2.0)), _gm([0.3, 0.9], mu, _iso(mu, 2.0))
+    out, pairs = fuse_vs(bs, ue, np.array([True, True]), 20.0, 20.0, 0.25, with_pairs=True)
+    plain = fuse_vs(bs, ue, np.array([True, True]), 20.0, 20.0, 0.25)
+    np.testing.assert_array_equal(out.w, plain.w)  # the flag changes nothing but the extra output
+    assert pairs.shape == (1, 2)
+    np.testing.assert_allclose(out.m[pairs[0, 0]], mb[0])  # BS member of the pair
+    np.testing.assert_allclose(out.m[pairs[0, 1]], mu[1])  # uploaded member
+    out_aa, pairs_aa = fuse_aa(bs, ue, np.array([True, True]), 20.0, with_pairs=True)
+    assert pairs_aa.shape == (1, 2)
+    np.testing.assert_allclose(out_aa.m[pairs_aa[0]], [mb[0], mu[1]])
+
+
+def test_merge_pairs_is_the_moment_match_of_each_pair_and_leaves_the_rest():
+    from mmslam.slam.reduction import merge_pairs, prune_merge
+
+    m = np.array([[0.0, 0, 0], [2.0, 0, 0], [10.0, 0, 0], [11.0, 0, 0]])
+    P = _iso(m, 1.0)
+    g = _gm([1.0, 3.0, 0.5, 0.5], m, P)
+    out = merge_pairs(g, np.array([[0, 1]]))
+    # by hand: w = 4, mean x = (0*1 + 2*3)/4 = 1.5, var x = (1*(1 + 1.5^2) + 3*(1 + 0.5^2))/4 = 1.75
+    assert out.count() == 3 and out.w[0] == pytest.approx(4.0)
+    np.testing.assert_allclose(out.m[0], [1.5, 0, 0])
+    np.testing.assert_allclose(np.diag(out.P[0]), [1.75, 1.0, 1.0])
+    assert not out.mask[1]
+    np.testing.assert_array_equal(out.m[2:], m[2:])  # 10 and 11 are 1 sigma apart but not a pair
+    # the same pair through prune_merge (gate wide enough for exactly that cluster) agrees
+    ref = prune_merge(_gm([1.0, 3.0], m[:2], P[:2]), 0.0, 100.0, 10)
+    np.testing.assert_allclose(ref.m[0], out.m[0])
+    np.testing.assert_allclose(ref.P[0], out.P[0])
+    with pytest.raises(ValueError, match="disjoint"):
+        merge_pairs(g, np.array([[0, 1], [1, 2]]))
