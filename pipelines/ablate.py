@@ -46,7 +46,7 @@ VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
 
 EXECUTORS: tuple[str, ...] = ("local", "dask")
 TYPES: tuple[str, ...] = ("VA", "SP", "VS")
-METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true")
+METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card")
 STATE_QUANTITIES: tuple[str, ...] = ("pos_err", "heading_err", "bias_err")
 ALL_VEHICLES = "all"
 """``map`` value of the state rows pooled over all vehicles."""
@@ -65,20 +65,99 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "N
 # ====================================================================== jobs and validation
 @dataclass(frozen=True, order=True)
 class Job:
-    """One filter run: a variant and an explicit seed."""
+    """One filter run: a variant, an explicit seed and the grid arm's parameter settings.
+
+    ``arm`` holds ``section.key=value`` strings of one point of an ``--grid`` (empty without a
+    grid); the ablation's ``--set`` overrides apply to every job and are not part of the name.
+    """
 
     variant: str
     seed: int
+    arm: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """The variant, with its grid settings: ``proposed`` or ``proposed[fusion.vs_reduction=gate]``."""
+        return arm_label(self.variant, self.arm)
 
     @property
     def name(self) -> str:
-        """Directory name under ``DIR/jobs``: ``<variant>-seed<k>``."""
-        return f"{self.variant}-seed{self.seed}"
+        """Directory name under ``DIR/jobs``: ``<label>-seed<k>``."""
+        return f"{self.label}-seed{self.seed}"
+
+
+def arm_label(variant: str, arm: Sequence[str]) -> str:
+    """``variant`` or ``variant[key=value,key2=value2]`` (the summary's ``variant`` column)."""
+    return f"{variant}[{','.join(arm)}]" if arm else variant
+
+
+def parse_label(label: str) -> tuple[str, tuple[str, ...]]:
+    """Inverse of :func:`arm_label`."""
+    if label.endswith("]") and "[" in label:
+        v, _, rest = label.partition("[")
+        return v, tuple(x for x in rest[:-1].split(",") if x)
+    return label, ()
+
+
+def _canonical_setting(text: str) -> str:
+    """``section.key=value`` with the key and value normalised (``filter.merge = 4`` -> ``filter.merge=4``)."""
+    from mmslam.scenes.params import parse_override
+
+    try:
+        key, value = parse_override(text)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if isinstance(value, bool):
+        v = str(value).lower()
+    elif isinstance(value, (list, tuple)):
+        v = "[" + ",".join(str(x) for x in value) + "]"
+    else:
+        v = str(value)
+    if "/" in v or "," in v and not v.startswith("["):
+        raise ConfigError(f"--set/--grid {text!r}: value must not contain '/' or ','")
+    return f"{key}={v}"
 
 
 def job_dir(out_dir: str | Path, job: Job) -> Path:
     """Where ``job``'s result is stored."""
     return Path(out_dir) / JOBS_DIR / job.name
+
+
+def parse_sets(sets: Sequence[str]) -> tuple[str, ...]:
+    """``--set`` values (repeatable ``section.key=value``) -> canonical strings, each key once."""
+    out = tuple(_canonical_setting(t) for t in sets)
+    keys = [t.split("=", 1)[0] for t in out]
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise ConfigError(f"--set {dup[0]}: given twice; set each parameter once")
+    return out
+
+
+def parse_grid(grid: Sequence[str]) -> list[tuple[str, ...]]:
+    """``--grid key=v1,v2`` values (repeatable) -> the arms: every combination, in order.
+
+    No ``--grid`` gives one empty arm ``()``. A grid key may not also be a ``--set`` key (the
+    caller checks).
+    """
+    import itertools
+
+    axes: list[list[str]] = []
+    keys: list[str] = []
+    for text in grid:
+        if "=" not in text:
+            raise ConfigError(f"--grid {text!r}: expected section.key=v1,v2 (e.g. fusion.vs_reduction=matched,gate)")
+        key, raw = (x.strip() for x in text.split("=", 1))
+        vals = [x.strip() for x in raw.split(",") if x.strip()] if not raw.startswith("[") else [raw]
+        if not key or not vals:
+            raise ConfigError(f"--grid {text!r}: expected section.key=v1,v2 (e.g. fusion.vs_reduction=matched,gate)")
+        if key in keys:
+            raise ConfigError(f"--grid {key}: given twice; list all its values in one --grid")
+        keys.append(key)
+        axis = [_canonical_setting(f"{key}={v}") for v in vals]
+        if len(set(axis)) != len(axis):
+            raise ConfigError(f"--grid {key}: a value is listed twice")
+        axes.append(axis)
+    return [tuple(c) for c in itertools.product(*axes)] if axes else [()]
 
 
 def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
@@ -98,10 +177,12 @@ def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
 
 
 def check_run_args(mc: int, particles: int, steps: int | None, executor: str,
-                   scheduler: str | None, workers: int | None) -> None:
+                   scheduler: str | None, workers: int | None, seed0: int = 0) -> None:
     """Reject bad numbers / executor settings with a one-line :class:`ConfigError`."""
     if int(mc) < 1:
         raise ConfigError(f"--mc {mc}: expected at least 1 Monte Carlo run")
+    if not 0 <= int(seed0) <= 2**31:
+        raise ConfigError(f"--seed0 {seed0}: expected a seed in 0..2147483648")
     if int(particles) < 1:
         raise ConfigError(f"--particles {particles}: expected at least 1 particle")
     if steps is not None and int(steps) < 1:
@@ -114,9 +195,10 @@ def check_run_args(mc: int, particles: int, steps: int | None, executor: str,
         raise ConfigError(f"--workers {workers}: expected at least 1 worker")
 
 
-def plan_jobs(variants: Sequence[str], mc: int) -> list[Job]:
-    """The grid ``variants x seeds 0..mc-1``, variant-major."""
-    return [Job(v, s) for v in variants for s in range(int(mc))]
+def plan_jobs(variants: Sequence[str], mc: int, seed0: int = 0,
+              arms: Sequence[tuple[str, ...]] = ((),)) -> list[Job]:
+    """The grid ``variants x arms x seeds seed0..seed0+mc-1``, variant-major."""
+    return [Job(v, s, tuple(a)) for v in variants for a in arms for s in range(int(seed0), int(seed0) + int(mc))]
 
 
 def is_finished(out_dir: str | Path, job: Job) -> bool:
@@ -153,7 +235,8 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
 
 
 # ====================================================================== the worker side
-def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int | None) -> Any:
+def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int | None,
+            overrides: Sequence[str] = ()) -> Any:
     """Run one filter job (in a worker process) and return its :class:`Result`.
 
     Pins BLAS/OpenMP pools to one thread when ``threadpoolctl`` is available (the environment
@@ -168,7 +251,7 @@ def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int 
     from mmslam.slam.filter import run_slam
 
     return run_slam(cache_dir, variant=variant, particles=int(particles), seed=int(seed),
-                    steps=None if steps is None else int(steps))
+                    steps=None if steps is None else int(steps), overrides=tuple(overrides))
 
 
 @contextlib.contextmanager
@@ -333,6 +416,18 @@ def _cache_info(cache_dir: Path) -> dict[str, Any]:
             "vehicle_names": list(c.vehicle_names)}
 
 
+def check_overrides(info: dict[str, Any], sets: Sequence[str], arms: Sequence[tuple[str, ...]]) -> None:
+    """Validate ``sets`` + every arm on the cached scenario (bounds, names) before anything is written."""
+    from mmslam.scenes.scenario import scenario_from_resolved, with_overrides
+
+    base = scenario_from_resolved(info["scenario"])
+    for arm in arms:
+        scn = with_overrides(base, list(sets) + list(arm))
+        if scn.geometry_hash() != base.geometry_hash():
+            raise ConfigError(f"--set/--grid {', '.join(list(sets) + list(arm))}: changes the traced scenario "
+                              "(the cache's truth); write it in a scenario file and trace a new cache")
+
+
 def read_ablation(out_dir: str | Path) -> dict[str, Any]:
     """``DIR/ablation.json``; :class:`CacheError` if ``DIR`` holds no ablation."""
     p = Path(out_dir)
@@ -368,20 +463,22 @@ def _jsonable(o: Any) -> Any:
 
 def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
     for key, flag in (("config_hash", "the trace (scenario / source)"), ("particles", "--particles"),
-                      ("steps", "--steps")):
-        if old.get(key) != new.get(key):
+                      ("steps", "--steps"), ("sets", "--set")):
+        if old.get(key, [] if key == "sets" else None) != new.get(key):
             raise ConfigError(f"{out_dir} holds an ablation with {key}={old.get(key)} but this run asks "
                               f"{key}={new.get(key)} ({flag}); use another --out or delete "
                               f"{out_dir / JOBS_DIR}")
 
 
-def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int) -> None:
+def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrides: Sequence[str]) -> None:
     meta_path = job_dir(out_dir, job) / "meta.json"
     try:
         meta = json.loads(meta_path.read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CacheError(f"{meta_path}: unreadable ({_one_line(e)}); delete {meta_path.parent} and re-run") from None
     want = {"variant": job.variant, "seed": job.seed, "particles": particles}
+    if meta.get("overrides") is not None:
+        want["overrides"] = list(overrides)
     for k, v in want.items():
         if k in meta and meta[k] != v:
             raise CacheError(f"{meta_path.parent}: holds {k}={meta[k]}, expected {v}; delete that "
@@ -394,7 +491,8 @@ def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int) -> None
 def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[str] | str = VARIANTS,
                  mc: int = 10, particles: int = 300, steps: int | None = None,
                  executor: str = "local", scheduler: str | None = None, workers: int | None = None,
-                 progress: bool = True, command: str | None = None) -> AblationRun:
+                 progress: bool = True, command: str | None = None, seed0: int = 0,
+                 sets: Sequence[str] = (), grid: Sequence[str] = ()) -> AblationRun:
     """Run the (variant x seed) grid on ``cache_dir``, store each job under ``out_dir/jobs``.
 
     Finished jobs are skipped. When all jobs are stored, :func:`aggregate` writes the summary.
@@ -406,7 +504,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         cache_dir: a path cache (see :func:`prepare_cache`).
         out_dir: the ablation directory.
         variants: subset of :data:`VARIANTS` (a sequence or ``"a,b"``).
-        mc: Monte Carlo runs per variant (seeds ``0..mc-1``).
+        mc: Monte Carlo runs per variant (seeds ``seed0..seed0+mc-1``).
         particles: particles per vehicle filter.
         steps: time steps to run (default: all steps in the cache).
         executor: ``local`` (process pool) or ``dask``.
@@ -414,33 +512,47 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         workers: processes (local) or LocalCluster workers; default: all cores.
         progress: show a progress bar on stderr.
         command: the shell command that reproduces this ablation (stored for the report).
+        seed0: first seed (check results on seeds the code was not tuned on).
+        sets: ``section.key=value`` parameter overrides for every job (``--set``; filter, fusion,
+            sensor and evaluation parameters; never ones that change the trace).
+        grid: ``section.key=v1,v2`` (``--grid``): every variant runs once per combination of
+            the listed values; the summary labels each arm ``variant[key=value,...]``.
 
     Raises:
         MmslamError: bad arguments, a results directory made with other settings, an unreachable
             scheduler. Jobs finished before an error stay stored.
     """
     variants = parse_variants(variants)
-    check_run_args(mc, particles, steps, executor, scheduler, workers)
+    check_run_args(mc, particles, steps, executor, scheduler, workers, seed0)
+    sets = parse_sets(sets)
+    arms = parse_grid(grid)
+    clash = sorted({a.split("=", 1)[0] for arm in arms for a in arm} & {x.split("=", 1)[0] for x in sets})
+    if clash:
+        raise ConfigError(f"--grid {clash[0]}: also given with --set; use one of them")
     out = Path(out_dir)
     info = _cache_info(Path(cache_dir))
+    check_overrides(info, sets, arms)
     n_steps = info["cache_steps"] if steps is None else int(steps)
     if n_steps > info["cache_steps"]:
         raise ConfigError(f"--steps {n_steps}: the cache {info['cache_dir']} holds only "
                           f"{info['cache_steps']} steps; trace more steps first")
-    spec = {**info, "variants": list(variants), "mc": int(mc), "seeds": list(range(int(mc))),
-            "particles": int(particles), "steps": n_steps,
+    seeds = list(range(int(seed0), int(seed0) + int(mc)))
+    spec = {**info, "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
+            "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
+            "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
-                                                  info["source"], out, steps)}
+                                                  info["source"], out, steps, seed0=seed0, sets=sets,
+                                                  grid=grid)}
     if (out / ABLATION_FILE).is_file():
         _check_compatible(out, read_ablation(out), spec)
     out.mkdir(parents=True, exist_ok=True)
     (out / JOBS_DIR).mkdir(exist_ok=True)
     _write_json(out / ABLATION_FILE, spec)
 
-    jobs = plan_jobs(variants, mc)
+    jobs = plan_jobs(variants, mc, seed0, arms)
     done = [j for j in jobs if is_finished(out, j)]
     for j in done:
-        _check_job_meta(out, j, int(particles), n_steps)
+        _check_job_meta(out, j, int(particles), n_steps, sets + j.arm)
     # longest first (variants with a VS map cost more than baseline): less idle time at the end;
     # the order never changes a job's result
     pending = sorted((j for j in jobs if j not in done), key=lambda j: (j.variant == "baseline", j.seed))
@@ -453,15 +565,16 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         with pool_cm as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
-                         None if steps is None else n_steps, progress, len(done), len(jobs))
+                         None if steps is None else n_steps, progress, len(done), len(jobs), sets)
     summary = aggregate(out)
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
 
 
 def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
-           steps: int | None, progress: bool, n_done: int, n_total: int) -> list[Job]:
+           steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
     """Submit ``pending``, save each result as it arrives; cancel the rest on error."""
-    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps): j for j in pending}
+    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm): j
+            for j in pending}
     ran: list[Job] = []
     bar = None
     if progress:
@@ -494,7 +607,8 @@ def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles
 
 
 def default_command(scenario: str, variants: Sequence[str], mc: int, particles: int, source: str | None,
-                    out: Path, steps: int | None, executor: str = "local") -> str:
+                    out: Path, steps: int | None, executor: str = "local", seed0: int = 0,
+                    sets: Sequence[str] = (), grid: Sequence[str] = ()) -> str:
     """The ``mmslam ablate`` command line that reproduces an ablation."""
     import shlex
 
@@ -502,6 +616,12 @@ def default_command(scenario: str, variants: Sequence[str], mc: int, particles: 
             "--particles", str(particles), "--source", str(source or "analytic"), "--out", str(out)]
     if steps is not None:
         argv += ["--steps", str(steps)]
+    if seed0:
+        argv += ["--seed0", str(seed0)]
+    for x in sets:
+        argv += ["--set", x]
+    for x in grid:
+        argv += ["--grid", x]
     if executor != "local":
         argv += ["--executor", executor]
     return shlex.join(argv)
@@ -518,9 +638,14 @@ class Summary:
         errors), quantity (:data:`METRIC_QUANTITIES` or :data:`STATE_QUANTITIES`), step,
         mean, std (population std, ddof 0, over the pooled samples), rms (root mean square),
         n (samples pooled: seeds, times vehicles for ``map == "all"``).
-    ``headline``: one row per variant and map (each vehicle, then ``fused``): mean GOSPA per
-        type over seeds and steps ``>= fusion_start``, position RMSE over the same steps (the
-        vehicle's, or all vehicles' for ``fused``), mean job wall time and the seed count.
+    ``headline``: one row per variant (or grid arm, ``variant[key=value]``) and map (each
+        vehicle, then ``fused``): mean GOSPA per type over seeds and steps ``>= fusion_start``,
+        position RMSE over the same steps (the vehicle's, or all vehicles' for ``fused``), mean
+        job wall time and the seed count; for each of :data:`SCORED` the 95% CI half-width
+        ``_ci`` of the mean over runs (per-run scores: mean GOSPA, RMSE), the paired difference
+        ``_diff`` to ``reference`` (baseline on the same seeds) with its CI ``_diff_ci`` and
+        ``_sig`` (True when that CI excludes 0); ``card_<type>``: mean PHD mass (estimated
+        number of landmarks) over the same steps and runs.
     ``config``: the ablation settings (:data:`ABLATION_FILE`) plus ``fusion_start``.
     """
 
@@ -538,8 +663,10 @@ class Summary:
 
     @property
     def variants(self) -> list[str]:
-        present = set(np.asarray(self.table["variant"]).tolist())
-        return [v for v in VARIANTS if v in present]
+        """Variant / arm labels present, in :data:`VARIANTS` order (arms after their variant)."""
+        present = list(dict.fromkeys(np.asarray(self.table["variant"]).tolist()))
+        order = {v: i for i, v in enumerate(VARIANTS)}
+        return sorted(present, key=lambda lab: (order.get(parse_label(lab)[0], 99), present.index(lab)))
 
 
 def _fusion_start(scenario: dict[str, Any]) -> int:
@@ -547,6 +674,11 @@ def _fusion_start(scenario: dict[str, Any]) -> int:
         return int(min(scenario["fusion"]["start"]))
     except (KeyError, TypeError, ValueError):
         return 0
+
+
+def spec_arms(spec: dict[str, Any]) -> list[tuple[str, ...]]:
+    """The grid arms recorded in ``ablation.json`` (one empty arm for an ablation without ``--grid``)."""
+    return [tuple(a) for a in spec.get("arms", [[]])] or [()]
 
 
 def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
@@ -559,11 +691,28 @@ def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
     seeds = list(seeds if seeds is not None else spec.get("seeds", range(int(spec.get("mc", 0)))))
     out = {}
     for v in variants:
-        for s in seeds:
-            j = Job(v, int(s))
-            if is_finished(out_dir, j):
-                out[j] = Result.load(job_dir(out_dir, j))
+        for a in spec_arms(spec):
+            for s in seeds:
+                j = Job(v, int(s), a)
+                if is_finished(out_dir, j):
+                    out[j] = Result.load(job_dir(out_dir, j))
     return out
+
+
+def ci95(x: np.ndarray) -> tuple[float, float]:
+    """Mean and half-width of its two-sided 95% Student-t confidence interval (NaNs dropped).
+
+    ``n < 2`` gives a NaN half-width (no interval from one run).
+    """
+    from scipy.stats import t as student_t
+
+    a = np.asarray(x, float)
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return math.nan, math.nan
+    if a.size < 2:
+        return float(a.mean()), math.nan
+    return float(a.mean()), float(student_t.ppf(0.975, a.size - 1) * a.std(ddof=1) / math.sqrt(a.size))
 
 
 def _group_stats(keys: list[tuple], values: np.ndarray) -> dict[tuple, tuple[float, float, float, int]]:
@@ -597,8 +746,10 @@ def aggregate(out_dir: str | Path) -> Summary:
     rows: dict[str, list] = {k: [] for k in ("variant", "map", "type", "quantity", "step", "mean", "std",
                                              "rms", "n")}
     headline: list[dict[str, Any]] = []
-    for variant in [v for v in VARIANTS if any(j.variant == v for j in jobs)]:
-        res = [jobs[j] for j in sorted(jobs) if j.variant == variant]
+    labels = _labels_in_order(jobs, spec_arms(spec))
+    per_run: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
+    for variant in labels:
+        res = [jobs[j] for j in sorted(jobs) if j.label == variant]
         names = list(res[0].meta.get("vehicle_names") or spec.get("vehicle_names") or [])
         # ---- map metrics, grouped by (map, type, step)
         mkeys: list[tuple] = []
@@ -608,7 +759,8 @@ def aggregate(out_dir: str | Path) -> Summary:
             mkeys += list(zip(np.asarray(m["map"]).astype(str).tolist(), np.asarray(m["type"]).astype(str).tolist(),
                               np.asarray(m["step"]).astype(int).tolist()))
             for q in METRIC_QUANTITIES:
-                mvals[q].append(np.asarray(m[q], dtype=float))
+                mvals[q].append(np.asarray(m[q], dtype=float) if q in m  # results saved before a column existed
+                                else np.full(len(m["step"]), math.nan))
         for q in METRIC_QUANTITIES:
             for (mp, ty, st), (mu, sd, rm, n) in sorted(_group_stats(mkeys, np.concatenate(mvals[q])).items()):
                 for k, v in zip(rows, (variant, mp, ty, q, st, mu, sd, rm, n)):
@@ -632,17 +784,93 @@ def aggregate(out_dir: str | Path) -> Summary:
                 for (mp, st), (mu, sd, rm, n) in sorted(_group_stats(keys, vals).items()):
                     for k, v in zip(rows, (variant, mp, "state", q, st, mu, sd, rm, n)):
                         rows[k].append(v)
+        per_run[variant] = {int(r.meta.get("seed", i)): _run_scores(r, names, fusion_start)
+                            for i, r in enumerate(res)}
         headline += _headline_rows(variant, res, names, fusion_start)
+    _add_intervals(headline, per_run)
     table = {k: np.asarray(v, dtype=object if k in ("variant", "map", "type", "quantity") else None)
              for k, v in rows.items()}
     table["step"] = table["step"].astype(np.int32)
     table["n"] = table["n"].astype(np.int32)
     config = {**{k: v for k, v in spec.items() if k != "scenario"}, "fusion_start": fusion_start,
               "dt": spec.get("scenario", {}).get("dt"),
-              "seeds_found": {v: sorted(j.seed for j in jobs if j.variant == v) for v in spec.get("variants", [])}}
+              "seeds_found": {v: sorted(j.seed for j in jobs if j.label == v) for v in labels}}
     summary = Summary(table, headline, config)
     _write_summary(out, summary)
     return summary
+
+
+def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> list[str]:
+    """Job labels: variants in :data:`VARIANTS` order, each followed by its grid arms in ``arms`` order."""
+    order = {v: i for i, v in enumerate(VARIANTS)}
+    arm_pos = {tuple(a): i for i, a in enumerate(arms)}
+    ranked = sorted(jobs, key=lambda j: (order.get(j.variant, 99), arm_pos.get(j.arm, len(arm_pos)), j.arm))
+    return list(dict.fromkeys(j.label for j in ranked))
+
+
+def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[str, float]]:
+    """One run's scalar scores per map: mean GOSPA and PHD mass per type, position RMSE (steps >= fusion_start)."""
+    m = r.metrics
+    mp_col = np.asarray(m["map"]).astype(str)
+    ty_col = np.asarray(m["type"]).astype(str)
+    late = np.asarray(m["step"]) >= fusion_start
+    vt = r.vehicles
+    vlate = np.asarray(vt["step"]) >= fusion_start
+    out: dict[str, dict[str, float]] = {}
+    for mp in list(names) + ["fused"]:
+        row: dict[str, float] = {}
+        for ty in TYPES:
+            sel = (mp_col == mp) & (ty_col == ty) & late
+            g = np.asarray(m["gospa"], float)[sel]
+            row[f"gospa_{ty}"] = float(g.mean()) if g.size else math.nan
+            c = np.asarray(m["card"], float)[sel] if "card" in m else np.zeros(0)
+            row[f"card_{ty}"] = float(c.mean()) if c.size else math.nan
+        sel = vlate if mp == "fused" else vlate & (np.asarray(vt["vehicle"]).astype(int) == names.index(mp))
+        e = np.asarray(vt["pos_err"], float)[sel]
+        e = e[np.isfinite(e)]
+        row["pos_rmse"] = float(np.sqrt(np.mean(e * e))) if e.size else math.nan
+        out[mp] = row
+    return out
+
+
+SCORED: tuple[str, ...] = ("gospa_VA", "gospa_SP", "gospa_VS", "pos_rmse")
+"""Headline scores that get a 95% CI over runs and a paired difference to ``baseline``."""
+
+
+def _reference(label: str, labels: Sequence[str]) -> str | None:
+    """The arm a label is compared with: ``baseline`` with the same grid settings, else plain ``baseline``."""
+    variant, arm = parse_label(label)
+    if variant == "baseline":
+        return None
+    for cand in (arm_label("baseline", arm), "baseline"):
+        if cand in labels:
+            return cand
+    return None
+
+
+def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, dict[str, dict[str, float]]]]) -> None:
+    """Add ``<score>_ci`` (95% CI half-width over runs), ``<score>_diff`` / ``_diff_ci`` / ``_sig`` (paired
+    difference to the reference arm over the seeds both ran; ``_sig`` says whether the CI excludes 0)
+    and ``card_<type>`` (mean PHD mass) to every headline row."""
+    labels = list(per_run)
+    for row in headline:
+        label, mp = row["variant"], row["map"]
+        runs = per_run[label]
+        ref = _reference(label, labels)
+        row["reference"] = ref
+        for ty in TYPES:
+            row[f"card_{ty}"] = ci95(np.array([runs[s][mp][f"card_{ty}"] for s in runs]))[0]
+        for q in SCORED:
+            row[q + "_ci"] = ci95(np.array([runs[s][mp][q] for s in runs]))[1]
+            row[q + "_diff"] = row[q + "_diff_ci"] = math.nan
+            row[q + "_sig"] = None
+            if ref is None:
+                continue
+            common = sorted(set(runs) & set(per_run[ref]))
+            d = np.array([runs[s][mp][q] - per_run[ref][s][mp][q] for s in common])
+            mean, half = ci95(d)
+            row[q + "_diff"], row[q + "_diff_ci"] = mean, half
+            row[q + "_sig"] = bool(math.isfinite(half) and abs(mean) > half) if math.isfinite(mean) else None
 
 
 def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start: int) -> list[dict[str, Any]]:

@@ -61,7 +61,7 @@ def register(app: typer.Typer) -> None:
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         variants: str = typer.Option("baseline,cm1,proposed", "--variants",
                                      help="Comma-separated filter variants (baseline, cm1, proposed)."),
-        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)."),
+        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)."),
         particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
         out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary)."),
@@ -75,19 +75,27 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source."),
         report: bool = typer.Option(False, "--report", help="Also write figures and the HTML report."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
+        seed0: int = typer.Option(0, "--seed0", help="First seed: runs use seeds seed0 .. seed0+mc-1."),
+        sets: list[str] = typer.Option([], "--set", help="section.key=value parameter override for every "
+                                       "run (repeatable), e.g. --set fusion.vs_reduction=gate; see docs/scenario.md."),
+        grid: list[str] = typer.Option([], "--grid", help="section.key=v1,v2: run every variant once per value "
+                                       "(repeatable: all combinations), e.g. --grid filter.vs_dither_scope=newborn,all."),
     ) -> None:
-        """Run the (variant x seed) grid; finished jobs are kept and skipped on re-runs."""
-        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_variants, prepare_cache,
-                                             run_ablation)
+        """Run the (variant x grid arm x seed) jobs; finished jobs are kept and skipped on re-runs."""
+        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_grid, parse_sets,
+                                             parse_variants, prepare_cache, run_ablation)
 
         vs = parse_variants(variants)
         _check_source(source)
-        check_run_args(mc, particles, steps, executor, scheduler, workers)
+        check_run_args(mc, particles, steps, executor, scheduler, workers, seed0)
+        sets_c, _ = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
         cache = prepare_cache(scenario, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
                               samples=samples)
-        cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor)
+        cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
+                              sets=sets_c, grid=grid)
         run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
-                           scheduler=scheduler, workers=workers, progress=not quiet, command=cmd)
+                           scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
+                           seed0=seed0, sets=sets_c, grid=grid)
         extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
                  f"{run.wall_time_s:.1f} s",
                  f"summary: {Path(out) / 'summary.parquet'}"]

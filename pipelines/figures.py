@@ -88,12 +88,17 @@ def fig_gospa(summary: Summary, type: str = "VS", map: str = "fused", band: bool
     """
     fig, ax = _figure()
     _plot_variants(ax, summary, map, type, "gospa", "mean", band)
+    return _finish_map_figure(fig, ax, summary, "Mean GOSPA", type, map, "mean GOSPA [m]")
+
+
+def _finish_map_figure(fig: Any, ax: Any, summary: Summary, what: str, type: str, map: str, ylabel: str) -> Any:
+    """Fusion-start line, legend, title ``what, type, map``, axis labels, y from 0."""
     _mark_fusion(ax, summary.config.get("fusion_start"))
     _relabel_legend(ax)
     where = "fused BS map" if map == "fused" else f"local map of {map}"
-    ax.set_title(f"Mean GOSPA, {TYPE_NAMES.get(type, type)}, {where}")
+    ax.set_title(f"{what}, {TYPE_NAMES.get(type, type)}, {where}")
     ax.set_xlabel(_step_label(summary))
-    ax.set_ylabel("mean GOSPA [m]")
+    ax.set_ylabel(ylabel)
     ax.set_ylim(bottom=0)
     return fig
 
@@ -110,6 +115,24 @@ def fig_position_rmse(summary: Summary, map: str = ALL_VEHICLES) -> Any:
     ax.set_ylabel("position RMSE [m]")
     ax.set_ylim(bottom=0)
     return fig
+
+
+def fig_cardinality(summary: Summary, type: str = "VS", map: str = "fused") -> Any:
+    """Estimated number of landmarks (PHD mass of the map) vs time step, mean over runs per variant.
+
+    The true count (mean of ``n_true`` over runs, the same for every variant) is drawn dotted.
+    A variant whose VS mass drops below the number of vehicles has merged vehicles into one
+    Gaussian (or lost one).
+    """
+    fig, ax = _figure()
+    _plot_variants(ax, summary, map, type, "card", "mean", band=False)
+    for v in summary.variants:
+        s = summary.series(v, map, type, "n_true")
+        if s["step"].size:
+            ax.plot(s["step"], s["mean"], color=OKABE_ITO["black"], linestyle=":", linewidth=1.2,
+                    label="truth", gid="truth")
+            break
+    return _finish_map_figure(fig, ax, summary, "Estimated cardinality", type, map, "PHD mass (expected count)")
 
 
 def _runs_text(summary: Summary) -> str:

@@ -8,7 +8,9 @@ versions and the command that reproduces the ablation.
 
 The summary table is machine-readable: ``<table id="summary">`` rows carry ``data-variant`` and
 ``data-map``, cells ``data-col`` (``gospa_VA``, ``gospa_SP``, ``gospa_VS``, ``pos_rmse``,
-``wall_time_s``, ``runs``) and ``data-value`` (the full-precision number).
+``card_VS``, ``wall_time_s``, ``runs``) and ``data-value`` (the full-precision mean); scored
+cells show ``mean ± 95% CI half-width``. ``<table id="paired">`` gives the paired differences to
+baseline (same seeds) with their 95% CI and whether each is significant.
 """
 from __future__ import annotations
 
@@ -23,14 +25,15 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from mmslam.pipelines.ablate import (Job, Summary, aggregate, is_finished, job_dir, plan_jobs,
-                                     read_ablation)
+from mmslam.pipelines.ablate import (SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
+                                     plan_jobs, read_ablation, spec_arms)
 
 REPORT_FILE = "report.html"
 FIGURES_DIR = "figures"
 HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("gospa_VA", "GOSPA VA [m]"), ("gospa_SP", "GOSPA SP [m]"), ("gospa_VS", "GOSPA VS [m]"),
-    ("pos_rmse", "position RMSE [m]"), ("wall_time_s", "wall time / run [s]"), ("runs", "runs"),
+    ("pos_rmse", "position RMSE [m]"), ("card_VS", "VS cardinality"), ("wall_time_s", "wall time / run [s]"),
+    ("runs", "runs"),
 )
 """(key, header) of the summary table's number columns, in order."""
 
@@ -64,16 +67,19 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
     plots = (("fig2a_gospa_vs", lambda: F.fig_gospa(summary, "VS")),
              ("fig2b_gospa_va", lambda: F.fig_gospa(summary, "VA")),
              ("fig3_position_rmse", lambda: F.fig_position_rmse(summary)),
-             ("gospa_sp", lambda: F.fig_gospa(summary, "SP")))
+             ("gospa_sp", lambda: F.fig_gospa(summary, "SP")),
+             ("cardinality_vs", lambda: F.fig_cardinality(summary, "VS")),
+             ("cardinality_va", lambda: F.fig_cardinality(summary, "VA")))
     for name, make in plots:
         made[name] = F.save_figure(make(), fdir / f"{name}.png")
     scn = scenario_from_resolved(spec["scenario"])
-    for v in summary.variants:
-        seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s))))
+    for label in summary.variants:
+        v, arm = parse_label(label)
+        seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s), arm)))
         if not seeds:
             continue
-        res = Result.load(job_dir(out, Job(v, seeds[0])))
-        made[f"map_{v}"] = F.save_figure(F.fig_map(res, scn), fdir / f"map_{v}.png")
+        res = Result.load(job_dir(out, Job(v, seeds[0], arm)))
+        made[f"map_{label}"] = F.save_figure(F.fig_map(res, scn), fdir / f"map_{label}.png")
     return made
 
 
@@ -82,6 +88,10 @@ FIGURE_CAPTIONS = {
     "fig2b_gospa_va": "Fig. 2b: mean GOSPA of the VA map (fused at the BS) vs time step; shaded: ±1 std over runs.",
     "fig3_position_rmse": "Fig. 3: vehicle position RMSE over Monte Carlo runs and vehicles vs time step.",
     "gospa_sp": "Mean GOSPA of the SP map (fused at the BS) vs time step.",
+    "cardinality_vs": "Estimated number of VSs (PHD mass of the fused VS map) vs time step, mean over runs; "
+                      "dotted: the true number of vehicles. A merge of two vehicles shows as a drop.",
+    "cardinality_va": "Estimated number of VAs (PHD mass of the fused VA map) vs time step, mean over runs; "
+                      "dotted: the true number of VAs seen so far.",
 }
 
 
@@ -97,6 +107,49 @@ def _fmt(x: Any, col: str) -> str:
     return f"{f:.2f}" if col == "wall_time_s" else f"{f:.3f}"
 
 
+def _cell(r: dict[str, Any], k: str) -> str:
+    """``mean ± CI`` for scored columns (CI = 95% half-width over runs), the plain number otherwise."""
+    text = _fmt(r.get(k), k)
+    ci = r.get(k + "_ci")
+    if k in SCORED and ci is not None and isinstance(ci, float) and math.isfinite(ci):
+        text += f" ± {ci:.3f}"
+    return text
+
+
+def paired_rows(summary: Summary) -> list[dict[str, Any]]:
+    """One row per (variant, map, score) that has a reference: difference, CI, significance, sentence."""
+    out = []
+    for r in summary.headline:
+        if not r.get("reference"):
+            continue
+        for q in SCORED:
+            d, ci, sig = r.get(q + "_diff"), r.get(q + "_diff_ci"), r.get(q + "_sig")
+            if d is None or not isinstance(d, float) or not math.isfinite(d):
+                continue
+            if sig:
+                verdict = f"{'lower' if d < 0 else 'higher'} than {r['reference']} (significant at 95%)"
+            elif ci is not None and math.isfinite(ci):
+                verdict = f"no significant difference to {r['reference']}"
+            else:
+                verdict = "too few runs for an interval"
+            out.append({"variant": r["variant"], "map": r["map"], "score": q, "diff": d, "ci": ci,
+                        "significant": bool(sig), "verdict": verdict})
+    return out
+
+
+def _paired_html(summary: Summary) -> str:
+    rows = []
+    for p in paired_rows(summary):
+        ci = "n/a" if not math.isfinite(p["ci"]) else f"± {p['ci']:.3f}"
+        rows.append(f'<tr data-variant="{html.escape(p["variant"])}" data-map="{html.escape(p["map"])}" '
+                    f'data-score="{p["score"]}" data-significant="{str(p["significant"]).lower()}">'
+                    f'<td>{html.escape(p["variant"])}</td><td>{html.escape(p["map"])}</td><td>{p["score"]}</td>'
+                    f'<td>{p["diff"]:+.3f}</td><td>{ci}</td>'
+                    f'<td style="text-align:left">{html.escape(p["verdict"])}</td></tr>')
+    return ('<table id="paired"><thead><tr><th>variant</th><th>map</th><th>score</th><th>paired difference</th>'
+            f'<th>95% CI</th><th>verdict</th></tr></thead><tbody>{"".join(rows)}</tbody></table>')
+
+
 def summary_rows(summary: Summary) -> list[dict[str, Any]]:
     """The headline rows (variant, map, :data:`HEADLINE_COLUMNS`), in table order."""
     return list(summary.headline)
@@ -107,7 +160,7 @@ def _summary_html(summary: Summary) -> str:
     rows = []
     for r in summary_rows(summary):
         cells = "".join(
-            f'<td data-col="{k}" data-value="{html.escape(repr(r.get(k)))}">{_fmt(r.get(k), k)}</td>'
+            f'<td data-col="{k}" data-value="{html.escape(repr(r.get(k)))}">{_cell(r, k)}</td>'
             for k, _ in HEADLINE_COLUMNS)
         rows.append(f'<tr data-variant="{html.escape(r["variant"])}" data-map="{html.escape(r["map"])}">'
                     f'<td>{html.escape(r["variant"])}</td><td>{html.escape(r["map"])}</td>{cells}</tr>')
@@ -150,7 +203,7 @@ def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path])
     out = Path(out_dir)
     spec = read_ablation(out)
     cfg = summary.config
-    grid = plan_jobs(spec.get("variants", []), int(spec.get("mc", 0)))
+    grid = plan_jobs(spec.get("variants", []), int(spec.get("mc", 0)), int(spec.get("seed0", 0)), spec_arms(spec))
     missing = [j.name for j in grid if not is_finished(out, j)]
     figs = []
     for name, path in figures.items():
@@ -162,7 +215,9 @@ def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path])
                     f"<figcaption>{html.escape(cap)}</figcaption></figure>")
     abl = [("scenario", str(spec.get("scenario_name"))), ("source", str(spec.get("source"))),
            ("trace config hash", str(spec.get("config_hash"))), ("variants", ",".join(spec.get("variants", []))),
-           ("Monte Carlo runs (seeds)", f"{spec.get('mc')} (0..{int(spec.get('mc', 1)) - 1})"),
+           ("Monte Carlo runs (seeds)", f"{spec.get('mc')} ({int(spec.get('seed0', 0))}.."
+                                        f"{int(spec.get('seed0', 0)) + int(spec.get('mc', 1)) - 1})"),
+           ("--set", " ".join(spec.get("sets", [])) or "none"), ("--grid", " ".join(spec.get("grid", [])) or "none"),
            ("particles", str(spec.get("particles"))), ("time steps", str(spec.get("steps"))),
            ("fusion start (GOSPA / RMSE averaged over steps >=)", str(cfg.get("fusion_start")))]
     warn = (f'<p class="warn">Incomplete: {len(missing)} of {len(grid)} jobs missing '
@@ -181,8 +236,14 @@ def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path])
 <p>Mean GOSPA (p = 2, c = {html.escape(str(_eval(spec, 'gospa_c')))} m, alpha = 2) per landmark type and map,
 and position RMSE, both over all runs and the time steps k &ge; {cfg.get('fusion_start')} (map fusion start).
 Vehicle rows: that vehicle's local map and position error; <i>fused</i>: the BS map and all vehicles' positions.
-Wall time: mean per filter run (one variant, one seed, all vehicles).</p>
+Wall time: mean per filter run (one variant, one seed, all vehicles). ± : half-width of the 95% Student-t
+confidence interval of the mean over runs (per-run mean GOSPA, per-run RMSE). VS cardinality: mean PHD mass of
+the map (estimated number of vehicles).</p>
 {_summary_html(summary)}
+<h3>Paired differences to baseline</h3>
+<p>Per run (same seed: same measurements and prior), score of the variant minus score of baseline; mean and 95% CI
+over runs. A difference whose interval contains 0 is reported as not significant.</p>
+{_paired_html(summary)}
 <h2>Figures</h2>
 {''.join(figs)}
 <h2>Reproduce</h2>
@@ -220,7 +281,7 @@ def write_report(out_dir: str | Path) -> Path:
 
 
 _CONSOLE_HEADERS = {"gospa_VA": "VA", "gospa_SP": "SP", "gospa_VS": "VS", "pos_rmse": "pos RMSE",
-                    "wall_time_s": "s/run", "runs": "runs"}
+                    "card_VS": "VS card", "wall_time_s": "s/run", "runs": "runs"}
 
 
 def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
@@ -235,9 +296,9 @@ def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
     for k, _ in HEADLINE_COLUMNS:
         t.add_column(_CONSOLE_HEADERS[k], justify="right", no_wrap=True)
     for r in summary_rows(summary):
-        t.add_row(r["variant"], r["map"], *[_fmt(r.get(k), k) for k, _ in HEADLINE_COLUMNS])
+        t.add_row(r["variant"], r["map"], *[_cell(r, k) for k, _ in HEADLINE_COLUMNS])
     return t
 
 
 __all__ = ["write_report", "make_figures", "render_html", "software_versions", "summary_console_table",
-           "summary_rows", "HEADLINE_COLUMNS"]
+           "summary_rows", "paired_rows", "HEADLINE_COLUMNS"]

@@ -199,6 +199,69 @@ def test_aggregate_means_rms_and_headline_on_known_numbers(tmp_path: Path) -> No
     assert on_disk["headline"][2]["gospa_VS"] == pytest.approx(5.0)
 
 
+def test_ci95_matches_student_t_by_hand() -> None:
+    mean, half = A.ci95(np.array([1.0, 2.0, 3.0]))
+    assert mean == 2.0
+    assert half == pytest.approx(4.302652729911275 / math.sqrt(3))  # t_{0.975, 2} * s / sqrt(n), s = 1
+    assert math.isnan(A.ci95(np.array([5.0]))[1]) and A.ci95(np.array([5.0]))[0] == 5.0
+
+
+def test_headline_intervals_and_paired_differences_on_known_numbers(tmp_path: Path) -> None:
+    """Seeds 3..5 (--seed0 3): per-run fused-VS GOSPA baseline 20, 22, 24; proposed 3, 4, 8.
+    Paired differences -17, -18, -16: mean -17, s = 1 -> significant; their means' CIs by hand."""
+    out = tmp_path / "abl"
+    cache = A.prepare_cache("paper", "analytic", out, steps=6, progress=False)
+    fs = 5
+    for v, vals in (("baseline", (20.0, 22.0, 24.0)), ("proposed", (3.0, 4.0, 8.0))):
+        for s, val in zip((3, 4, 5), vals):
+            g = np.r_[np.full(fs, 99.0), np.full(6 - fs, val)]  # steps before fusion start are ignored
+            _hand_result(v, s, g, np.full((6, 2), 1.0)).save(A.job_dir(out, A.Job(v, s)))
+    run = A.run_ablation(cache, out, ["baseline", "proposed"], mc=3, particles=7, progress=False, seed0=3)
+    assert run.ran == [] and len(run.skipped) == 6
+    t2 = 4.302652729911275
+    rows = {(r["variant"], r["map"]): r for r in run.summary.headline}
+    b, p = rows[("baseline", "fused")], rows[("proposed", "fused")]
+    assert b["gospa_VS"] == pytest.approx(22.0) and b["gospa_VS_ci"] == pytest.approx(t2 * 2 / math.sqrt(3))
+    assert p["gospa_VS"] == pytest.approx(5.0)
+    assert p["gospa_VS_ci"] == pytest.approx(t2 * math.sqrt(7) / math.sqrt(3))  # s^2 = (4 + 1 + 9) / 2
+    assert p["reference"] == "baseline" and b["reference"] is None
+    assert p["gospa_VS_diff"] == pytest.approx(-17.0)
+    assert p["gospa_VS_diff_ci"] == pytest.approx(t2 / math.sqrt(3)) and p["gospa_VS_sig"] is True
+    assert p["gospa_VA_diff"] == pytest.approx(0.0) and p["gospa_VA_sig"] is False  # identical runs
+    from mmslam.pipelines.report import paired_rows
+
+    verdicts = {(r["variant"], r["map"], r["score"]): r["verdict"] for r in paired_rows(run.summary)}
+    assert verdicts[("proposed", "fused", "gospa_VS")] == "lower than baseline (significant at 95%)"
+    assert verdicts[("proposed", "fused", "pos_rmse")] == "no significant difference to baseline"
+
+
+def test_set_grid_and_seed0_plan_labelled_jobs_and_validate_before_writing(tmp_path: Path) -> None:
+    assert A.parse_sets(["fusion.vs_reduction = gate", "filter.merge=4"]) == ("fusion.vs_reduction=gate",
+                                                                              "filter.merge=4")
+    arms = A.parse_grid(["filter.vs_dither_scope=newborn,all", "fusion.beta_inside_fov=0.25,1"])
+    assert arms == [("filter.vs_dither_scope=newborn", "fusion.beta_inside_fov=0.25"),
+                    ("filter.vs_dither_scope=newborn", "fusion.beta_inside_fov=1"),
+                    ("filter.vs_dither_scope=all", "fusion.beta_inside_fov=0.25"),
+                    ("filter.vs_dither_scope=all", "fusion.beta_inside_fov=1")]
+    jobs = A.plan_jobs(["proposed"], 2, seed0=7, arms=arms[:2])
+    assert [j.name for j in jobs] == [
+        "proposed[filter.vs_dither_scope=newborn,fusion.beta_inside_fov=0.25]-seed7",
+        "proposed[filter.vs_dither_scope=newborn,fusion.beta_inside_fov=0.25]-seed8",
+        "proposed[filter.vs_dither_scope=newborn,fusion.beta_inside_fov=1]-seed7",
+        "proposed[filter.vs_dither_scope=newborn,fusion.beta_inside_fov=1]-seed8"]
+    assert A.parse_label(jobs[0].label) == ("proposed", arms[0])
+    with pytest.raises(A.ConfigError, match="given twice"):
+        A.parse_sets(["filter.merge=4", "filter.merge=5"])
+    out = tmp_path / "abl"
+    cache = A.prepare_cache("paper", "analytic", out, steps=6, progress=False)
+    for bad, needle in ((["filter.vs_dither_scope=sometimes"], "vs_dither_scope"),
+                        (["sensor.fov_range=30"], "changes the traced scenario"),
+                        (["filter.nope=1"], "unknown parameter")):
+        with pytest.raises(A.ConfigError, match=needle):
+            A.run_ablation(cache, out, ["proposed"], mc=1, particles=5, progress=False, sets=bad)
+        assert not (out / A.ABLATION_FILE).exists() and not (out / A.JOBS_DIR).exists()  # nothing written
+
+
 def test_resume_rejects_other_particles_and_keeps_jobs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "abl"
     cache = A.prepare_cache("paper", "analytic", out, steps=6, progress=False)
@@ -260,7 +323,7 @@ def test_e2e_results_figures_and_report_exist(e2e: dict) -> None:
         png = d / "figures" / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (d / "report.html").read_text()
-    assert text.count("data:image/png;base64,") == 7
+    assert text.count("data:image/png;base64,") == 9  # 4 curves, 2 cardinality, 3 maps
     assert "numpy" in text and "sionna-rt" in text and "scipy" in text
     cmd = text.split('<pre id="command">')[1].split("</pre>")[0]
     assert cmd.startswith("mmslam ablate paper --variants baseline,cm1,proposed --mc 2 --particles 50 "
@@ -292,6 +355,27 @@ def test_e2e_gospa_figures_plot_the_stored_means(e2e: dict) -> None:
                 order = np.argsort(np.asarray(m["step"])[sel])
                 per_seed.append(np.asarray(m["gospa"], float)[sel][order])
             np.testing.assert_allclose(ln.get_ydata(), np.mean(per_seed, axis=0), rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_e2e_cardinality_figure_plots_the_phd_mass_and_the_truth(e2e: dict) -> None:
+    """Fused VS cardinality: each variant's line is the mean over seeds of the sum of the fused map's
+    weights (recomputed from the stored landmark-free metrics' card column); the dotted truth is 2."""
+    d, jobs = e2e["dir"], e2e["jobs"]
+    s = A.load_summary(d)
+    ax = F.fig_cardinality(s, "VS").axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines() if ln.get_label() in A.VARIANTS}
+    assert sorted(lines) == sorted(A.VARIANTS)
+    truth = [ln for ln in ax.get_lines() if ln.get_gid() == "truth"]
+    assert len(truth) == 1 and np.all(truth[0].get_ydata() == 2)
+    np.testing.assert_array_equal(lines["baseline"].get_ydata(), 0.0)  # baseline has no VS map
+    for v, ln in lines.items():
+        per_seed = []
+        for seed in range(MC):
+            m = jobs[A.Job(v, seed)].metrics
+            sel = (np.asarray(m["map"]).astype(str) == "fused") & (np.asarray(m["type"]).astype(str) == "VS")
+            per_seed.append(np.asarray(m["card"], float)[sel][np.argsort(np.asarray(m["step"])[sel])])
+        np.testing.assert_allclose(ln.get_ydata(), np.mean(per_seed, axis=0), rtol=1e-12)
 
 
 @pytest.mark.slow
@@ -357,7 +441,7 @@ def test_e2e_report_command_regenerates_from_stored_results(e2e: dict, tmp_path:
     (d / "summary.parquet").unlink()
     code, out, _ = _run_cli(["report", str(d)], capsys)
     assert code == 0 and "report.html" in out
-    assert (d / "report.html").is_file() and len(list((d / "figures").glob("*.png"))) == 7
+    assert (d / "report.html").is_file() and len(list((d / "figures").glob("*.png"))) == 9
     _summary_tables_equal(A.load_summary(d), A.load_summary(e2e["dir"]))
 
 
@@ -438,3 +522,32 @@ def test_e2e_demo_on_analytic_source(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert sorted(s.variants) == sorted(A.VARIANTS)
     for v in A.VARIANTS:
         assert s.series(v, "fused", "VS", "gospa")["step"].tolist() == list(range(40))
+
+
+@pytest.mark.slow
+def test_e2e_grid_and_set_through_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--grid makes one arm per value, --set applies to all, --seed0 picks the seeds; the report covers it."""
+    out = tmp_path / "grid"
+    code, stdout, err = _run_cli(["ablate", "paper", "--variants", "baseline,proposed", "--source", "analytic",
+                                  "--steps", "8", "--particles", "20", "--mc", "2", "--seed0", "5", "--quiet",
+                                  "--grid", "fusion.vs_reduction=matched,gate", "--set", "filter.extraction=vo_ma",
+                                  "--out", str(out), "--report"], capsys)
+    assert code == 0, err
+    names = sorted(p.name for p in (out / A.JOBS_DIR).iterdir())
+    assert names == sorted(f"{v}[fusion.vs_reduction={r}]-seed{s}" for v in ("baseline", "proposed")
+                           for r in ("matched", "gate") for s in (5, 6))
+    meta = json.loads((out / A.JOBS_DIR / "proposed[fusion.vs_reduction=gate]-seed6" / "meta.json").read_text())
+    assert meta["seed"] == 6
+    assert meta["overrides"] == ["filter.extraction=vo_ma", "fusion.vs_reduction=gate"]
+    s = A.load_summary(out)
+    assert s.variants == ["baseline[fusion.vs_reduction=matched]", "baseline[fusion.vs_reduction=gate]",
+                          "proposed[fusion.vs_reduction=matched]", "proposed[fusion.vs_reduction=gate]"]
+    rows = {(r["variant"], r["map"]): r for r in s.headline}
+    assert rows[("proposed[fusion.vs_reduction=gate]", "fused")]["reference"] == "baseline[fusion.vs_reduction=gate]"
+    report = (out / "report.html").read_text()
+    assert 'id="paired"' in report and "fusion.vs_reduction=gate" in report
+    # resuming with another --set is refused in one line and runs nothing
+    code, _, err = _run_cli(["ablate", "paper", "--variants", "baseline,proposed", "--source", "analytic",
+                             "--steps", "8", "--particles", "20", "--mc", "2", "--seed0", "5", "--quiet",
+                             "--grid", "fusion.vs_reduction=matched,gate", "--out", str(out)], capsys)
+    _assert_one_line_error(code, err, "--set")
