@@ -26,6 +26,8 @@ def _print_summary(summary, title: str, extra: list[str]) -> None:
     from mmslam.pipelines.report import summary_console_table
 
     con = Console()
+    if not con.is_terminal:  # piped or logged: rich would wrap the table at 80 columns
+        con = Console(width=160)
     con.print(summary_console_table(summary, title))
     for line in extra:
         con.print(line, highlight=False, soft_wrap=True, markup=False)

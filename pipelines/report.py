@@ -112,7 +112,7 @@ def _cell(r: dict[str, Any], k: str) -> str:
     text = _fmt(r.get(k), k)
     ci = r.get(k + "_ci")
     if k in SCORED and ci is not None and isinstance(ci, float) and math.isfinite(ci):
-        text += f" ± {ci:.3f}"
+        text += f" ± {ci:.2f}"
     return text
 
 
@@ -296,7 +296,7 @@ def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
     for k, _ in HEADLINE_COLUMNS:
         t.add_column(_CONSOLE_HEADERS[k], justify="right", no_wrap=True)
     for r in summary_rows(summary):
-        t.add_row(r["variant"], r["map"], *[_cell(r, k) for k, _ in HEADLINE_COLUMNS])
+        t.add_row(escape(r["variant"]), escape(r["map"]), *[_cell(r, k) for k, _ in HEADLINE_COLUMNS])
     return t
 
 

@@ -533,6 +533,7 @@ def test_e2e_grid_and_set_through_the_cli(tmp_path: Path, capsys: pytest.Capture
                                   "--grid", "fusion.vs_reduction=matched,gate", "--set", "filter.extraction=vo_ma",
                                   "--out", str(out), "--report"], capsys)
     assert code == 0, err
+    assert "proposed[fusion.vs_reduction=gate]" in stdout  # printed as text, not read as rich markup
     names = sorted(p.name for p in (out / A.JOBS_DIR).iterdir())
     assert names == sorted(f"{v}[fusion.vs_reduction={r}]-seed{s}" for v in ("baseline", "proposed")
                            for r in ("matched", "gate") for s in (5, 6))
