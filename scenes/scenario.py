@@ -153,6 +153,16 @@ class FilterParams:
     vs_dither: tuple[float, ...] = param(
         (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18), "dithering T_d added to VS covariances at prediction "
         "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
+    p_detect_bs: float = param(0.95, "the filter's detection probability of the BS (LOS path): lower it "
+                               "where buildings often block the LOS", "", probability=True)
+    p_detect_va: float = param(0.95, "the filter's detection probability of a VA: lower it in cities, where a "
+                               "wall is visible for a few steps at a time, so that a VA outlives missed "
+                               "detections (and, below fusion.gamma_detect, is never judged a false alarm "
+                               "by the fusion's accumulated-FOV rule)", "", probability=True)
+    p_detect_sp: float = param(0.95, "the filter's detection probability of an SP inside the FOV range", "",
+                               probability=True)
+    p_detect_vs: float = param(0.95, "the filter's detection probability of a VS inside the FOV range", "",
+                               probability=True)
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
                                  "unobserved) or all (every VS Gaussian at every step, the paper read "
@@ -176,8 +186,10 @@ class FusionParams:
                                    "accumulated FOV", "", probability=True)
     average_prune: float = param(0.1, "pruning threshold of the averaged and fused map PHDs", "", lo=0.0,
                                  hi=1.0)
-    gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV", "",
-                                probability=True)
+    gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
+                                "counts as inside a vehicle's accumulated FOV if the filter's detection "
+                                "probability (filter.p_detect_<type>, 0 beyond the FOV range) reached it "
+                                "at a position since the vehicle's last upload", "", probability=True)
     vs_reduction: str = param("matched", "reduction of the fused VS map after each upload: matched (merge "
                               "only the pairs F'_AA matched, then prune and cap) or gate (prune_merge with "
                               "the gate vs_merge_gate over all pairs, the local filter's reduction)",

@@ -268,6 +268,12 @@ class LocalFilter:
 
 
 # ====================================================================== fusion center
+def filter_detect_probs(scn: Scenario) -> dict[int, float]:
+    """Type code -> the filter's detection probability inside the FOV (``filter.p_detect_<type>``)."""
+    fp = scn.filter
+    return {BS: fp.p_detect_bs, VA: fp.p_detect_va, SP: fp.p_detect_sp, VS: fp.p_detect_vs}
+
+
 def ego_gaussian(mean: np.ndarray, cov: np.ndarray, q_std: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """The ego vehicle posterior as a 7-D VS Gaussian ``[x, y, z, vx, vy, vz, xi]``.
 
@@ -323,7 +329,9 @@ class FusionCenter:
             bs_map = self.maps[t]
             ue = avg_maps.get(t, empty((), 0, _dims(t)))
             radius = np.inf if t == VA else r_fov
+            # accumulated FOV (paper's footnote): where p_D reached gamma_D since the last upload
             inside = fm.in_accumulated_fov(bs_map.m[..., 0:3], fov_positions, radius)
+            inside &= filter_detect_probs(self.scn)[t] >= fu.gamma_detect
             pairs = None
             if t == VS and self.variant == "proposed":
                 em, ec = ego_gaussian(ego_mean, ego_cov, fp.vs_process_std)
@@ -509,8 +517,12 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     R = scn.filter.r_scale * np.asarray(meas.R, float)
     sensor = scn.sensor
 
+    pd_type = filter_detect_probs(scn)
+
     def pd_fn(u: np.ndarray, x: np.ndarray, t: int) -> np.ndarray:
-        return np.asarray(fov_detect_prob(u, x, t, sensor), float)
+        """The filter's p_D: its per-type probability inside the FOV (sensor's range gate), 0 outside."""
+        inside = np.asarray(fov_detect_prob(u, x, t, sensor), float) > 0
+        return np.where(inside, pd_type[int(t)], 0.0)
 
     prior_rng = np.random.default_rng(s_prior)
     prior_std = np.asarray(scn.filter.prior_std, float)

@@ -296,3 +296,22 @@ def test_vs_dithering_scope(paper, scope):
         want = want + np.diag(scn.filter.vs_dither)
     np.testing.assert_allclose(f.maps[VS].P[0, 0], want, rtol=1e-12)
     np.testing.assert_allclose(f.maps[VS].m[0, 0], vs_ct(m0[None], scn.dt)[0])
+
+
+@pytest.mark.parametrize("p_va, kept", [(0.95, 0.5), (0.5, 1.0)])
+def test_accumulated_fov_uses_the_filters_detection_probability_and_gamma(p_va, kept):
+    """A BS-map VA the uploading vehicle did not report is a possible false alarm (beta = 1/2) only if
+    the filter expected to detect it: p_detect_va >= fusion.gamma_detect (0.9); a VA with p_D = 0.5
+    (occluded walls in a city) is never judged so and keeps beta = 1."""
+    import dataclasses
+
+    from mmslam.slam.filter import FusionCenter
+    from mmslam.slam.gm import GM, empty
+    from mmslam.slam.measurement import VA
+
+    scn = load_preset("paper")
+    scn = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, p_detect_va=p_va))
+    fc = FusionCenter(scn, "baseline")
+    fc.maps[VA] = GM(np.array([1.0]), np.array([[200.0, 0.0, 40.0]]), np.eye(3)[None], np.ones(1, bool))
+    fused = fc.fuse({VA: empty((), 0, 3)}, np.array([[70.0, 0.0, 0.0]]), np.zeros(7), np.eye(7))
+    assert fused[VA].w[fused[VA].mask].tolist() == [kept]
