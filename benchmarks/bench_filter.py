@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
 from mmslam.scenes.scenario import load_preset  # noqa: E402
 from mmslam.scenes.trajectory import vehicle_trajectories  # noqa: E402
-from mmslam.slam.filter import FusionCenter, LocalFilter, _schedule  # noqa: E402
+from mmslam.slam.filter import FusionCenter, LocalFilter, _schedule, ego_gaussian  # noqa: E402
 from mmslam.slam.sensor import fov_detect_prob, simulate_measurements  # noqa: E402
 
 
@@ -73,7 +73,8 @@ def time_steps(scn, states, paths, variant: str, particles: int, steps: int, war
                 times.append(dt)
             fov[n].append(est.mean[:3])
             if k in sched[n]:
-                f.downlink(center.fuse(est.avg_maps, np.array(fov[n]), est.mean, est.cov))
+                f.downlink(center.fuse(est.avg_maps, np.array(fov[n]), est.mean, est.cov),
+                           ego_gaussian(est.mean, est.cov, scn.filter.vs_process_std))
                 fov[n] = []
     return np.array(times)
 
