@@ -41,8 +41,12 @@ import numpy as np
 
 from mmslam.errors import CacheError, ConfigError, MmslamError
 
-VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
-"""Filter variants, in the order they are plotted (DESIGN.md section 6)."""
+FILTER_VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
+"""Filter variants (DESIGN.md section 6)."""
+REFERENCES: tuple[str, ...] = ("odometry",)
+"""Reference runs: ``odometry`` = dead reckoning with empty maps (:data:`mmslam.slam.filter.REFERENCES`)."""
+VARIANTS: tuple[str, ...] = REFERENCES + FILTER_VARIANTS
+"""Everything an ablation runs by default, in the order it is plotted."""
 
 EXECUTORS: tuple[str, ...] = ("local", "dask")
 TYPES: tuple[str, ...] = ("VA", "SP", "VS")

@@ -61,8 +61,9 @@ def register(app: typer.Typer) -> None:
     @app.command("ablate")
     def ablate_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
-        variants: str = typer.Option("baseline,cm1,proposed", "--variants",
-                                     help="Comma-separated filter variants (baseline, cm1, proposed)."),
+        variants: str = typer.Option("odometry,baseline,cm1,proposed", "--variants",
+                                     help="Comma-separated filter variants (baseline, cm1, proposed) and the "
+                                          "reference odometry (dead reckoning, empty maps)."),
         mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)."),
         particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),

@@ -35,7 +35,7 @@ def demo_command(source: str, mc: int, particles: int, out: str | Path) -> str:
 
 def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: str | Path = "out/demo",
              executor: str = "local", workers: int | None = None, progress: bool = True) -> DemoResult:
-    """Trace (or reuse) the ``paper`` preset, run the three variants ``mc`` times, write the report.
+    """Trace (or reuse) the ``paper`` preset, run odometry and the three variants ``mc`` times, write the report.
 
     Args:
         source: ``sionna`` (ray traced) or ``analytic`` (closed form).

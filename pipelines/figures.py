@@ -31,11 +31,13 @@ OKABE_ITO: dict[str, str] = {
 """Okabe & Ito (2008) colour-blind-safe palette."""
 
 VARIANT_STYLE: dict[str, dict[str, Any]] = {
+    "odometry": {"color": OKABE_ITO["black"], "linestyle": ":", "marker": "x"},
     "baseline": {"color": OKABE_ITO["vermillion"], "linestyle": "--", "marker": "s"},
     "cm1": {"color": OKABE_ITO["orange"], "linestyle": "-.", "marker": "^"},
     "proposed": {"color": OKABE_ITO["blue"], "linestyle": "-", "marker": "o"},
 }
 VARIANT_LABEL: dict[str, str] = {
+    "odometry": "odometry (dead reckoning, empty map)",
     "baseline": "baseline (TWC2020)",
     "cm1": "countermeasure 1",
     "proposed": "proposed (both countermeasures)",

@@ -36,7 +36,8 @@ def register(app: typer.Typer) -> None:
     @app.command("slam")
     def slam_cmd(
         cache: Path = typer.Argument(..., help="Path cache directory (from `mmslam trace`)."),
-        variant: str = typer.Option("baseline", help="Filter variant: baseline | cm1 | proposed."),
+        variant: str = typer.Option("baseline", help="Filter variant: baseline | cm1 | proposed, or the "
+                                    "reference odometry (dead reckoning, no map)."),
         particles: int = typer.Option(300, help="Particles per vehicle."),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)."),
         out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
@@ -49,10 +50,10 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        from mmslam.slam.filter import VARIANTS, run_slam
+        from mmslam.slam.filter import REFERENCES, VARIANTS, run_slam
 
-        if variant not in VARIANTS:
-            raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(VARIANTS)}")
+        if variant not in VARIANTS + REFERENCES:
+            raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(VARIANTS + REFERENCES)}")
         if particles < 1:
             raise MmslamError(f"--particles {particles}: expected at least 1")
         if steps is not None and steps < 1:

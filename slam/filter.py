@@ -65,6 +65,9 @@ from .reduction import average_map, merge_pairs, prune_merge
 from .result import Result
 
 VARIANTS = ("baseline", "cm1", "proposed")
+REFERENCES = ("odometry",)
+"""Reference runs beside the variants: ``odometry`` is dead reckoning from the prior with the known
+speed and turn rate, no measurement update and empty maps (its map GOSPA is that of an empty map)."""
 EVAL_TYPES = (VA, SP, VS)
 
 
@@ -474,7 +477,8 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
         scn: scenario (sensor, filter, fusion, evaluation parameters).
         states: ``(steps, n_veh, 7)`` true vehicle states (cache ``states``).
         paths: ``paths`` table columns for (at least) these steps.
-        variant: ``baseline`` | ``cm1`` | ``proposed``.
+        variant: ``baseline`` | ``cm1`` | ``proposed``, or the reference ``odometry`` (dead
+            reckoning: the same prior and inputs, ``measurement_update=False``).
         particles: particles per vehicle (>= 1).
         seed: Monte Carlo seed (measurement noise, clutter, detections, prior, filter draws).
         steps: number of steps to run (default all of ``states``).
@@ -489,6 +493,9 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     from .sensor import fov_detect_prob, simulate_measurements
 
     t0 = time.perf_counter()
+    label = variant
+    if variant == "odometry":
+        variant, measurement_update = "baseline", False
     _check_variant(variant)
     if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < 1:
         raise MmslamError(f"particles={particles!r}: expected an integer >= 1")
@@ -583,7 +590,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
 
     from mmslam import __version__ as mm_version  # noqa: PLC0415
 
-    md: dict[str, Any] = {"variant": variant, "particles": int(particles), "seed": int(seed),
+    md: dict[str, Any] = {"variant": label, "particles": int(particles), "seed": int(seed),
                           "scenario": scn.name, "cache": None, "source": None, "steps": steps, "vehicle_names": list(names),
                           "include_types": [int(t) for t in include_types],
                           "measurement_update": bool(measurement_update),
@@ -607,7 +614,8 @@ def run_slam(cache_dir: str | Path, variant: str = "baseline", particles: int = 
         CacheError: the cache is missing, corrupt or of another schema (from ``load_cache``).
         MmslamError: ``particles < 1``, an unknown variant or a bad ``steps``.
     """
-    _check_variant(variant)
+    if variant not in REFERENCES:
+        _check_variant(variant)
     if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < 1:
         raise MmslamError(f"particles={particles!r}: expected an integer >= 1")
     from mmslam.raytrace.cache import load_cache

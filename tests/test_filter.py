@@ -315,3 +315,17 @@ def test_accumulated_fov_uses_the_filters_detection_probability_and_gamma(p_va, 
     fc.maps[VA] = GM(np.array([1.0]), np.array([[200.0, 0.0, 40.0]]), np.eye(3)[None], np.ones(1, bool))
     fused = fc.fuse({VA: empty((), 0, 3)}, np.array([[70.0, 0.0, 0.0]]), np.zeros(7), np.eye(7))
     assert fused[VA].w[fused[VA].mask].tolist() == [kept]
+
+
+def test_odometry_reference_is_dead_reckoning_with_empty_maps(paper):
+    scn, states, paths = paper
+    odo = run_filter(scn, states, paths, variant="odometry", particles=20, seed=3, steps=12)
+    dr = run_filter(scn, states, paths, variant="proposed", particles=20, seed=3, steps=12, measurement_update=False)
+    np.testing.assert_allclose(odo.vehicles["pos_err"], dr.vehicles["pos_err"], rtol=1e-12)
+    assert odo.meta["variant"] == "odometry" and odo.meta["measurement_update"] is False
+    m = odo.metrics
+    assert np.all(m["n_est"] == 0) and np.all(m["card"] == 0)
+    c = scn.evaluation.gospa_c  # an empty estimate: every true landmark missed at c^2 / 2 (alpha = 2, p = 2)
+    np.testing.assert_allclose(m["gospa"], np.sqrt(m["n_true"] * c**2 / 2), rtol=1e-12)
+    with pytest.raises(MmslamError, match="unknown variant"):
+        run_filter(scn, states, paths, variant="odometer", particles=5, steps=2)

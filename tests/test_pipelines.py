@@ -318,15 +318,15 @@ def test_e2e_results_figures_and_report_exist(e2e: dict) -> None:
         assert r.meta["variant"] == j.variant and r.meta["seed"] == j.seed
         assert r.meta["particles"] == PARTICLES
         assert sorted(set(np.asarray(r.metrics["step"]).tolist())) == list(range(STEPS))
-    for name in ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "map_baseline",
+    for name in ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "map_odometry", "map_baseline",
                  "map_cm1", "map_proposed"):
         png = d / "figures" / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (d / "report.html").read_text()
-    assert text.count("data:image/png;base64,") == 9  # 4 curves, 2 cardinality, 3 maps
+    assert text.count("data:image/png;base64,") == 10  # 4 curves, 2 cardinality, 4 maps (odometry too)
     assert "numpy" in text and "sionna-rt" in text and "scipy" in text
     cmd = text.split('<pre id="command">')[1].split("</pre>")[0]
-    assert cmd.startswith("mmslam ablate paper --variants baseline,cm1,proposed --mc 2 --particles 50 "
+    assert cmd.startswith("mmslam ablate paper --variants odometry,baseline,cm1,proposed --mc 2 --particles 50 "
                           "--source analytic")
 
 
@@ -441,7 +441,7 @@ def test_e2e_report_command_regenerates_from_stored_results(e2e: dict, tmp_path:
     (d / "summary.parquet").unlink()
     code, out, _ = _run_cli(["report", str(d)], capsys)
     assert code == 0 and "report.html" in out
-    assert (d / "report.html").is_file() and len(list((d / "figures").glob("*.png"))) == 9
+    assert (d / "report.html").is_file() and len(list((d / "figures").glob("*.png"))) == 10
     _summary_tables_equal(A.load_summary(d), A.load_summary(e2e["dir"]))
 
 
