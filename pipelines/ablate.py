@@ -50,7 +50,7 @@ VARIANTS: tuple[str, ...] = REFERENCES + FILTER_VARIANTS
 
 EXECUTORS: tuple[str, ...] = ("local", "dask")
 TYPES: tuple[str, ...] = ("VA", "SP", "VS")
-METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card")
+METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card", "n_visible")
 STATE_QUANTITIES: tuple[str, ...] = ("pos_err", "heading_err", "bias_err")
 ALL_VEHICLES = "all"
 """``map`` value of the state rows pooled over all vehicles."""

@@ -414,6 +414,33 @@ def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions:
     return out
 
 
+def _visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
+                    sensor: Any) -> dict[int, np.ndarray]:
+    """type -> ``(steps, n_veh + 1)`` number of distinct landmarks of that type each vehicle could
+    detect at each step (in its paths at that step and inside its FOV); the last column counts the
+    union over vehicles (the fused map's). Tells forgetting (truth counts a landmark from its first
+    sighting on) from never seeing."""
+    from .sensor import fov_detect_prob
+
+    step = np.asarray(paths["step"])
+    typ = np.asarray(paths["type"])
+    rx = np.asarray(paths["rx"])
+    ids = np.asarray(paths["landmark_id"]).astype(str)
+    xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
+                    np.asarray(paths["lm_z"], float)], -1)
+    out = {}
+    for t in EVAL_TYPES:
+        sel = np.nonzero((typ == t) & (step < steps))[0]
+        sets = [[set() for _ in range(n_veh + 1)] for _ in range(steps)]
+        if sel.size:
+            pd = np.asarray(fov_detect_prob(positions[step[sel], rx[sel]], xyz[sel], t, sensor), float)
+            for i in sel[pd > 0]:
+                sets[int(step[i])][int(rx[i])].add(ids[i])
+                sets[int(step[i])][n_veh].add(ids[i])
+        out[t] = np.array([[len(c) for c in row] for row in sets], np.int32).reshape(steps, n_veh + 1)
+    return out
+
+
 def _truth_static(seen: dict[str, tuple[int, np.ndarray]], k: int) -> np.ndarray:
     pts = [p for s, p in seen.values() if s <= k]
     return np.array(pts, float).reshape(-1, 3)
@@ -461,7 +488,8 @@ _VEH_DT = {"step": np.int32, "vehicle": np.int16, "x": float, "y": float, "z": f
            "bias": float, "true_x": float, "true_y": float, "true_z": float, "true_heading": float,
            "true_bias": float, "pos_err": float, "heading_err": float, "bias_err": float}
 _MET_DT = {"step": np.int32, "map": object, "type": object, "gospa": float, "loc": float, "missed": float,
-           "false": float, "n_est": np.int32, "n_true": np.int32, "card": float}
+           "false": float, "n_est": np.int32, "n_true": np.int32, "card": float,
+           "n_visible": np.int32}
 _LM_DT = {"step": np.int32, "map": object, "type": object, "x": float, "y": float, "z": float,
           "weight": float}
 
@@ -543,13 +571,14 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
     acc_fov: list[list[np.ndarray]] = [[] for _ in range(n_veh)]
     seen = _first_seen(sub, n_veh, steps, true[:steps, :, 0:3], sensor)
     seen_all = {t: _merge_seen(seen[t]) for t in (VA, SP)}
+    visible = _visible_counts(sub, n_veh, steps, true[:steps, :, 0:3], sensor)
     ev = scn.evaluation
     thresholds = {VA: scn.filter.threshold_va, SP: scn.filter.threshold_sp, VS: scn.filter.threshold_vs}
     names = scn.vehicle_names
     vt, mt, lt = _Table(), _Table(), _Table()
     empty3 = np.zeros((0, 3))
 
-    def record_map(k: int, name: str, maps: dict[int, GM], truth: dict[int, np.ndarray]) -> None:
+    def record_map(k: int, name: str, maps: dict[int, GM], truth: dict[int, np.ndarray], col: int) -> None:
         for t in EVAL_TYPES:
             if t in maps:
                 X, wts = estimates_of(maps[t], thresholds[t], scn.filter.extraction)
@@ -559,7 +588,8 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
             Y = truth[t]
             g = gospa(Y, X, ev.gospa_c, ev.gospa_p, ev.gospa_alpha)  # (truth, estimates)
             mt.add(step=k, map=name, type=TYPE_NAMES[t], gospa=float(g.d), loc=float(g.loc),
-                   missed=float(g.missed), false=float(g.false), n_est=len(X), n_true=len(Y), card=card)
+                   missed=float(g.missed), false=float(g.false), n_est=len(X), n_true=len(Y), card=card,
+                   n_visible=int(visible[t][k, col]))
             for x, wv in zip(X, wts):
                 lt.add(step=k, map=name, type=TYPE_NAMES[t], x=x[0], y=x[1], z=x[2], weight=float(wv))
 
@@ -578,7 +608,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
             others = np.array([true[k, i, 0:3] for i in range(n_veh) if i != n]).reshape(-1, 3)
             near = others[np.linalg.norm(others - ts[0:3], axis=1) <= sensor.fov_range] if len(others) else empty3
             record_map(k, names[n], est.avg_maps,
-                       {VA: _truth_static(seen[VA][n], k), SP: _truth_static(seen[SP][n], k), VS: near})
+                       {VA: _truth_static(seen[VA][n], k), SP: _truth_static(seen[SP][n], k), VS: near}, n)
             acc_fov[n].append(est.mean[0:3])
             if center is not None and k in sched[n]:
                 fused = center.fuse(est.avg_maps, np.array(acc_fov[n]), est.mean, est.cov)
@@ -586,7 +616,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
                 acc_fov[n] = []
         fused_maps = center.maps if center is not None else {}
         record_map(k, "fused", fused_maps, {VA: _truth_static(seen_all[VA], k), SP: _truth_static(seen_all[SP], k),
-                                            VS: true[k, :, 0:3].copy()})
+                                            VS: true[k, :, 0:3].copy()}, n_veh)
 
     from mmslam import __version__ as mm_version  # noqa: PLC0415
 

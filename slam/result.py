@@ -12,7 +12,9 @@
     map), type string ("VA" | "SP" | "VS"), gospa, loc, missed, false [m] (GOSPA p=2, c, alpha=2,
     with its localisation / missed / false parts; gospa**2 = loc + missed + false),
     n_est int32, n_true int32, card (the PHD mass: sum of the map's weights, the expected
-    number of landmarks of that type)
+    number of landmarks of that type), n_visible int32 (landmarks of that type the map's vehicle,
+    or any vehicle for "fused", could detect at that step: in its paths and inside its FOV;
+    n_true counts every landmark from its first sighting on)
 
 ``landmarks`` (estimated landmarks, one row per step, map, type and estimate)
     step int32, map string, type string, x, y, z [m], weight float64

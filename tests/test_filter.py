@@ -329,3 +329,18 @@ def test_odometry_reference_is_dead_reckoning_with_empty_maps(paper):
     np.testing.assert_allclose(m["gospa"], np.sqrt(m["n_true"] * c**2 / 2), rtol=1e-12)
     with pytest.raises(MmslamError, match="unknown variant"):
         run_filter(scn, states, paths, variant="odometer", particles=5, steps=2)
+
+
+def test_visible_counts_separate_forgetting_from_never_seeing(paper):
+    """paper: the four walls are visible from both vehicles at every step (4 VAs per map), each
+    vehicle sees the other as a VS (1 per vehicle map, 2 in the fused map); SPs are visible only
+    inside the 50 m FOV, never more than the truth that counts them from their first sighting."""
+    scn, states, paths = paper
+    m = run_filter(scn, states, paths, variant="odometry", particles=5, seed=0, steps=20).metrics
+    mp, ty = np.asarray(m["map"]).astype(str), np.asarray(m["type"]).astype(str)
+    assert np.all(m["n_visible"][ty == "VA"] == 4)
+    assert np.all(m["n_visible"][(ty == "VS") & (mp != "fused")] == 1)
+    assert np.all(m["n_visible"][(ty == "VS") & (mp == "fused")] == 2)
+    sp = ty == "SP"
+    assert np.all(m["n_visible"][sp] <= m["n_true"][sp])
+    assert m["n_visible"][sp].min() < m["n_true"][sp].max()  # an SP left the FOV: still in the truth
