@@ -382,6 +382,28 @@ def cardinality(g: GM) -> float:
     return float(np.sum(np.where(g.mask, g.w, 0.0)))
 
 
+VA_KEY_RESOLUTION = 1e-3
+"""m: VAs whose image sources agree to this are one landmark (facades of several objects on one plane)."""
+
+
+def truth_keys(paths: dict[str, np.ndarray]) -> np.ndarray:
+    """Evaluation identity of each path row's landmark, ``(n,)`` str.
+
+    A VA is its image source (the BS mirrored in a plane), so two facades of different buildings
+    on one plane are one VA: VA rows are keyed by the image position rounded to
+    :data:`VA_KEY_RESOLUTION`; every other type by its ``landmark_id``.
+    """
+    ids = np.asarray(paths["landmark_id"]).astype(str)
+    typ = np.asarray(paths["type"])
+    out = ids.astype(object)
+    va = np.nonzero(typ == VA)[0]
+    if va.size:
+        xyz = np.stack([np.asarray(paths[c], float)[va] for c in ("lm_x", "lm_y", "lm_z")], -1)
+        q = np.rint(xyz / VA_KEY_RESOLUTION).astype(np.int64)
+        out[va] = [f"va@{a},{b},{c}" for a, b, c in q]
+    return out.astype(str)
+
+
 def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
                 sensor: Any) -> dict[int, list[dict[str, tuple[int, np.ndarray]]]]:
     """type -> per vehicle: landmark id -> (first step it could be detected by that vehicle, position).
@@ -398,7 +420,7 @@ def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions:
     step = np.asarray(paths["step"])
     typ = np.asarray(paths["type"])
     rx = np.asarray(paths["rx"])
-    ids = np.asarray(paths["landmark_id"]).astype(str)
+    ids = truth_keys(paths)
     xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
                     np.asarray(paths["lm_z"], float)], -1)
     sel = np.nonzero(((typ == VA) | (typ == SP)) & (step < steps))[0]
@@ -425,7 +447,7 @@ def _visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positi
     step = np.asarray(paths["step"])
     typ = np.asarray(paths["type"])
     rx = np.asarray(paths["rx"])
-    ids = np.asarray(paths["landmark_id"]).astype(str)
+    ids = truth_keys(paths)
     xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
                     np.asarray(paths["lm_z"], float)], -1)
     out = {}

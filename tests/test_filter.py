@@ -344,3 +344,22 @@ def test_visible_counts_separate_forgetting_from_never_seeing(paper):
     sp = ty == "SP"
     assert np.all(m["n_visible"][sp] <= m["n_true"][sp])
     assert m["n_visible"][sp].min() < m["n_true"][sp].max()  # an SP left the FOV: still in the truth
+
+
+def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
+    """Two wall segments of different buildings on the plane y = 10 mirror the BS to the same
+    image source: one VA for the evaluation (the filter cannot tell them apart, nor should it)."""
+    from mmslam.slam.filter import _first_seen, truth_keys
+    from mmslam.slam.measurement import VA
+
+    scn = load_preset("paper")
+    img = (0.0, 20.0, 40.0)  # BS (0, 0, 40) mirrored in y = 10
+    paths = {"step": np.array([0, 1, 2]), "rx": np.array([0, 0, 1]), "type": np.array([VA, VA, VA]),
+             "landmark_id": np.array(["bldg_a:plane(0,1,0,10)", "bldg_b:plane(0,1,0,10)", "bldg_c:plane(1,0,0,5)"]),
+             "lm_x": np.array([img[0], img[0] + 2e-4, 10.0]), "lm_y": np.array([img[1], img[1], 0.0]),
+             "lm_z": np.array([img[2], img[2], 40.0])}
+    keys = truth_keys(paths)
+    assert keys[0] == keys[1] != keys[2]
+    pos = np.zeros((3, 2, 3))
+    seen = _first_seen(paths, 2, 3, pos, scn.sensor)[VA]
+    assert len(seen[0]) == 1 and len(seen[1]) == 1  # vehicle 0: the two facades are one VA
