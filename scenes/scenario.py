@@ -163,6 +163,11 @@ class FilterParams:
                                probability=True)
     p_detect_vs: float = param(0.95, "the filter's detection probability of a VS inside the FOV range", "",
                                probability=True)
+    vs_extent_std: tuple[float, ...] = param(
+        (0.0, 0.0), "std of where on a car body a VS path bounces, about the car's antenna position "
+        "[horizontal (each axis), vertical]: diag(h^2, h^2, v^2) is added to the scatter point in the VS "
+        "likelihood and to the ego Gaussian that F'_AA uploads; 0: point VS (exact for the analytic "
+        "source)", "m", lo=0.0, hi=100.0, length=2)
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
                                  "unobserved) or all (every VS Gaussian at every step, the paper read "

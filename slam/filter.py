@@ -190,7 +190,8 @@ class LocalFilter:
             return
         p_bs = self.pd_fn(self.s[:, 0:3], np.broadcast_to(self.bs, (self.P, 3)), BS)
         bs_term = bs_logterm(self.s, Z, self.R, self.bs, np.asarray(p_bs, float))
-        terms = [type_terms(self.maps[t], t, self.s, Z, self.R, self.bs, self.pd_fn) for t in self.types]
+        terms = [type_terms(self.maps[t], t, self.s, Z, self.R, self.bs, self.pd_fn,
+                            vs_extent(self.scn) if t == VS else None) for t in self.types]
         lpsi = log_psi(terms, bs_term, self.log_clutter, (self.P, J))
         for tc in terms:
             self.maps[tc.lm_type] = corrected_gm(tc, Z, lpsi, prune=self.fp.prune)
@@ -271,6 +272,12 @@ class LocalFilter:
 
 
 # ====================================================================== fusion center
+def vs_extent(scn: Scenario) -> np.ndarray | None:
+    """``(3, 3)`` covariance of a VS bounce point about the car's antenna (``filter.vs_extent_std``), None if 0."""
+    h, v = (float(x) for x in scn.filter.vs_extent_std)
+    return np.diag([h * h, h * h, v * v]) if (h or v) else None
+
+
 def filter_detect_probs(scn: Scenario) -> dict[int, float]:
     """Type code -> the filter's detection probability inside the FOV (``filter.p_detect_<type>``)."""
     fp = scn.filter
@@ -338,6 +345,10 @@ class FusionCenter:
             pairs = None
             if t == VS and self.variant == "proposed":
                 em, ec = ego_gaussian(ego_mean, ego_cov, fp.vs_process_std)
+                ext = vs_extent(self.scn)
+                if ext is not None:  # others see this car where its body reflects, not at its antenna
+                    ec = ec.copy()
+                    ec[0:3, 0:3] += ext
                 ue = fm.ego_vs_average(ue, em, ec, fu.msm_position)
                 fused, pairs = fm.fuse_vs(bs_map, ue, inside, fu.msm_position, fu.msm_velocity,
                                           fu.beta_inside_fov, with_pairs=True)

@@ -380,7 +380,7 @@ class FlatInnovation:
 
 
 def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: int, bs: np.ndarray,
-                    Z: np.ndarray, R: np.ndarray, stage: str) -> FlatInnovation:
+                    Z: np.ndarray, R: np.ndarray, stage: str, extent: np.ndarray | None = None) -> FlatInnovation:
     """CKF innovation of landmark Gaussians ``N(m, P)`` seen from per-Gaussian vehicle states.
 
     The same computation as :func:`innovation` with ``h = landmark_h`` and ``obs_dims = 3``
@@ -392,19 +392,28 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
         P: ``(N, d, d)`` SPD covariances.
         states: ``(N, 7)`` vehicle state of each Gaussian's particle.
         Z: ``(J, 5)`` measurements; R: ``(5, 5)`` filter measurement covariance.
+        extent: ``(3, 3)`` covariance (m^2, global frame) of the scatter point about the landmark
+            position, or None for a point landmark. The measurement is ``z = h(x + e) + n`` with
+            ``e ~ N(0, extent)`` independent of the state (a vehicle body reflects from anywhere on
+            it): the predicted measurement and ``S`` come from cubature on ``N(m, P_pos + extent)``
+            and the cross-covariance ``Pxz = P[:, :3] (P_pos + extent)^-1 Cov(x + e, z)``.
 
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance (naming ``stage``).
     """
     n, d = m.shape
+    if extent is not None:
+        extent = np.asarray(extent, float).reshape(3, 3)
+        if not np.any(extent):
+            extent = None
     if not (np.isfinite(m).all() and np.isfinite(P).all()):
         raise FloatingPointError(f"non-finite covariance in {stage}")
     if n <= INNOVATION_BLOCK:
-        return _flat_innovation_block(m, P, states, lm_type, bs, Z, R, stage)
+        return _flat_innovation_block(m, P, states, lm_type, bs, Z, R, stage, extent)
     # blocks of Gaussians: the temporaries stay small (fewer page faults from large short-lived
     # allocations); every Gaussian's arithmetic is the same as in one pass
     blocks = [_flat_innovation_block(m[i:i + INNOVATION_BLOCK], P[i:i + INNOVATION_BLOCK],
-                                     states[i:i + INNOVATION_BLOCK], lm_type, bs, Z, R, stage)
+                                     states[i:i + INNOVATION_BLOCK], lm_type, bs, Z, R, stage, extent)
               for i in range(0, n, INNOVATION_BLOCK)]
     return FlatInnovation(*(np.concatenate([getattr(b, f) for b in blocks], axis=-1)
                             for f in ("loglik", "y", "gain", "P_post")))
@@ -415,12 +424,14 @@ INNOVATION_BLOCK = 1024
 
 
 def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: int, bs: np.ndarray,
-                           Z: np.ndarray, R: np.ndarray, stage: str) -> FlatInnovation:
+                           Z: np.ndarray, R: np.ndarray, stage: str,
+                           extent: np.ndarray | None = None) -> FlatInnovation:
     """:func:`flat_innovation` of one block of Gaussians (inputs already checked finite)."""
     n, d = m.shape
     mT = m.T  # (d, N)
     PT = np.ascontiguousarray(P.transpose(1, 2, 0))  # (d, d, N)
-    Lo = _soa_safe_cholesky(PT[:3, :3], stage)
+    # cubature on the scatter point x + e: covariance P_pos (+ extent)
+    Lo = _soa_safe_cholesky(PT[:3, :3] if extent is None else PT[:3, :3] + extent[:, :, None], stage)
     c = Lo * np.sqrt(3.0)  # c[:, i] = sqrt(3) L e_i
     pts = np.concatenate([mT[:3, None, :] + c, mT[:3, None, :] - c], axis=1)  # (3, 6, N)
     hz = _h_soa(pts[0], pts[1], pts[2], np.ascontiguousarray(states.T), lm_type, bs)  # (5, 6, N)
@@ -443,10 +454,11 @@ def _flat_innovation_block(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_
     S += R[:, :, None]
     G = Dz[:, :3] - Dz[:, 3:]  # (5, 3, N): G[a, k]
     G *= 1.0 / 6.0
-    if d == 3:
+    if d == 3 and extent is None:
         Pxz = np.einsum("ikn,akn->ian", c, G)  # sqrt(3) L G
     else:
-        # Pxz = 3 P[:, :3] (sqrt(3) L)^-T G = sqrt(3) P[:, :3] L^-T G (see ckf_moments)
+        # Pxz = 3 P[:, :3] (sqrt(3) L)^-T G = sqrt(3) P[:, :3] L^-T G (see ckf_moments); with an
+        # extent L L^T = P_pos + extent, and the same formula gives Cov(x, z) = P[:, :3] (L L^T)^-1 Cov(x + e, z)
         W = np.empty_like(G)  # W[a, k] = (L^-T G)[k, a]: back substitution with L^T
         for k in (2, 1, 0):
             acc = G[:, k]
@@ -497,7 +509,8 @@ class TypeCorrection:
 
 
 def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
-               bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray]) -> TypeCorrection:
+               bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
+               extent: np.ndarray | None = None) -> TypeCorrection:
     """Detection terms of one map type (batched over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) go through the CKF innovation
@@ -511,6 +524,8 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         Z: ``(J, 5)`` measurements of this vehicle and step.
         pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
             probability evaluated at the Gaussian means.
+        extent: ``(3, 3)`` scatter-point covariance of an extended landmark (VS: a car body), see
+            :func:`flat_innovation`; None for point landmarks.
 
     Raises:
         FloatingPointError: a non-finite mean or covariance in the map (also outside the FOV),
@@ -527,7 +542,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     pidx, qidx = np.nonzero(det)
     det_index = np.full((P_, Q), -1)
     det_index[pidx, qidx] = np.arange(pidx.size)
-    inn = flat_innovation(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], lm_type, bs, Z, R, stage)
+    inn = flat_innovation(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], lm_type, bs, Z, R, stage, extent)
     logq = np.full((P_, Q, J), -np.inf)
     logq[pidx, qidx] = np.log(pd[pidx, qidx] * g.w[pidx, qidx])[:, None] + inn.loglik.T
     return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn, det_index)

@@ -312,3 +312,40 @@ def test_logsumexp_slots_equals_reference_and_leaves_its_input_alone(shape):
     assert np.array_equal(logq, before)
     assert np.allclose(got, ref, rtol=1e-12, atol=0.0) or np.array_equal(got, ref)
     assert np.array_equal(np.isneginf(got), np.isneginf(ref))
+
+
+def test_flat_innovation_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_e():
+    """Extended VS (a car body): z = h(x + e) + n, e ~ N(0, E) independent of the 7-D state x.
+    (1) zhat and S are those of a point landmark with position covariance P_pos + E (same cubature);
+    (2) the cross-covariance Cov(x, z) agrees with a Monte Carlo estimate from 400k samples."""
+    from mmslam.slam.gmphd import flat_innovation
+
+    rng = np.random.default_rng(4)
+    bs = np.array([0.0, 0.0, 40.0])
+    m = np.array([[30.0, 12.0, 0.5, 3.0, -2.0, 0.0, 0.1]])
+    A = rng.normal(size=(7, 7)) * 0.3
+    P = (A @ A.T + np.diag([0.5, 0.5, 0.05, 1.0, 1.0, 0.01, 0.01]))[None]
+    E = np.diag([1.0, 1.0, 0.09])
+    st = np.array([[20.0, 5.0, 0.0, 0.3, 10.0, 0.0, 2.0]])
+    R = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
+    Z = np.array([[55.0, 0.4, -0.5, 0.6, -0.01]])
+    ext = flat_innovation(m, P, st, VS, bs, Z, R, "test", extent=E)
+    Pi = P.copy()
+    Pi[0, :3, :3] += E
+    infl = flat_innovation(m, Pi, st, VS, bs, Z, R, "test")
+    np.testing.assert_allclose(ext.loglik, infl.loglik, rtol=1e-12)
+    np.testing.assert_allclose(ext.y, infl.y, rtol=1e-12)
+    # gain A = Pxz L_S^-T: recover Pxz = A L_S^T with S from the inflated run (same S)
+    x = rng.multivariate_normal(m[0], P[0], size=400_000)
+    e = rng.multivariate_normal(np.zeros(3), E, size=400_000)
+    z = measure(np.broadcast_to(st[0], (len(x), 7)), x[:, :3] + e, VS, bs)
+    mc = (x - x.mean(0)).T @ (z - z.mean(0)) / len(x)  # (7, 5)
+    A_ext = ext.gain[:, :, 0]  # (7, 5) = Pxz L^-T
+    A_pt = infl.gain[:, :, 0]
+    # Pxz_ext = P[:, :3] (P_pos + E)^-1 Pxz_infl[:3]: the gains relate the same way (same L_S)
+    np.testing.assert_allclose(A_ext, P[0][:, :3] @ np.linalg.solve(Pi[0][:3, :3], A_pt[:3]), rtol=1e-9, atol=1e-12)
+    # Monte Carlo: gain = Cov(x, z) chol(Cov(z) + R)^-T from samples of z = h(x + e) (+ n: only R)
+    S_mc = np.cov(z.T, bias=True) + R
+    A_mc = mc @ np.linalg.inv(np.linalg.cholesky(S_mc)).T
+    np.testing.assert_allclose(A_ext, A_mc, atol=0.03 * np.abs(A_ext).max())
+    assert np.abs(A_ext - A_pt).max() > 0.2 * np.abs(A_ext).max()  # the point model's gain is different
