@@ -12,7 +12,7 @@ import os
 
 from hypothesis import HealthCheck, settings
 
-settings.register_profile("mmslam-ci", max_examples=40, deadline=None, derandomize=True,
+settings.register_profile("mmslam-ci", max_examples=60, deadline=None, derandomize=True,
                           print_blob=True, suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("mmslam-deep", max_examples=500, deadline=None, derandomize=False,
                           print_blob=True, suppress_health_check=[HealthCheck.too_slow])

@@ -342,10 +342,14 @@ def test_spd_inverses_equal_numpy_inv(seed, batch, d, cond):
     _unchanged(snap, "_inv_spd")
     if A.size:
         bad = A.reshape(-1, d, d).copy()
-        bad[0] = -bad[0]
-        with pytest.raises(FloatingPointError):
+        bad[0] = 0.0  # singular: every path raises
+        with pytest.raises(FloatingPointError, match="singular"):
             red._inv_spd(bad)
+        bad[0] = -A.reshape(-1, d, d)[0]  # negative definite: no Cholesky factor
         assert red._inv_spd_cholesky(bad) is None
+        if d == 3:  # the closed form checks det > 0 (other sizes: the LAPACK inverse decides)
+            with pytest.raises(FloatingPointError, match="indefinite"):
+                red._inv_spd(bad)
 
 
 # ====================================================================== gmphd: CKF
@@ -627,12 +631,17 @@ def _ref_greedy(w, m, P, idx, merge):
     return clusters, dists
 
 
-def _clustered_mixtures(rng, n, Q, d, cond):
-    """``n`` mixtures of ``Q`` components around a few centres (so that merges happen)."""
-    centres = rng.normal(0, 20, (n, 3, d))
+def _clustered_mixtures(rng, n, Q, d, cond, merge=4.0):
+    """``n`` mixtures of ``Q`` components around a few centres, each offset from its centre by
+    ``0..0.8 sqrt(merge)`` in its own Mahalanobis metric: pairwise distances spread around the
+    merging threshold, so that both outcomes of the merge test occur."""
+    centres = rng.normal(0, 50, (n, 3, d))
     which = rng.integers(0, 3, (n, Q))
     P = rand_spd(rng, (n, Q), d, cond, 0.05, 2.0)
-    m = centres[np.arange(n)[:, None], which] + rng.normal(0, 1, (n, Q, d)) * rng.uniform(0.1, 2.0, (n, Q, 1))
+    u = rand_dirs(rng, (n, Q)) if d == 3 else rng.standard_normal((n, Q, d))
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    off = np.einsum("nqij,nqj->nqi", np.linalg.cholesky(P), u) * (rng.uniform(0, 0.8, (n, Q, 1)) * np.sqrt(merge))
+    m = centres[np.arange(n)[:, None], which] + off
     w = rng.uniform(0.01, 1.0, (n, Q))
     return w, m, P
 
@@ -645,7 +654,7 @@ def _assume_off_threshold(dists, merge):
        merge=st.sampled_from([1.0, 4.0, 49.0]), path=st.sampled_from(["auto", "pairwise", "loop", "scatter"]))
 def test_merge_flat_equals_the_greedy_vo_ma_merge(seed, n, Q, d, cond, merge, path):
     rng = np.random.default_rng(seed)
-    w, m, P = _clustered_mixtures(rng, n, Q, d, min(cond, 4.0))
+    w, m, P = _clustered_mixtures(rng, n, Q, d, min(cond, 4.0), merge)
     keep = rng.random((n, Q)) < 0.85
     m[~keep] = 0.0
     P[~keep] = np.eye(d)
@@ -695,7 +704,7 @@ def test_prune_merge_equals_the_per_mixture_reference(seed, batch, Q, d, cond, m
                                                       pairwise_budget):
     rng = np.random.default_rng(seed)
     n = int(np.prod(batch, dtype=int))
-    w, m, P = _clustered_mixtures(rng, n, Q, d, cond)
+    w, m, P = _clustered_mixtures(rng, n, Q, d, cond, merge)
     w *= 10.0 ** rng.uniform(-3, 0, (n, Q))
     mask = rng.random((n, Q)) < 0.85
     w[~mask] = 0.0
@@ -724,7 +733,7 @@ def test_prune_merge_equals_the_per_mixture_reference(seed, batch, Q, d, cond, m
        zero_particle=st.booleans())
 def test_average_map_equals_the_weighted_union_reference(seed, P_, Q, d, cond, merge, cap, max_trace, zero_particle):
     rng = np.random.default_rng(seed)
-    w, m, P = _clustered_mixtures(rng, 1, Q, d, cond)
+    w, m, P = _clustered_mixtures(rng, 1, Q, d, cond, merge)
     # every particle's map: the same clusters, perturbed
     w = np.repeat(w, P_, 0) * rng.uniform(0.5, 1.5, (P_, Q))
     m = np.repeat(m, P_, 0) + rng.normal(0, 0.3, (P_, Q, d))
