@@ -27,7 +27,7 @@ from unittest import mock
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import assume, example, given
 from hypothesis import strategies as st
 from scipy.linalg import solve_triangular
 from scipy.special import logsumexp
@@ -433,6 +433,10 @@ def test_landmark_measurement_kernels_equal_measure(seed, P_, Q, K, lm_type):
 
 @given(seed=seeds, n=st.sampled_from([0, 1, 2, 5]), J=st.sampled_from([0, 1, 2, 3]), lm_type=st.sampled_from([VA, SP, VS]),
        cond=st.sampled_from([0.0, 2.0, 4.0]), block=st.sampled_from([None, 2]))
+@example(seed=1, n=0, J=2, lm_type=VA, cond=0.0, block=None).via("no Gaussian")
+@example(seed=2, n=1, J=0, lm_type=VS, cond=2.0, block=None).via("no measurement")
+@example(seed=3, n=1, J=1, lm_type=SP, cond=4.0, block=None).via("one of each")
+@example(seed=4, n=5, J=2, lm_type=VS, cond=4.0, block=2).via("blocks with a remainder")
 def test_flat_innovation_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond, block):
     rng = np.random.default_rng(seed)
     s = rand_states(rng, max(n, 1))[:n] if n else np.zeros((0, 7))
@@ -459,6 +463,10 @@ def test_flat_innovation_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond, 
 
 # ====================================================================== gmphd: PHD correction
 @given(seed=seeds, P_=st.integers(1, 3), Q=st.integers(1, 4), J=st.integers(0, 4))
+@example(seed=1, P_=1, Q=3, J=2).via("P == 1: the old slot-first copy was a view")
+@example(seed=2, P_=3, Q=1, J=2).via("Q == 1: the old slot-first copy was a view")
+@example(seed=3, P_=1, Q=1, J=1).via("degenerate")
+@example(seed=4, P_=2, Q=2, J=0).via("no measurement")
 def test_logsumexp_slots_equals_scipy_and_leaves_logq_alone(seed, P_, Q, J):
     rng = np.random.default_rng(seed)
     logq = rng.normal(-20.0, 30.0, (P_, Q, J))
@@ -542,6 +550,10 @@ def _ref_corrected_components(g: GM, logq, missed, upd, lpsi, p, J):
 @given(seed=seeds, P_=st.integers(1, 3), types=st.sampled_from([(VA,), (SP,), (VS,), (VA, SP), (VA, SP, VS)]),
        Qs=st.lists(st.integers(0, 3), min_size=3, max_size=3), J=st.integers(0, 3), with_bs=st.booleans(),
        cond=st.sampled_from([0.0, 2.0, 4.0]), prune=st.sampled_from([None, 1e-3, 0.05]))
+@example(seed=5, P_=1, types=(VA, SP, VS), Qs=[1, 0, 2], J=2, with_bs=True, cond=2.0, prune=None).via("P == 1, one type empty")
+@example(seed=6, P_=3, types=(VA, SP), Qs=[1, 1, 0], J=2, with_bs=False, cond=4.0, prune=1e-3).via("Q == 1")
+@example(seed=7, P_=2, types=(VA, SP, VS), Qs=[0, 0, 0], J=1, with_bs=True, cond=0.0, prune=None).via("all maps empty")
+@example(seed=8, P_=2, types=(VA, SP, VS), Qs=[2, 1, 1], J=0, with_bs=False, cond=0.0, prune=None).via("J == 0")
 def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(seed, P_, types, Qs, J, with_bs, cond,
                                                                                 prune):
     rng = np.random.default_rng(seed)
@@ -652,6 +664,8 @@ def _assume_off_threshold(dists, merge):
 
 @given(seed=seeds, n=st.integers(1, 3), Q=st.integers(1, 6), d=st.sampled_from([2, 3, 7]), cond=conds,
        merge=st.sampled_from([1.0, 4.0, 49.0]), path=st.sampled_from(["auto", "pairwise", "loop", "scatter"]))
+@example(seed=1, n=1, Q=1, d=3, cond=0.0, merge=4.0, path="loop").via("one component, single-mixture path")
+@example(seed=2, n=1, Q=6, d=7, cond=3.0, merge=49.0, path="loop").via("single-mixture shrinking path")
 def test_merge_flat_equals_the_greedy_vo_ma_merge(seed, n, Q, d, cond, merge, path):
     rng = np.random.default_rng(seed)
     w, m, P = _clustered_mixtures(rng, n, Q, d, min(cond, 4.0), merge)
@@ -700,6 +714,8 @@ def _assert_reduced(out_w, out_m, out_P, out_mask, clusters, what):
 @given(seed=seeds, batch=st.sampled_from([(), (1,), (2,), (3,), (2, 2)]), Q=st.integers(0, 6), d=st.sampled_from([3, 7]),
        cond=st.sampled_from([0.0, 2.0, 4.0]), merge=st.sampled_from([4.0, 49.0]), cap=st.integers(1, 4),
        max_trace=st.sampled_from([None, 3.0]), fixed=st.booleans(), pairwise_budget=st.sampled_from([None, 0]))
+@example(seed=1, batch=(1,), Q=0, d=3, cond=0.0, merge=4.0, cap=2, max_trace=None, fixed=True, pairwise_budget=None)
+@example(seed=2, batch=(1,), Q=1, d=7, cond=2.0, merge=49.0, cap=1, max_trace=None, fixed=False, pairwise_budget=0)
 def test_prune_merge_equals_the_per_mixture_reference(seed, batch, Q, d, cond, merge, cap, max_trace, fixed,
                                                       pairwise_budget):
     rng = np.random.default_rng(seed)
@@ -845,6 +861,8 @@ def _ref_birth(states, Z, R, lm_type):
 
 
 @given(seed=seeds, P_=st.integers(1, 3), J=st.integers(0, 3), lm_type=st.sampled_from([VA, SP]))
+@example(seed=1, P_=1, J=0, lm_type=SP).via("no measurement")
+@example(seed=2, P_=1, J=1, lm_type=VA).via("P == 1, J == 1")
 def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     rng = np.random.default_rng(seed)
     s = rand_states(rng, P_)
