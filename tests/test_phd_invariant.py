@@ -18,6 +18,7 @@ from mmslam.slam.gm import GM
 from mmslam.slam.measurement import VA, VS
 
 STEPS = 8
+_LOGSUMEXP_SLOTS = gmphd._logsumexp_slots  # the fixed kernel (before any monkeypatch)
 
 
 @pytest.fixture(scope="module")
@@ -32,21 +33,18 @@ def paper8():
 
 
 def _old_logsumexp_slots(logq: np.ndarray) -> np.ndarray:
-    """``_logsumexp_slots`` as it was before commit 48e7f9d: ``np.ascontiguousarray`` returns a
-    view of ``logq`` when ``P == 1`` or ``Q == 1``, and the in-place ``-=`` / ``exp`` below then
-    rewrite the log-weights that ``corrected_gm`` reads afterwards."""
-    if logq.shape[2] == 1:
-        mx = logq.max(axis=1)
-        safe = np.where(np.isfinite(mx), mx, 0.0)
-        with np.errstate(divide="ignore"):
-            return safe + np.log(np.exp(logq - safe[:, None, :]).sum(axis=1))
-    t = np.ascontiguousarray(logq.transpose(1, 0, 2))  # a view for P == 1 or Q == 1
-    mx = t.max(axis=0)
-    safe = np.where(np.isfinite(mx), mx, 0.0)
-    t -= safe
-    np.exp(t, out=t)
-    with np.errstate(divide="ignore"):
-        return safe + np.log(t.sum(axis=0))
+    """``_logsumexp_slots`` as it was before commit 48e7f9d: the same return value, but for
+    ``J >= 2`` its slot-first buffer ``np.ascontiguousarray(logq.transpose(1, 0, 2))`` was a *view*
+    of ``logq`` when ``P == 1`` or ``Q == 1``, and the in-place ``t -= max`` / ``np.exp(t, out=t)``
+    rewrote the log-weights that ``corrected_gm`` reads afterwards. Reproduced here as that side
+    effect on ``logq``."""
+    out = _LOGSUMEXP_SLOTS(logq)
+    P_, Q, J = logq.shape
+    if J > 1 and (P_ == 1 or Q == 1):
+        mx = logq.max(axis=1, keepdims=True)
+        logq -= np.where(np.isfinite(mx), mx, 0.0)
+        np.exp(logq, out=logq)
+    return out
 
 
 def _gm(w, mask=None) -> GM:
