@@ -578,8 +578,12 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
         logq, missed, upd = ref[tc.lm_type]
         _close_scalar(tc.logq, logq, "type_terms logq")
         _close_weights(tc.missed_w, missed, "type_terms missed_w")
-        assert np.array_equal(tc.det_index >= 0, logq.shape[2] * 0 + np.array(
-            [[(p, q) in upd for q in range(tc.g.capacity)] for p in range(P_)], bool).reshape(P_, -1))
+        detectable = np.array([[(p, q) in upd for q in range(tc.g.capacity)] for p in range(P_)], bool)
+        assert np.array_equal(tc.det_index >= 0, detectable.reshape(P_, tc.g.capacity))
+        for (p, q), r in upd.items():  # the flat innovation entry of each detectable Gaussian
+            i = tc.det_index[p, q]
+            _close_scalar(tc.inn.loglik[:, i], r["loglik"], "type_terms innovation loglik")
+            _close(tc.inn.P_post[:, :, i], r["P_post"], 2, "type_terms innovation P_post")
     term_snaps = [_snapshot(tc.logq, tc.missed_w, tc.det_index, tc.inn.loglik, tc.inn.y, tc.inn.gain, tc.inn.P_post)
                   for tc in terms]
     lpsi_snap = _snapshot(lpsi)
