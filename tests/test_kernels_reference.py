@@ -14,9 +14,10 @@ a time, :func:`mmslam.slam.measurement.measure` for the geometry).
 
 Tolerance: ``1e-9`` relative, normwise per compared object: ``|a - r| <= 1e-9 * max|r|`` over
 each matrix / vector of the batch (``max(|r|, 1)`` for log-likelihoods and log-sums, ``|r|``
-elementwise for weights); angles are compared modulo ``2 pi``. Every test also asserts that the
-kernel left its inputs unchanged (copies taken before the call, compared bit for bit after),
-since the filter reuses them.
+elementwise for weights; plus ``1e-300`` for underflowed terms); angles are compared modulo
+``2 pi``. Every test also asserts that the kernel left its inputs unchanged (copies taken before
+the call, compared bit for bit after), since the filter reuses them. Other modules covered the
+same way: ``fov_detect_prob``, ``predict_vs`` and the particle-weight kernels of ``rbpf``.
 
 The hypothesis profile (``tests/conftest.py``) is deterministic (``derandomize=True``).
 Examples draw a shape and a seed; the arrays come from ``numpy.random.default_rng(seed)``.
@@ -40,6 +41,7 @@ from mmslam.slam.gm import GM
 from mmslam.slam.measurement import BS, SP, VA, VS, measure
 
 RTOL = 1e-9
+TINY = 1e-300  # absolute floor: below it, values are round-off of underflowed terms
 BS_POS = np.array([3.0, -4.0, 40.0])
 FOV = 50.0
 P_DETECT = 0.9
@@ -65,7 +67,7 @@ def _close(actual, ref, core: int, what: str = "") -> None:
     axes = tuple(range(ref.ndim - core, ref.ndim))
     scale = np.abs(ref).max(axis=axes, keepdims=True) if core else np.abs(ref)
     err = np.abs(actual - ref)
-    bad = ~(err <= RTOL * scale)
+    bad = ~(err <= RTOL * scale + TINY)
     assert not bad.any(), (f"{what}: max error {np.nanmax(err):.3g}, "
                            f"{int(bad.sum())} of {ref.size} entries beyond {RTOL} relative")
 
@@ -85,7 +87,7 @@ def _close_weights(actual, ref, what: str = "") -> None:
     actual, ref = np.asarray(actual, float), np.asarray(ref, float)
     assert actual.shape == ref.shape, f"{what}: shape {actual.shape} != reference {ref.shape}"
     err = np.abs(actual - ref)
-    assert np.all(err <= RTOL * np.abs(ref)), f"{what}: max relative error {np.max(err / np.maximum(np.abs(ref), 1e-300)):.3g}"
+    assert np.all(err <= RTOL * np.abs(ref) + TINY), f"{what}: max relative error {np.max(err / np.maximum(np.abs(ref), 1e-300)):.3g}"
 
 
 def _close_angles(actual, ref, core: int, what: str = "") -> None:
@@ -893,3 +895,85 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     (x, y, z), valid = birth_mod._invert_batch_last(s, rays, lm_type, BS_POS)
     assert np.array_equal(valid, ref_valid)
     _close(np.stack([x, y, z], -1)[valid], ref_pos[valid], 1, "_invert_batch_last positions")
+
+
+# ====================================================================== detection, VS prediction, particles
+@given(seed=seeds, shape=st.sampled_from([(0,), (1,), (4,), (2, 3)]), lm_type=st.sampled_from([BS, VA, SP, VS]))
+def test_fov_detect_prob_equals_the_norm_rule(seed, shape, lm_type):
+    from mmslam.scenes.scenario import load_preset
+    from mmslam.slam.sensor import fov_detect_prob
+
+    sp = load_preset("paper").sensor
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-50, 50, shape + (3,))
+    x = u + rand_dirs(rng, shape) * rng.uniform(0, 2 * sp.fov_range, shape)[..., None]
+    snap = _snapshot(u, x)
+    got = fov_detect_prob(u, x, lm_type, sp)
+    _unchanged(snap, "fov_detect_prob")
+    ref = np.array([sp.p_detect if lm_type in (BS, VA) or np.linalg.norm(xi - ui) <= sp.fov_range else 0.0
+                    for ui, xi in zip(u.reshape(-1, 3), x.reshape(-1, 3))]).reshape(shape)
+    assert np.array_equal(got, ref)
+
+
+@given(seed=seeds, batch=st.sampled_from([(), (1,), (3,)]), Q=st.integers(0, 4), dither=st.booleans(),
+       cond=st.sampled_from([0.0, 2.0, 4.0]))
+def test_predict_vs_equals_the_per_component_ekf_prediction(seed, batch, Q, dither, cond):
+    from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
+    from mmslam.slam.vs import predict_vs
+
+    rng = np.random.default_rng(seed)
+    n = int(np.prod(batch, dtype=int))
+    s = rand_states(rng, max(n, 1))
+    g = rand_landmark_gm(rng, s, VS, Q, cond)
+    g = GM(g.w[:n].reshape(batch + (Q,)), g.m[:n].reshape(batch + (Q, 7)), g.P[:n].reshape(batch + (Q, 7, 7)),
+           g.mask[:n].reshape(batch + (Q,)))
+    dt, ps = 0.1, 0.97
+    q_std = rng.uniform(0.01, 1.0, 7)
+    dith = rng.uniform(0.0, 0.5, 7) if dither else None
+    snap = _gm_snapshot(g)
+    out = predict_vs(g, dt, ps, q_std, dith)
+    _unchanged(snap, "predict_vs")
+    add = np.diag(q_std**2) + (np.diag(dith) if dither else 0.0)
+    for idx in np.ndindex(*(batch + (Q,))):
+        if not g.mask[idx]:
+            assert not out.mask[idx] and out.w[idx] == 0.0
+            assert np.all(out.m[idx] == 0.0) and np.array_equal(out.P[idx], np.eye(7))
+            continue
+        Jm = vs_ct_jacobian(g.m[idx][None], dt)[0]
+        assert out.mask[idx] and out.w[idx] == ps * g.w[idx]
+        _close(out.m[idx], vs_ct(g.m[idx][None], dt)[0], 1, "predict_vs mean")
+        _close(out.P[idx], Jm @ g.P[idx] @ Jm.T + add, 2, "predict_vs covariance")
+
+
+@given(seed=seeds, P_=st.integers(1, 6), spread=st.sampled_from([0.0, 1.0, 50.0, 800.0]))
+def test_particle_weight_kernels_equal_their_textbook_forms(seed, P_, spread):
+    from mmslam.slam.dynamics import wrap_angle
+    from mmslam.slam.rbpf import (normalise_log_weights, systematic_resample, weighted_state_cov,
+                                  weighted_state_mean)
+
+    rng = np.random.default_rng(seed)
+    logw = rng.normal(0.0, 1.0, P_) * spread - 300.0
+    snap = _snapshot(logw)
+    lw, w = normalise_log_weights(logw)
+    _unchanged(snap, "normalise_log_weights")
+    _close_scalar(lw, logw - logsumexp(logw), "normalised log-weights")
+    _close_weights(w, np.exp(logw - logsumexp(logw)), "normalised weights")
+    u0 = np.random.default_rng(seed).random()
+    idx = systematic_resample(w, np.random.default_rng(seed))
+    c = np.cumsum(w)
+    c[-1] = 1.0
+    ref = [min(int(np.sum(c <= (u0 + i) / P_)), P_ - 1) for i in range(P_)]  # first k with c[k] > u_i
+    assert list(idx) == ref
+    s = rand_states(rng, P_)
+    snap = _snapshot(s, w)
+    mean = weighted_state_mean(s, w)
+    cov = weighted_state_cov(s, w, mean)
+    _unchanged(snap, "weighted_state_mean / cov")
+    ref_mean = np.array([sum(w[p] * s[p, i] for p in range(P_)) for i in range(7)])
+    ref_mean[3] = np.angle(sum(w[p] * np.exp(1j * s[p, 3]) for p in range(P_)))
+    lin = [0, 1, 2, 4, 5, 6]  # all but the heading (a circular mean)
+    _close(mean[lin], ref_mean[lin], 1, "weighted mean")
+    assert abs(_wrap(mean[3] - ref_mean[3])) <= RTOL * np.pi
+    dev = s - ref_mean
+    dev[:, 3] = wrap_angle(dev[:, 3])
+    _close(cov, sum(w[p] * np.outer(dev[p], dev[p]) for p in range(P_)), 2, "weighted covariance")
