@@ -57,7 +57,7 @@ from mmslam.scenes.scenario import Scenario, with_overrides
 from .birth import birth_from_moments, birth_moments_by_kind
 from .dynamics import wrap_angle
 from .gm import GM, concat, empty
-from .gmphd import bs_logterm, corrected_gm, log_psi, predict_static, type_terms
+from .gmphd import bs_logterm, check_phd_mass, corrected_gm, log_psi, predict_static, type_terms
 from .measurement import BS, SP, TYPE_NAMES, VA, VS
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
                    weighted_state_cov, weighted_state_mean)
@@ -184,7 +184,11 @@ class LocalFilter:
             self.maps[t] = g
 
     def correct(self, Z: np.ndarray) -> None:
-        """PHD correction of every map with ``Z (J, 5)`` and the particle weight update."""
+        """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
+
+        Raises FloatingPointError if a corrected map breaks the PHD-mass invariant (more than
+        the predicted mass plus ``J`` for some particle; :func:`~mmslam.slam.gmphd.check_phd_mass`).
+        """
         J = Z.shape[0]
         if not self.update or J == 0:
             return
@@ -194,7 +198,9 @@ class LocalFilter:
                             vs_extent(self.scn) if t == VS else None) for t in self.types]
         lpsi = log_psi(terms, bs_term, self.log_clutter, (self.P, J))
         for tc in terms:
-            self.maps[tc.lm_type] = corrected_gm(tc, Z, lpsi, prune=self.fp.prune)
+            g = corrected_gm(tc, Z, lpsi, prune=self.fp.prune)
+            check_phd_mass(tc.g, g, J, tc.lm_type, self._k)  # cheap; fails loudly on corrupted weights
+            self.maps[tc.lm_type] = g
         self.logw = self.logw + lpsi.sum(axis=1)
 
     def reduce(self) -> None:

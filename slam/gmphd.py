@@ -669,5 +669,41 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     return out
 
 
+PHD_MASS_RTOL = 1e-9
+"""Relative float tolerance of :func:`check_phd_mass` (the bound is exact in real arithmetic)."""
+
+
+def check_phd_mass(predicted: GM, corrected: GM, n_meas: int, lm_type: int, step: int) -> None:
+    """Invariant of the PHD correction: per particle, corrected mass <= predicted mass + ``J``.
+
+    The corrected intensity is ``(1 - p_D) D(x) + sum_j p_D g_j(x) D(x) / psi(z_j)`` and every
+    ``psi(z_j)`` contains the clutter, the BS and all landmark terms of ``z_j``, so each
+    measurement adds at most 1 to the mass: ``sum_q w_q^+ <= sum_q w_q + J`` (pruning only
+    lowers the left side). A kernel that corrupts the log-weights breaks it at once (the
+    ``_logsumexp_slots`` bug gave weights of ~1/clutter intensity). Cost: two sums over
+    ``(P, Q)``.
+
+    Args:
+        predicted: the map of one type before the correction, batch ``(P,)``.
+        corrected: the same map after :func:`corrected_gm`, batch ``(P,)``.
+        n_meas: the number of measurements ``J`` of the correction.
+        lm_type: the map's landmark type (for the message); step: the time step ``k``.
+
+    Raises:
+        FloatingPointError: naming the type, step, particle and both masses, if the bound is
+            exceeded beyond a relative ``PHD_MASS_RTOL`` (or a mass is NaN).
+    """
+    pred = np.where(predicted.mask, predicted.w, 0.0).sum(axis=-1)
+    corr = np.where(corrected.mask, corrected.w, 0.0).sum(axis=-1)
+    bound = pred + n_meas
+    bad = ~(corr <= bound * (1.0 + PHD_MASS_RTOL))  # NaN fails too
+    if bad.any():
+        p = int(np.argmax(np.where(bad, np.nan_to_num(corr - bound, nan=np.inf), -np.inf)))
+        raise FloatingPointError(
+            f"PHD mass invariant violated in the {_tname(lm_type)} correction at step {step}, particle {p}: "
+            f"corrected mass {corr[p]:.6g} > predicted mass {pred[p]:.6g} + {n_meas} measurements "
+            f"({int(bad.sum())} of {bad.size} particles); a correction kernel corrupted the weights")
+
+
 def _tname(t: int) -> str:
     return {1: "VA", 2: "SP", 3: "VS"}.get(t, str(t))

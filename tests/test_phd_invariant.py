@@ -1,0 +1,115 @@
+"""The PHD-mass invariant the filter checks at every correction (issue 10).
+
+Per particle, type and step: ``sum_q w_q(corrected) <= sum_q w_q(predicted) + J``. The check
+(:func:`mmslam.slam.gmphd.check_phd_mass`, called by ``LocalFilter.correct``) must stay silent on
+normal runs and fail loudly on the weight corruption of the old ``_logsumexp_slots``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.trajectory import true_trajectories
+from mmslam.slam import filter as filter_mod
+from mmslam.slam import gmphd
+from mmslam.slam.gm import GM
+from mmslam.slam.measurement import VA, VS
+
+STEPS = 8
+_LOGSUMEXP_SLOTS = gmphd._logsumexp_slots  # the fixed kernel (before any monkeypatch)
+
+
+@pytest.fixture(scope="module")
+def paper8():
+    """The analytic `paper` preset, truth and paths of its first ``STEPS`` steps."""
+    scn = load_preset("paper")
+    states = true_trajectories(scn)[:STEPS]
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(STEPS)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    return scn, states, paths
+
+
+def _old_logsumexp_slots(logq: np.ndarray) -> np.ndarray:
+    """``_logsumexp_slots`` as it was before commit 48e7f9d: the same return value, but for
+    ``J >= 2`` its slot-first buffer ``np.ascontiguousarray(logq.transpose(1, 0, 2))`` was a *view*
+    of ``logq`` when ``P == 1`` or ``Q == 1``, and the in-place ``t -= max`` / ``np.exp(t, out=t)``
+    rewrote the log-weights that ``corrected_gm`` reads afterwards. Reproduced here as that side
+    effect on ``logq``."""
+    out = _LOGSUMEXP_SLOTS(logq)
+    P_, Q, J = logq.shape
+    if J > 1 and (P_ == 1 or Q == 1):
+        mx = logq.max(axis=1, keepdims=True)
+        logq -= np.where(np.isfinite(mx), mx, 0.0)
+        np.exp(logq, out=logq)
+    return out
+
+
+def _gm(w, mask=None) -> GM:
+    w = np.asarray(w, float)
+    mask = np.ones(w.shape, bool) if mask is None else np.asarray(mask, bool)
+    return GM(w, np.zeros(w.shape + (3,)), np.broadcast_to(np.eye(3), w.shape + (3, 3)).copy(), mask)
+
+
+def test_check_phd_mass_bound_by_hand():
+    pred = _gm([[0.5, 1.0, 7.0], [0.2, 0.0, 0.0]], mask=[[True, True, False], [True, False, False]])  # 1.5, 0.2
+    ok = _gm([[1.5, 2.0, 0.0, 9.0], [2.2, 0.0, 0.0, 0.0]], mask=[[True, True, True, False], [True, True, True, True]])
+    gmphd.check_phd_mass(pred, ok, 2, VA, 4)  # 3.5 <= 1.5 + 2 and 2.2 <= 0.2 + 2: equality is allowed
+    bad = _gm([[1.5, 2.1, 0.0], [0.1, 0.0, 0.0]])  # 3.6 > 1.5 + 2
+    with pytest.raises(FloatingPointError, match=r"VS correction at step 4, particle 0: corrected mass 3\.6 > "
+                                                 r"predicted mass 1\.5 \+ 2 measurements"):
+        gmphd.check_phd_mass(pred, bad, 2, VS, 4)
+    nan = _gm([[np.nan], [0.0]])
+    with pytest.raises(FloatingPointError, match="particle 0: corrected mass nan"):
+        gmphd.check_phd_mass(pred, nan, 2, VA, 0)
+    # no measurement: the correction cannot add mass
+    with pytest.raises(FloatingPointError, match="particle 1"):
+        gmphd.check_phd_mass(pred, _gm([[1.0], [0.3]]), 0, VA, 0)
+
+
+@pytest.mark.parametrize("particles", [20, 1])
+def test_invariant_is_checked_and_silent_on_a_normal_run(paper8, particles, monkeypatch):
+    scn, states, paths = paper8
+    calls = []
+    real = filter_mod.check_phd_mass
+
+    def spy(pred, corr, J, t, k):
+        calls.append((t, k, J))
+        real(pred, corr, J, t, k)
+
+    monkeypatch.setattr(filter_mod, "check_phd_mass", spy)
+    res = filter_mod.run_filter(scn, states, paths, variant="proposed", particles=particles, seed=3, steps=STEPS)
+    n_veh = len(scn.vehicles)
+    assert len(calls) == n_veh * STEPS * 3  # every vehicle, step and type (VA, SP, VS) was checked
+    assert {k for _, k, _ in calls} == set(range(STEPS)) and all(J > 0 for _, _, J in calls)
+    assert np.isfinite(res.vehicles["pos_err"]).all()
+
+
+def test_invariant_fires_on_the_old_logsumexp_slots(paper8, monkeypatch):
+    """The old kernel wrote into ``logq`` (P == 1 makes its slot-first copy a view): the check
+    stops the run at the first corrupted correction, naming type, step and both masses."""
+    scn, states, paths = paper8
+    monkeypatch.setattr(gmphd, "_logsumexp_slots", _old_logsumexp_slots)
+    with pytest.raises(FloatingPointError, match=r"PHD mass invariant violated in the (VA|SP|VS) correction at "
+                                                 r"step \d+, particle 0: corrected mass .* > predicted mass .* \+ \d+ "
+                                                 r"measurements"):
+        filter_mod.run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
+
+
+def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monkeypatch):
+    """Why the check exists: with it disabled, the old kernel runs to the end without an error
+    while the corrected mass exceeds the bound (weights of ~1/clutter intensity)."""
+    scn, states, paths = paper8
+    monkeypatch.setattr(gmphd, "_logsumexp_slots", _old_logsumexp_slots)
+    excess = []
+
+    def record(pred, corr, J, t, k):
+        p = np.where(pred.mask, pred.w, 0.0).sum(-1)
+        c = np.where(corr.mask, corr.w, 0.0).sum(-1)
+        excess.append(float((c - p - J).max()))
+
+    monkeypatch.setattr(filter_mod, "check_phd_mass", record)
+    filter_mod.run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
+    assert max(excess) > 1.0
