@@ -18,19 +18,35 @@ landmark (global frame, metres, radians):
 setting, where the FOV is a range gate only). Higher-order reflections and diffraction are not
 modelled; no ``OTHER`` rows are produced.
 
-``power_db`` is the free-space (Friis) received power relative to the transmit power with
-isotropic unit-gain antennas over the *total* unfolded path length ``L = toa``:
-``power_db = -20 log10(4 pi L f_c / c)`` at the scenario's carrier frequency ``f_c``; reflection
-and scattering losses are not included. Each row is a single path: ``n_paths = 1``,
-``delay_spread_m = 0``; ``bounces`` is 0 for LOS and 1 otherwise; ``diffuse`` is True for SP
-rows only. ``bounce_*`` is the incidence point (VA) or the scatter point (SP, VS), NaN for LOS;
-``lm_*`` is the ground-truth landmark (BS position, VA image source, SP point, VS antenna).
+**Gains** (complex path coefficient ``a`` in Sionna's ``Paths.a`` convention: unit-gain isotropic
+antennas, the carrier phase ``exp(-j 2 pi f_c delay)`` not included; ``power_db = 20 log10|a|``),
+with ``lambda = c / f_c`` and the unfolded path length ``L``:
+
+- BS (LOS): Friis, ``a = lambda / (4 pi L)``.
+- VA: ``a = Gamma lambda / (4 pi L)`` with ``Gamma`` the Fresnel reflection coefficient of a
+  smooth half-space of the face's material (ITU-R P.2040 relative permittivity
+  ``eta = a f^b - j c f^d / (2 pi f eps0)``, f in GHz, :data:`ITU_MATERIALS`) at the incidence
+  angle: TE (electric field parallel to the face, what a vertically polarised antenna sees on a
+  vertical wall) on vertical faces, TM on horizontal faces (ground, roofs).
+- SP / VS: a point scatterer with radar cross-section ``rcs_m2`` (setting, default 1 m^2),
+  bistatic radar equation ``a = sqrt(rcs) lambda / ((4 pi)^(3/2) d_1 d_2)`` (``d_1`` BS to
+  scatterer, ``d_2`` scatterer to receiver), real and positive.
+
+**Doppler** ``f_D = -(1 / lambda) dL/dt`` with the receiver moving at its velocity
+``speed (cos heading, sin heading, 0)`` and, for a VS, the scattering vehicle moving at its own;
+BS, VAs and SPs are static. For LOS ``f_D = v_rx . (b - u) / (|b - u| lambda)``.
+
+Each row is a single path: ``n_paths = 1``, ``delay_spread_m = 0``; ``bounces`` is 0 for LOS and
+1 otherwise; ``diffuse`` is True for SP rows only (the ``rays`` table's interaction type: VA
+specular, SP diffuse, VS specular). ``bounce_*`` is the incidence point (VA) or the scatter
+point (SP, VS), NaN for LOS; ``lm_*`` is the ground-truth landmark (BS position, VA image
+source, SP point, VS antenna). The ``rays`` table holds the same paths, one ray each.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from mmslam.raytrace.schema import PATH_COLUMNS, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
 from mmslam.scenes.landmarks import reflecting_faces
 from mmslam.scenes.scenario import Scenario
 from mmslam.slam.measurement import BS, SP, VA, VS, direction_angles, mirror_point
@@ -39,6 +55,41 @@ SPEED_OF_LIGHT = 299_792_458.0
 """Speed of light in vacuum, m/s."""
 
 _FACE_TOL = 1e-9  # m, tolerance of the incidence-point-in-rectangle test
+_EPS0 = 8.8541878128e-12  # F/m, vacuum permittivity
+
+ITU_MATERIALS: dict[str, tuple[float, float, float, float]] = {
+    "concrete": (5.24, 0.0, 0.0462, 0.7822), "brick": (3.91, 0.0, 0.0238, 0.16),
+    "plasterboard": (2.73, 0.0, 0.0085, 0.9395), "wood": (1.99, 0.0, 0.0047, 1.0718),
+    "glass": (6.31, 0.0, 0.0036, 1.3394), "ceiling_board": (1.48, 0.0, 0.0011, 1.0750),
+    "chipboard": (2.58, 0.0, 0.0217, 0.7800), "floorboard": (3.66, 0.0, 0.0044, 1.3515),
+    "metal": (1.0, 0.0, 1e7, 0.0), "marble": (7.074, 0.0, 0.0055, 0.9262),
+    "very_dry_ground": (3.0, 0.0, 0.00015, 2.52),
+}
+"""ITU-R P.2040 (Table 3) material parameters ``(a, b, c, d)``: ``eps_r' = a f^b``, ``sigma = c f^d``
+S/m with f in GHz."""
+
+
+def relative_permittivity(material: str, frequency_hz: float) -> complex:
+    """Complex relative permittivity ``eps_r' - j sigma / (2 pi f eps0)`` of an ITU material."""
+    a, b, c, d = ITU_MATERIALS[material]
+    fg = frequency_hz / 1e9
+    return complex(a * fg**b, -c * fg**d / (2.0 * np.pi * frequency_hz * _EPS0))
+
+
+def fresnel_reflection(cos_i: np.ndarray, eta: complex | np.ndarray, te: np.ndarray | bool) -> np.ndarray:
+    """Fresnel reflection coefficient of a smooth half-space of relative permittivity ``eta``.
+
+    ``cos_i``: cosine of the incidence angle (from the normal). TE (``te`` True, E parallel to the
+    surface): ``(cos - s) / (cos + s)``; TM: ``(eta cos - s) / (eta cos + s)``,
+    ``s = sqrt(eta - sin^2)`` (ITU-R P.2040 sign convention: at normal incidence
+    ``Gamma_TE = -Gamma_TM = (1 - sqrt(eta)) / (1 + sqrt(eta))``; both tend to -1 at grazing).
+    """
+    cos_i = np.asarray(cos_i, float)
+    eta = np.asarray(eta, complex)
+    s = np.sqrt(eta - (1.0 - cos_i**2))
+    r_te = (cos_i - s) / (cos_i + s)
+    r_tm = (eta * cos_i - s) / (eta * cos_i + s)
+    return np.where(te, r_te, r_tm)
 
 
 def free_space_power_db(length_m: np.ndarray, frequency_hz: float) -> np.ndarray:
@@ -56,8 +107,11 @@ class AnalyticSource:
 
     name = "analytic"
 
-    def __init__(self, scn: Scenario) -> None:
+    def __init__(self, scn: Scenario, rcs_m2: float = 1.0) -> None:
+        if not (np.isfinite(rcs_m2) and rcs_m2 > 0):
+            raise ValueError(f"rcs_m2={rcs_m2!r}: expected a positive radar cross-section in m^2")
         self.scn = scn
+        self.rcs_m2 = float(rcs_m2)
         self.bs = scn.bs_array
         faces = reflecting_faces(scn)
         self.face_ids = [f.id for f in faces]
@@ -67,7 +121,17 @@ class AnalyticSource:
             self.face_lo = np.stack([f.lo for f in faces])
             self.face_hi = np.stack([f.hi for f in faces])
             self.images = mirror_point(self.bs[None, :], self.face_point, self.face_normal)
+            mats = {b.name: b.material for b in scn.buildings}
+            if scn.ground is not None:
+                mats["ground"] = scn.ground.material
+            self.face_object = [f.object for f in faces]
+            self.face_eta = np.array([relative_permittivity(mats.get(f.object, "concrete"), scn.frequency_hz)
+                                      for f in faces])
+            self.face_te = np.abs(self.face_normal[:, 2]) < 0.5  # vertical face: TE
         else:
+            self.face_object = []
+            self.face_eta = np.zeros(0, complex)
+            self.face_te = np.zeros(0, bool)
             self.face_point = self.face_normal = self.face_lo = self.face_hi = np.zeros((0, 3))
             self.images = np.zeros((0, 3))
         self.sp_ids = [s.name for s in scn.scatterers]
@@ -77,21 +141,28 @@ class AnalyticSource:
     # ------------------------------------------------------------------ protocol
     def settings(self) -> dict:
         """Settings that change the result (the geometry itself is in the scenario hash)."""
-        return {"model": "first-order specular + point scatter, no blockage", "model_version": 1}
+        return {"model": "first-order specular + point scatter, no blockage", "model_version": 2,
+                "gain": "Friis LOS; VA Fresnel (ITU-R P.2040, TE vertical / TM horizontal faces); "
+                        "SP/VS bistatic radar equation", "rcs_m2": self.rcs_m2}
 
     def versions(self) -> dict[str, str]:
         """Library versions that produced the rows."""
         return {"numpy": np.__version__}
 
     def trace_step(self, step: int, states: np.ndarray) -> dict[str, np.ndarray]:
-        """Paths of all receivers at one step (see module docstring).
+        """The ``paths`` table of :meth:`trace_tables`."""
+        return self.trace_tables(step, states)["paths"]
+
+    def trace_tables(self, step: int, states: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+        """``rays`` and ``paths`` of all receivers at one step (see module docstring).
 
         Args:
             step: time index written to the ``step`` column.
             states: ``(n_vehicles, 7)`` true states; columns 0:3 are antenna positions (m).
 
         Returns:
-            ``paths`` columns (schema dtypes), sorted by (rx, type, landmark_id).
+            ``{"rays": ..., "paths": ...}`` columns (schema dtypes); paths sorted by (rx, type,
+            landmark_id), rays by (rx, ray); one ray per path row.
         """
         states = np.asarray(states, dtype=float)
         u = states[:, 0:3]  # (R, 3)
@@ -152,6 +223,32 @@ class AnalyticSource:
         aod_az, aod_el = direction_angles(d_dep)
         aoa_az, aoa_el = direction_angles(d_arr)
 
+        # ---- complex gains and Doppler shifts, (R, L)
+        lam = SPEED_OF_LIGHT / self.scn.frequency_hz
+        gain = (lam / (4.0 * np.pi * toa)).astype(complex)
+        if n_f:
+            d_in = p - b  # BS -> incidence point
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cos_i = np.abs(np.sum(d_in * self.face_normal[None], axis=-1)) / np.linalg.norm(d_in, axis=-1)
+            gamma = fresnel_reflection(np.nan_to_num(cos_i, nan=1.0), self.face_eta[None], self.face_te[None])
+            gain[:, 1:1 + n_f] *= gamma
+        d1 = np.linalg.norm(pts - b, axis=-1)
+        d2 = np.linalg.norm(pts - uu, axis=-1)
+        with np.errstate(divide="ignore"):
+            gain[:, 1 + n_f:] = np.sqrt(self.rcs_m2) * lam / ((4.0 * np.pi) ** 1.5 * d1 * d2)
+        vel = np.stack([states[:, 4] * np.cos(states[:, 3]), states[:, 4] * np.sin(states[:, 3]),
+                        np.zeros(n_rx)], axis=1)  # (R, 3)
+
+        def unit(v):
+            nv = np.linalg.norm(v, axis=-1, keepdims=True)
+            return v / np.where(nv > 0, nv, 1.0)
+
+        # -dL/dt: receiver term v_rx . (arrival direction), plus for VS the scatterer's own motion
+        doppler = np.sum(vel[:, None, :] * unit(d_arr), axis=-1)
+        v_s = vel[None, :, :]  # scattering vehicle j's velocity, (1, R, 3)
+        doppler[:, 1 + n_f + n_s:] -= np.sum(v_s * (unit(pts[:, n_s:] - b) + unit(pts[:, n_s:] - uu)), axis=-1)
+        doppler /= lam
+
         # ---- flatten the valid (rx, landmark) pairs into rows
         ri, li = np.nonzero(valid)
         n = ri.size
@@ -171,7 +268,20 @@ class AnalyticSource:
             "lm_x": lm[ri, li, 0], "lm_y": lm[ri, li, 1], "lm_z": lm[ri, li, 2],
             "n_paths": np.ones(n, dtype=np.int32),
             "delay_spread_m": np.zeros(n),
+            "doppler_hz": doppler[ri, li],
         }
+        a = gain[ri, li]
+        with np.errstate(divide="ignore"):
+            cols["power_db"] = 20.0 * np.log10(np.abs(a))
+        angles = np.stack([cols["aod_az"], cols["aod_el"], cols["aoa_az"], cols["aoa_el"]], axis=1)
+        ray = ray_numbers(ri, toa[ri, li] / SPEED_OF_LIGHT, tiebreak=li)
+        cols["ray"] = ray
+        # rays: interaction 1 = specular (VA, VS) / diffuse (SP) at the bounce point
+        itype = np.where(tp == BS, 0, np.where(tp == SP, 2, 1))[:, None]
+        objs = np.array(["", *self.face_object, *self.sp_ids, *self.vehicle_names[:n_rx]], dtype=object)[li]
+        rays = rays_columns(step=step, rx=ri, typ=tp, landmark_id=ids[li], a=a, delay_s=toa[ri, li] / SPEED_OF_LIGHT,
+                            angles=angles, doppler_hz=doppler[ri, li], itype=itype, objects=objs[:, None],
+                            verts=bounce[ri, li][:, None, :], ray=ray)
         cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t))
                 for k, t in PATH_COLUMNS.items()}
-        return sort_paths(cols)
+        return {"rays": rays, "paths": sort_paths(cols)}

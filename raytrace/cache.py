@@ -7,9 +7,16 @@ A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
   (library versions), ``settings`` (solver settings), ``resolved_scenario``
   (:meth:`Scenario.to_dict`), ``vehicle_names``, ``dt`` [s], ``steps_completed``,
   ``steps_requested``, ``chunks`` (list of ``{index, step_start, step_stop, files: {vehicles,
-  paths}, sha256: {vehicles, paths}, rows: {vehicles, paths}, versions}``, ``step_stop``
-  exclusive; ``versions`` = library versions of the run that wrote the chunk);
-- per chunk of consecutive steps, ``vehicles-NNNNN.parquet`` and ``paths-NNNNN.parquet``.
+  rays, paths}, sha256: {...}, rows: {...}, versions}``, ``step_stop`` exclusive; ``files`` are
+  relative paths; ``versions`` = library versions of the run that wrote the chunk);
+- one directory per table (``vehicles/``, ``rays/``, ``paths/``; schema in
+  :mod:`mmslam.raytrace.schema`) holding ``part-NNNNN.parquet``, one file per chunk of
+  consecutive steps. Each directory is one dataset: ``pandas.read_parquet(CACHE / "rays")``,
+  ``pyarrow.dataset.dataset(CACHE / "rays")`` or duckdb ``read_parquet('CACHE/rays/*.parquet')``.
+  Enum columns (``type``, ``rx``, ``vehicle``, ``tx``, ``bounceK_type``) are Arrow dictionaries
+  of their labels; every field has ``unit`` and ``doc`` metadata; the file metadata key
+  ``mmslam`` holds a JSON object with the table name, schema version, scenario (name and
+  resolved parameters), source, solver settings, config hash, frame and units conventions.
 
 Every file is written to a temporary name in the same directory and renamed into place
 (:func:`atomic_write_bytes`); the manifest is rewritten (atomically) after each chunk, so a
@@ -33,18 +40,24 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from mmslam.errors import CacheError, MmslamError
-from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS, sort_paths
+from mmslam.raytrace.schema import (
+    INTERACTION_LABELS, PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, TABLE_SPECS, TX_LABELS, TYPE_LABELS,
+    VEHICLE_COLUMNS, Col, sort_paths, sort_rays,
+)
 from mmslam.scenes.scenario import Scenario, scenario_from_resolved
 from mmslam.slam.measurement import BS, OTHER
 
 MANIFEST = "manifest.json"
 FORCE_HINT = "re-run `mmslam trace ... --force` to rebuild it"
+TABLES = tuple(TABLE_SPECS)  # ("vehicles", "rays", "paths")
+FRAME_DOC = ("global frame: x east, y north, z up, metres; angles in radians, azimuth from +x towards +y, "
+             "elevation above the xy plane; AOA azimuth not heading-corrected; time t = step * dt seconds")
 
 # Numeric path columns that may hold NaN, and for which rows (None: any row).
 _NAN_ALLOWED: dict[str, int | None] = {
     "bounce_x": BS, "bounce_y": BS, "bounce_z": BS,
     "lm_x": OTHER, "lm_y": OTHER, "lm_z": OTHER,
-    "power_db": None,
+    "power_db": None, "doppler_hz": None,
 }
 
 
@@ -100,24 +113,51 @@ def write_manifest(cache_dir: Path, manifest: dict) -> None:
 
 
 def remove_temp_files(cache_dir: Path) -> None:
-    """Delete leftovers of interrupted atomic writes (``.*.tmp``) in ``cache_dir``."""
-    for p in Path(cache_dir).glob(".*.tmp"):
-        p.unlink(missing_ok=True)
+    """Delete leftovers of interrupted atomic writes (``.*.tmp``) in ``cache_dir`` and its table directories."""
+    for d in (Path(cache_dir), *(Path(cache_dir) / t for t in TABLES)):
+        for p in d.glob(".*.tmp"):
+            p.unlink(missing_ok=True)
 
 
-def _to_table(cols: dict[str, np.ndarray], schema: dict[str, str]) -> pa.Table:
-    arrays = {}
-    for k, t in schema.items():
+def enum_labels(enum: str, vehicle_names: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """Labels of an enum column: ``type``, ``interaction``, ``tx`` or ``vehicle`` (the vehicle names)."""
+    return {"type": TYPE_LABELS, "interaction": INTERACTION_LABELS, "tx": TX_LABELS,
+            "vehicle": tuple(vehicle_names)}[enum]
+
+
+def to_arrow(table: str, cols: dict[str, np.ndarray], meta: dict) -> pa.Table:
+    """One table's columns as a self-describing Arrow table.
+
+    Enum columns become ``dictionary<int16, string>`` arrays of their labels, every field gets
+    ``unit`` and ``doc`` metadata, and ``meta`` (JSON-able; must hold ``vehicle_names``) goes to
+    the schema metadata key ``mmslam`` together with the table name, schema version and frame.
+    """
+    spec: dict[str, Col] = TABLE_SPECS[table]
+    fields, arrays = [], []
+    for k, c in spec.items():
         v = np.asarray(cols[k])
-        arrays[k] = pa.array(v.astype(str).tolist() if t == "string" else v.astype(t),
-                             type=pa.string() if t == "string" else pa.from_numpy_dtype(np.dtype(t)))
-    return pa.table(arrays)
+        if c.enum is not None:
+            labels = enum_labels(c.enum, meta["vehicle_names"])
+            codes = v.astype(np.int64)
+            if codes.size and (codes.min() < 0 or codes.max() >= len(labels)):
+                raise ValueError(f"{table}.{k}: code {int(codes.max())} outside its {len(labels)} labels")
+            arr = pa.DictionaryArray.from_arrays(pa.array(codes.astype(np.int16), pa.int16()),
+                                                 pa.array(list(labels), pa.string()))
+        elif c.dtype == "string":
+            arr = pa.array(v.astype(str).tolist(), type=pa.string())
+        else:
+            arr = pa.array(v.astype(c.dtype), type=pa.from_numpy_dtype(np.dtype(c.dtype)))
+        fields.append(pa.field(k, arr.type, metadata={"unit": c.unit, "doc": c.doc}))
+        arrays.append(arr)
+    info = {"table": table, "schema_version": SCHEMA_VERSION, "frame": FRAME_DOC, **meta}
+    schema = pa.schema(fields, metadata={"mmslam": json.dumps(info, sort_keys=True, default=str)})
+    return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def table_bytes(cols: dict[str, np.ndarray], schema: dict[str, str]) -> bytes:
-    """Serialise columns to Parquet bytes (deterministic: same columns, same bytes)."""
+def table_bytes(table: str, cols: dict[str, np.ndarray], meta: dict) -> bytes:
+    """Serialise one table's columns to Parquet bytes (deterministic: same input, same bytes)."""
     buf = io.BytesIO()
-    pq.write_table(_to_table(cols, schema), buf, compression="zstd", write_statistics=False)
+    pq.write_table(to_arrow(table, cols, meta), buf, compression="zstd", write_statistics=False)
     return buf.getvalue()
 
 
@@ -125,23 +165,35 @@ def vehicle_columns(states: np.ndarray, step_start: int, dt: float) -> dict[str,
     """``vehicles`` table columns from states ``(n_steps, n_veh, 7)`` starting at ``step_start``."""
     ns, nv = states.shape[:2]
     step = np.repeat(np.arange(step_start, step_start + ns), nv)
+    sp, h = states[:, :, 4].ravel(), states[:, :, 3].ravel()
     return {
         "step": step.astype(np.int32), "t": step * dt, "vehicle": np.tile(np.arange(nv), ns).astype(np.int16),
         "x": states[:, :, 0].ravel(), "y": states[:, :, 1].ravel(), "z": states[:, :, 2].ravel(),
-        "heading": states[:, :, 3].ravel(), "speed": states[:, :, 4].ravel(),
-        "turn_rate": states[:, :, 5].ravel(),
+        "heading": h, "speed": sp, "turn_rate": states[:, :, 5].ravel(),
+        "vx": sp * np.cos(h), "vy": sp * np.sin(h), "vz": np.zeros(ns * nv),
     }
 
 
-def write_chunk(cache_dir: Path, index: int, step_start: int, vehicles: dict[str, np.ndarray],
-                paths: dict[str, np.ndarray]) -> dict:
-    """Write one chunk's two Parquet files atomically; return its manifest entry."""
+def file_metadata(m: dict) -> dict:
+    """What every Parquet file of a cache carries in its ``mmslam`` metadata, from the manifest ``m``."""
+    return {k: m[k] for k in ("scenario", "source", "settings", "config_hash", "geometry_hash",
+                              "vehicle_names", "dt", "resolved_scenario") if k in m}
+
+
+def write_chunk(cache_dir: Path, index: int, step_start: int, tables: dict[str, dict[str, np.ndarray]],
+                meta: dict) -> dict:
+    """Write one chunk (``tables``: vehicles, rays, paths columns) atomically; return its manifest entry.
+
+    ``meta``: :func:`file_metadata` of the manifest (must hold ``vehicle_names``).
+    """
     entry: dict[str, Any] = {"index": index, "step_start": step_start,
-                             "step_stop": step_start + len(np.unique(vehicles["step"])),
+                             "step_stop": step_start + len(np.unique(tables["vehicles"]["step"])),
                              "files": {}, "sha256": {}, "rows": {}}
-    for table, cols, schema in (("vehicles", vehicles, VEHICLE_COLUMNS), ("paths", paths, PATH_COLUMNS)):
-        name = f"{table}-{index:05d}.parquet"
-        data = table_bytes(cols, schema)
+    for table in TABLES:
+        cols = tables[table]
+        name = f"{table}/part-{index:05d}.parquet"
+        data = table_bytes(table, cols, meta)
+        (Path(cache_dir) / table).mkdir(exist_ok=True)
         atomic_write_bytes(Path(cache_dir) / name, data)
         entry["files"][table] = name
         entry["sha256"][table] = hashlib.sha256(data).hexdigest()
@@ -167,6 +219,9 @@ class PathCache:
         paths: ``paths`` table columns (all chunks, sorted by step, rx, type, landmark_id;
             ``landmark_id`` an object array of ``str``).
         steps: number of completed steps.
+
+    Enum columns are integer codes in memory (``rx``/``vehicle``: index into ``vehicle_names``;
+    ``type``: BS=0 .. OTHER=4). The ``rays`` table is read on demand by :meth:`read_rays`.
     """
 
     path: Path
@@ -177,6 +232,21 @@ class PathCache:
     vehicles: dict[str, np.ndarray]
     paths: dict[str, np.ndarray]
     steps: int
+    _rays: dict[str, np.ndarray] | None = None
+
+    def read_rays(self) -> dict[str, np.ndarray]:
+        """The ``rays`` table (all chunks, sorted by step, rx, ray; validated), read once and kept."""
+        if self._rays is None:
+            parts = [_read_table(self.path / c["files"]["rays"], c["sha256"]["rays"], "rays", self.vehicle_names)
+                     for c in self.manifest["chunks"]]
+            rays = sort_rays(_concat(parts, RAY_COLUMNS))
+            for k in ("delay_s", "a_re", "a_im", "aod_az", "aod_el", "aoa_az", "aoa_el", "doppler_hz"):
+                bad = ~np.isfinite(rays[k])
+                if bad.any():
+                    raise CacheError(f"{self.path}: rays column '{k}' is not finite at step "
+                                     f"{int(rays['step'][np.argmax(bad)])}; {FORCE_HINT}")
+            self._rays = rays
+        return self._rays
 
 
 def find_cache_dir(path: str | Path) -> Path:
@@ -206,7 +276,9 @@ def read_manifest(cache_dir: Path) -> dict:
     if not isinstance(m, dict):
         raise CacheError(f"{mp}: not a JSON object; {FORCE_HINT}")
     if m.get("schema_version") != SCHEMA_VERSION:
-        raise CacheError(f"{mp}: schema_version {m.get('schema_version')!r}, this mmslam reads "
+        old = isinstance(m.get("schema_version"), int) and m["schema_version"] < SCHEMA_VERSION
+        why = " (an older cache: no rays table, gains, Doppler or column metadata)" if old else ""
+        raise CacheError(f"{mp}: schema_version {m.get('schema_version')!r}{why}, this mmslam reads "
                          f"{SCHEMA_VERSION}; {FORCE_HINT}")
     need = ("scenario", "config_hash", "source", "resolved_scenario", "vehicle_names", "dt",
             "steps_completed", "chunks")
@@ -233,7 +305,9 @@ def checked_chunks(m: dict, mp: Path) -> list[dict]:
     return list(m["chunks"])
 
 
-def _read_table(path: Path, expect_sha: str, schema: dict[str, str]) -> dict[str, np.ndarray]:
+def _read_table(path: Path, expect_sha: str, table: str, vehicle_names: list[str]) -> dict[str, np.ndarray]:
+    """Read and check one Parquet file of ``table``; enum columns back to integer codes."""
+    spec: dict[str, Col] = TABLE_SPECS[table]
     if not path.is_file():
         raise CacheError(f"{path}: chunk file missing; {FORCE_HINT}")
     data = path.read_bytes()
@@ -244,17 +318,34 @@ def _read_table(path: Path, expect_sha: str, schema: dict[str, str]) -> dict[str
         tbl = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False)
     except Exception as e:  # pyarrow raises several types for corrupt files
         raise CacheError(f"{path}: unreadable Parquet ({e.__class__.__name__}); {FORCE_HINT}") from None
-    if tbl.column_names != list(schema):
-        raise CacheError(f"{path}: columns {tbl.column_names} differ from the schema {list(schema)}; {FORCE_HINT}")
+    if tbl.column_names != list(spec):
+        raise CacheError(f"{path}: columns {tbl.column_names} differ from the schema {list(spec)}; {FORCE_HINT}")
     out = {}
-    for k, t in schema.items():
+    for k, c in spec.items():
         col = tbl.column(k)
-        if t == "string":
-            out[k] = np.array(col.to_pylist(), dtype=object)
+        if c.enum is not None:
+            if not pa.types.is_dictionary(col.type):
+                raise CacheError(f"{path}: column '{k}' is {col.type}, expected a dictionary of labels; {FORCE_HINT}")
+            labels = enum_labels(c.enum, vehicle_names)
+            codes = np.empty(len(col), np.int64)
+            pos = 0
+            for ch in col.chunks:
+                lut = {lab: i for i, lab in enumerate(labels)}
+                dic = ch.dictionary.to_pylist()
+                unknown = [d for d in dic if d not in lut]
+                if unknown:
+                    raise CacheError(f"{path}: column '{k}' has labels {unknown} not in {list(labels)}; {FORCE_HINT}")
+                m = np.array([lut[d] for d in dic], np.int64)
+                idx = ch.indices.to_numpy(zero_copy_only=False)
+                codes[pos:pos + len(ch)] = m[idx] if len(idx) else idx
+                pos += len(ch)
+            out[k] = codes.astype(c.dtype)
+        elif c.dtype == "string":
+            out[k] = np.asarray(col.to_numpy(zero_copy_only=False), dtype=object)
         else:
             arr = col.to_numpy()
-            if arr.dtype != np.dtype(t):
-                raise CacheError(f"{path}: column '{k}' has dtype {arr.dtype}, expected {t}; {FORCE_HINT}")
+            if arr.dtype != np.dtype(c.dtype):
+                raise CacheError(f"{path}: column '{k}' has dtype {arr.dtype}, expected {c.dtype}; {FORCE_HINT}")
             out[k] = arr
     return out
 
@@ -268,7 +359,8 @@ def _concat(parts: list[dict[str, np.ndarray]], schema: dict[str, str]) -> dict[
 def check_paths_finite(paths: dict[str, np.ndarray], where: str, hint: str = FORCE_HINT) -> None:
     """Raise :class:`CacheError` naming the column and step of the first forbidden NaN / inf.
 
-    Allowed NaN: ``bounce_*`` on LOS rows, ``lm_*`` on OTHER rows, ``power_db`` anywhere.
+    Allowed NaN: ``bounce_*`` on LOS rows, ``lm_*`` on OTHER rows, ``power_db`` and ``doppler_hz``
+    anywhere (unknown).
     """
     typ = paths["type"]
     for k, t in PATH_COLUMNS.items():
@@ -310,8 +402,8 @@ def load_cache(path: str | Path) -> PathCache:
     n_done = int(m["steps_completed"])
     vparts, pparts = [], []
     for c in checked_chunks(m, mp):
-        vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], VEHICLE_COLUMNS))
-        pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], PATH_COLUMNS))
+        vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], "vehicles", names))
+        pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], "paths", names))
         for table, part in (("vehicles", vparts[-1]), ("paths", pparts[-1])):
             st = part["step"]
             if st.size and (st.min() < c["step_start"] or st.max() >= c["step_stop"]):
@@ -325,7 +417,7 @@ def load_cache(path: str | Path) -> PathCache:
                          f"{nv} vehicles; {FORCE_HINT}")
     order = np.lexsort((veh["vehicle"], veh["step"]))
     veh = {k: v[order] for k, v in veh.items()}
-    for k in ("t", "x", "y", "z", "heading", "speed", "turn_rate"):
+    for k in ("t", "x", "y", "z", "heading", "speed", "turn_rate", "vx", "vy", "vz"):
         bad = ~np.isfinite(veh[k])
         if bad.any():
             raise CacheError(f"{d}: vehicles column '{k}' is not finite at step "

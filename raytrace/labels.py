@@ -24,7 +24,10 @@ Rules (``D`` = number of non-empty bounce slots of a path):
 
 Paths sharing (receiver, type, landmark id) are one resolvable landmark: the row keeps the
 strongest path (highest power; ties: shortest TOA) with ``n_paths`` and ``delay_spread_m``
-(max - min TOA) of the cluster.
+(max - min TOA) of the cluster, its ``doppler_hz`` and its ``ray`` number (the link to the
+``rays`` table). With ``return_rays=True`` the per-ray labels come back too: every input ray keeps
+a (type, landmark id); rays dropped from ``paths`` (own car body) are OTHER with the ``+``-joined
+object names.
 """
 from __future__ import annotations
 
@@ -32,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, ray_numbers, sort_paths
 from mmslam.scenes.landmarks import FACES
 from mmslam.scenes.scenario import Scenario
 from mmslam.slam.measurement import BS, OTHER, SP, VA, VS, mirror_point
@@ -110,7 +113,9 @@ def _box_face(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np.ndarray,
                 verts: np.ndarray, toa_m: np.ndarray, angles: np.ndarray, power_db: np.ndarray,
-                antennas: np.ndarray, normals: np.ndarray | None = None, step: int = 0) -> dict[str, np.ndarray]:
+                antennas: np.ndarray, normals: np.ndarray | None = None, step: int = 0,
+                doppler_hz: np.ndarray | None = None, ray: np.ndarray | None = None,
+                return_rays: bool = False):
     """Label traced paths and keep the strongest path per (receiver, landmark).
 
     Args:
@@ -126,15 +131,21 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
         normals: ``(n, D, 3)`` unit normals of the hit triangles (needed only for static
             objects of kind "other static"; NaN elsewhere is fine).
         step: time index written to the ``step`` column.
+        doppler_hz: ``(n,)`` Doppler shift per path, Hz (NaN if not given).
+        ray: ``(n,)`` ray numbers (:func:`~mmslam.raytrace.schema.ray_numbers`; default: by TOA).
+        return_rays: also return the per-ray labels.
 
     Returns:
-        The ``paths`` columns (all of :data:`~mmslam.raytrace.schema.PATH_COLUMNS`), sorted.
+        The ``paths`` columns (all of :data:`~mmslam.raytrace.schema.PATH_COLUMNS`), sorted; with
+        ``return_rays`` a tuple ``(paths, {"type": (n,) int8, "landmark_id": (n,) object})``
+        with one label per input ray, in input order.
     """
     rx = np.asarray(rx, np.int64)
     n = rx.shape[0]
+    n_in = n
     if n == 0:
         out = empty_paths()
-        return out
+        return (out, {"type": np.zeros(0, np.int8), "landmark_id": np.zeros(0, object)}) if return_rays else out
     obj = np.asarray(obj, np.int64).reshape(n, -1)
     itype = np.asarray(itype, np.int64).reshape(n, -1)
     verts = np.asarray(verts, float).reshape(n, -1, 3)
@@ -142,6 +153,8 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
     angles = np.asarray(angles, float).reshape(n, 4)
     power = np.asarray(power_db, float).reshape(n)
     antennas = np.asarray(antennas, float).reshape(-1, 3)
+    dop = np.full(n, np.nan) if doppler_hz is None else np.asarray(doppler_hz, float).reshape(n)
+    rayn = ray_numbers(rx, toa) if ray is None else np.asarray(ray, np.int64).reshape(n)
     if not (np.all(np.isfinite(toa)) and np.all(np.isfinite(angles))):
         bad = int(np.sum(~np.isfinite(toa)) + np.sum(~np.all(np.isfinite(angles), axis=1)))
         raise ValueError(f"label_paths: {bad} traced paths have non-finite TOA or angles")
@@ -157,12 +170,16 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
     # drop paths touching the receiving vehicle's own body
     own = np.any((okind == K_VEHICLE) & (oveh == rx[:, None]), axis=1)
     keep = ~own
+    ray_typ = np.full(n_in, OTHER, np.int8)
+    ray_id = np.array(["+".join(index.names[o] for o in row if o >= 0) or "?" for row in obj], dtype=object) \
+        if np.any(own) else np.full(n_in, "", dtype=object)
     rx, obj, itype, verts, toa, angles, power = rx[keep], obj[keep], itype[keep], verts[keep], toa[keep], angles[keep], power[keep]
-    depth, okind, oveh = depth[keep], okind[keep], oveh[keep]
+    depth, okind, oveh, dop, rayn = depth[keep], okind[keep], oveh[keep], dop[keep], rayn[keep]
     nrm = None if normals is None else np.asarray(normals, float).reshape(n, D, 3)[keep]
     n = rx.shape[0]
     if n == 0:
-        return empty_paths()
+        out = empty_paths()
+        return (out, {"type": ray_typ, "landmark_id": ray_id}) if return_rays else out
 
     o0, k0, t0, p0 = obj[:, 0], okind[:, 0], itype[:, 0], verts[:, 0]
     single = depth == 1
@@ -269,6 +286,13 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
         "lm_x": lm[rep, 0], "lm_y": lm[rep, 1], "lm_z": lm[rep, 2],
         "n_paths": n_paths.astype(np.int32),
         "delay_spread_m": spread.astype(float),
+        "doppler_hz": dop[rep],
+        "ray": rayn[rep].astype(np.int32),
     }
     assert set(cols) == set(PATH_COLUMNS)
-    return sort_paths(cols)
+    out = sort_paths({k: cols[k] for k in PATH_COLUMNS})
+    if not return_rays:
+        return out
+    ray_typ[keep] = typ
+    ray_id[keep] = ids[g]
+    return out, {"type": ray_typ, "landmark_id": ray_id}

@@ -8,7 +8,12 @@ loads it with ``merge_shapes=False`` (one Sionna object per scenario object) and
 2. moves one receiver per vehicle to the antenna position ``(x, y, z)`` (just above the roof);
 3. runs one :class:`sionna.rt.PathSolver` call for all receivers (transmitter at the BS,
    isotropic single antennas, LOS + specular + diffuse reflection, no refraction/diffraction);
-4. converts the valid paths to NumPy and labels them (:mod:`mmslam.raytrace.labels`).
+4. converts the valid paths to NumPy once (complex coefficients ``a``, delays, angles, Doppler
+   shifts, interactions, vertices) and labels them (:mod:`mmslam.raytrace.labels`): every valid
+   path becomes a row of the ``rays`` table, the strongest per landmark a row of ``paths``.
+
+Every receiver moves with its vehicle's velocity (set on the receiver and on the car body), so
+Sionna's Doppler shifts include the receiver's motion and that of the car a VS path bounces off.
 
 Receivers and the transmitter are created once and only moved; geometry changes only by
 rewriting vertex buffers of constant size, so the solver's kernels are traced once and reused.
@@ -34,6 +39,7 @@ import numpy as np
 from mmslam.backend import import_mitsuba
 from mmslam.errors import ConfigError, MmslamError
 from mmslam.raytrace.labels import SceneIndex, label_paths
+from mmslam.raytrace.schema import SIONNA_INTERACTION_CODE, ray_numbers, rays_columns
 from mmslam.scenes.meshes import build_scene, car_local_vertices, car_pose_vertices
 from mmslam.scenes.scenario import Scenario
 
@@ -207,6 +213,8 @@ class SionnaSource:
         for v in scn.vehicles:
             for _ in range(2):
                 self.scene.objects[v.name].velocity = dr.opaque(mi.Vector3f, [0.0, 0.0, 0.0])
+            self.scene.receivers[_rx_name(v.name)].velocity = dr.opaque(mi.Vector3f, [0.0, 0.0, 0.0])
+        self.last_paths = None  # the Sionna Paths object of the latest step (for cross-checks)
 
     # ------------------------------------------------------------------ protocol
     def settings(self) -> dict:
@@ -242,15 +250,20 @@ class SionnaSource:
         self.scene.scene_geometry_updated()
         for i, v in enumerate(self.scn.vehicles):
             x, y, z, h, sp = (float(a) for a in states[i, :5])
-            self.scene.objects[v.name].velocity = dr.opaque(mi.Vector3f, [sp * np.cos(h), sp * np.sin(h), 0.0])
-            self.scene.receivers[_rx_name(v.name)].position = dr.opaque(mi.Point3f, [x, y, z])
+            vel = [sp * np.cos(h), sp * np.sin(h), 0.0]
+            self.scene.objects[v.name].velocity = dr.opaque(mi.Vector3f, vel)
+            rx = self.scene.receivers[_rx_name(v.name)]
+            rx.position = dr.opaque(mi.Point3f, [x, y, z])
+            rx.velocity = dr.opaque(mi.Vector3f, vel)
 
     def raw_paths(self, step: int, states: np.ndarray) -> dict[str, np.ndarray]:
         """Move vehicles/receivers to ``states`` and trace; unlabelled valid paths as NumPy.
 
         Returns ``rx (n,)``, ``obj (n, D)`` (index into ``self.index.names``, -1 empty slot),
         ``itype (n, D)``, ``verts (n, D, 3)``, ``normals (n, D, 3)`` (static XML objects only),
-        ``toa_m (n,)``, ``angles (n, 4)`` (global ``aod_az, aod_el, aoa_az, aoa_el``), ``power_db (n,)``.
+        ``toa_m (n,)``, ``angles (n, 4)`` (global ``aod_az, aod_el, aoa_az, aoa_el``), ``power_db (n,)``,
+        ``a (n,)`` complex path coefficients (Sionna's ``Paths.a``), ``delay_s (n,)`` (s),
+        ``doppler_hz (n,)`` (Hz). The Sionna ``Paths`` object stays in :attr:`last_paths`.
         """
         states = np.asarray(states, float)
         nv = len(self.scn.vehicles)
@@ -266,6 +279,7 @@ class SionnaSource:
                             los=True, specular_reflection=True, diffuse_reflection=True, refraction=False,
                             diffraction=False, seed=_step_seed(self.seed, step))
         self._steps_traced += 1
+        self.last_paths = p
         valid = np.asarray(p.valid.numpy(), bool).reshape(nv, -1)  # one tx
         r_idx, p_idx = np.nonzero(valid)
         n = r_idx.size
@@ -273,6 +287,7 @@ class SionnaSource:
         ang = [np.asarray(a.numpy(), float).reshape(nv, -1)[r_idx, p_idx]
                for a in (p.phi_t, p.theta_t, p.phi_r, p.theta_r)]
         are, aim = (np.asarray(a.numpy(), float).reshape(nv, -1)[r_idx, p_idx] for a in p.a)
+        doppler = np.asarray(p.doppler.numpy(), float).reshape(nv, -1)[r_idx, p_idx]
         with np.errstate(divide="ignore"):
             power = 10.0 * np.log10(are**2 + aim**2)
         inter = np.asarray(p.interactions.numpy()).astype(np.int64)
@@ -302,16 +317,33 @@ class SionnaSource:
         el_r = np.pi / 2 - ang[3]
         angles = np.stack([ang[0], el_t, ang[2], el_r], axis=1) if n else np.zeros((0, 4))
         return {"rx": r_idx.astype(np.int64), "obj": obj, "itype": itype, "verts": verts, "normals": normals,
-                "toa_m": tau * SPEED_OF_LIGHT, "angles": angles, "power_db": power}
+                "toa_m": tau * SPEED_OF_LIGHT, "angles": angles, "power_db": power, "a": are + 1j * aim,
+                "delay_s": tau, "doppler_hz": doppler}
 
     def trace_step(self, step: int, states: np.ndarray) -> dict[str, np.ndarray]:
-        """Labelled paths at one step (schema ``paths`` columns, sorted by rx, type, landmark id).
+        """The ``paths`` table of :meth:`trace_tables`."""
+        return self.trace_tables(step, states)["paths"]
+
+    def trace_tables(self, step: int, states: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+        """``rays`` (every valid path) and labelled ``paths`` at one step (schema columns, sorted).
 
         Args:
             step: time index (selects the solver seed).
             states: ``(n_vehicles, 7)`` true states ``[x, y, z, heading, speed, turn_rate, bias]``.
         """
         raw = self.raw_paths(step, states)
-        return label_paths(self.index, rx=raw["rx"], obj=raw["obj"], itype=raw["itype"], verts=raw["verts"],
-                           toa_m=raw["toa_m"], angles=raw["angles"], power_db=raw["power_db"],
-                           antennas=np.asarray(states, float)[:, 0:3], normals=raw["normals"], step=step)
+        ray = ray_numbers(raw["rx"], raw["delay_s"])
+        paths, lab = label_paths(self.index, rx=raw["rx"], obj=raw["obj"], itype=raw["itype"], verts=raw["verts"],
+                                 toa_m=raw["toa_m"], angles=raw["angles"], power_db=raw["power_db"],
+                                 antennas=np.asarray(states, float)[:, 0:3], normals=raw["normals"], step=step,
+                                 doppler_hz=raw["doppler_hz"], ray=ray, return_rays=True)
+        itype = raw["itype"]
+        code = np.zeros(itype.shape, np.int64)
+        for sc, c in SIONNA_INTERACTION_CODE.items():
+            code[itype == sc] = c
+        names = np.array([*self.index.names, "?"], dtype=object)
+        objects = np.where(itype != 0, names[np.where(raw["obj"] >= 0, raw["obj"], len(self.index.names))], "")
+        rays = rays_columns(step=step, rx=raw["rx"], typ=lab["type"], landmark_id=lab["landmark_id"], a=raw["a"],
+                            delay_s=raw["delay_s"], angles=raw["angles"], doppler_hz=raw["doppler_hz"], itype=code,
+                            objects=objects, verts=raw["verts"], ray=ray)
+        return {"rays": rays, "paths": paths}

@@ -24,10 +24,10 @@ import numpy as np
 from mmslam.errors import BackendError, CacheError, ConfigError
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
-    FORCE_HINT, MANIFEST, cache_dir_for, check_paths_finite, checked_chunks, config_hash, read_manifest, remove_temp_files, sha256_file,
-    vehicle_columns, write_chunk, write_manifest,
+    FORCE_HINT, MANIFEST, TABLES, cache_dir_for, check_paths_finite, checked_chunks, config_hash, file_metadata,
+    read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
-from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, sort_paths, sort_rays
 from mmslam.scenes.scenario import Scenario
 from mmslam.scenes.trajectory import true_trajectories
 
@@ -95,7 +95,7 @@ def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: Any) -> Non
         raise CacheError(f"{mp}: config hash {m['config_hash']} ({m['source']}) differs from this run's "
                          f"{want} ({source.name}); {FORCE_HINT}")
     for c in checked_chunks(m, mp):
-        for table in ("vehicles", "paths"):
+        for table in TABLES:
             f = cache_dir / c["files"][table]
             if not f.is_file():
                 raise CacheError(f"{f}: chunk file missing; {FORCE_HINT}")
@@ -103,15 +103,23 @@ def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: Any) -> Non
                 raise CacheError(f"{f}: sha256 mismatch (truncated or modified); {FORCE_HINT}")
 
 
-def _check_step_output(cols: dict[str, np.ndarray], step: int, source: Any) -> dict[str, np.ndarray]:
-    miss = [k for k in PATH_COLUMNS if k not in cols]
-    if miss:
-        raise CacheError(f"source '{source.name}' returned no columns {miss} at step {step}")
-    n = len(cols["rx"])
-    out = {k: np.asarray(cols[k]) for k in PATH_COLUMNS}
-    if any(len(v) != n for v in out.values()):
-        raise CacheError(f"source '{source.name}' returned columns of unequal length at step {step}")
-    out["step"] = np.full(n, step, dtype=np.int32)
+def _check_step_output(tables: dict[str, dict[str, np.ndarray]], step: int, source: Any
+                       ) -> dict[str, dict[str, np.ndarray]]:
+    """A source's ``{"rays", "paths"}`` output at one step, checked (all columns, equal lengths)."""
+    out = {}
+    for table, schema in (("rays", RAY_COLUMNS), ("paths", PATH_COLUMNS)):
+        cols = tables.get(table) if isinstance(tables, dict) else None
+        if cols is None:
+            raise CacheError(f"source '{source.name}' returned no {table} table at step {step}")
+        miss = [k for k in schema if k not in cols]
+        if miss:
+            raise CacheError(f"source '{source.name}' returned no {table} columns {miss} at step {step}")
+        n = len(cols["rx"])
+        t = {k: np.asarray(cols[k]) for k in schema}
+        if any(len(v) != n for v in t.values()):
+            raise CacheError(f"source '{source.name}' returned {table} columns of unequal length at step {step}")
+        t["step"] = np.full(n, step, dtype=np.int32)
+        out[table] = t
     return out
 
 
@@ -126,7 +134,7 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         steps: number of steps (default ``scn.steps``).
         chunk_steps: steps per Parquet chunk (chunks are aligned to multiples of it).
         force: delete an existing cache for this config first.
-        progress: show a progress bar (steps, paths/s, ETA) on stderr.
+        progress: show a progress bar (steps, rays/s, ETA) on stderr.
 
     Returns:
         The cache directory.
@@ -208,8 +216,8 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
     done = int(m["steps_completed"])
     # orphaned chunk files past the manifest (killed between chunk write and manifest write)
     known = {f for c in m["chunks"] for f in c["files"].values()}
-    for p in list(cache_dir.glob("vehicles-*.parquet")) + list(cache_dir.glob("paths-*.parquet")):
-        if p.name not in known:
+    for p in [f for t in TABLES for f in cache_dir.glob(f"{t}/part-*.parquet")]:
+        if p.relative_to(cache_dir).as_posix() not in known:
             p.unlink()
     write_manifest(cache_dir, m)
     if done >= n_steps:
@@ -223,7 +231,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
         from rich.console import Console
 
         bar = Progress(TextColumn(f"trace {scn.name} ({source.name})"), BarColumn(), MofNCompleteColumn(),
-                       TextColumn("steps"), TextColumn("{task.fields[rate]:.0f} paths/s"),
+                       TextColumn("steps"), TextColumn("{task.fields[rate]:.0f} rays/s"),
                        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
                        console=Console(stderr=True), transient=False)
         task = bar.add_task("trace", total=n_steps, completed=done, rate=0.0)
@@ -236,15 +244,16 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
             stop = min((start // chunk_steps + 1) * chunk_steps, n_steps)
             parts = []
             for k in range(start, stop):
-                parts.append(_check_step_output(source.trace_step(k, states[k]), k, source))
-                n_rows += len(parts[-1]["rx"])
+                parts.append(_check_step_output(source.trace_tables(k, states[k]), k, source))
+                n_rows += len(parts[-1]["rays"]["rx"])
                 if bar is not None:
                     bar.update(task, advance=1, rate=n_rows / max(time.perf_counter() - t0, 1e-9))
-            paths = sort_paths({c: np.concatenate([p[c] for p in parts]) for c in PATH_COLUMNS})
+            paths = sort_paths({c: np.concatenate([p["paths"][c] for p in parts]) for c in PATH_COLUMNS})
+            rays = sort_rays({c: np.concatenate([p["rays"][c] for p in parts]) for c in RAY_COLUMNS})
             check_paths_finite(paths, f"source '{source.name}' output",
                                hint="nothing was written for these steps; fix the source")
-            entry = write_chunk(cache_dir, len(m["chunks"]), start,
-                                vehicle_columns(states[start:stop], start, scn.dt), paths)
+            tables = {"vehicles": vehicle_columns(states[start:stop], start, scn.dt), "rays": rays, "paths": paths}
+            entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, file_metadata(m))
             entry["versions"] = versions  # a resumed trace may run under other library versions
             m["chunks"].append(entry)
             m["steps_completed"] = stop

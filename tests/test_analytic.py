@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmslam.raytrace.analytic import AnalyticSource, free_space_power_db
+from mmslam.raytrace.analytic import AnalyticSource, free_space_power_db, fresnel_reflection, relative_permittivity
 from mmslam.raytrace.schema import PATH_COLUMNS
 from mmslam.scenes.scenario import load_preset, scenario_from_dict
 from mmslam.scenes.trajectory import vehicle_trajectories
@@ -159,14 +159,88 @@ def test_ground_face_gives_va_below_ground():
     np.testing.assert_allclose([c["lm_x"][va[0]], c["lm_z"][va[0]]], [0.0, -10.0])
 
 
-def test_power_is_free_space_loss(paper):
+def test_power_is_free_space_loss_for_los_and_reflection_and_radar_otherwise(paper):
     # FSPL at 100 m, 28 GHz: 20 log10(4 pi 100 28e9 / c) = 101.391 dB
     assert free_space_power_db(100.0, 28e9) == pytest.approx(-101.391, abs=1e-3)
     _, _, _, rows = paper
     c = rows[3]
-    np.testing.assert_allclose(c["power_db"], free_space_power_db(c["toa_m"], 28e9))
+    los = c["type"] == BS
+    np.testing.assert_allclose(c["power_db"][los], free_space_power_db(c["toa_m"][los], 28e9))
+    # a reflection loses power (|Gamma| < 1), a 1 m^2 point scatterer much more than free space
+    va = c["type"] == VA
+    assert np.all(c["power_db"][va] < free_space_power_db(c["toa_m"][va], 28e9) - 1.0)
     assert (c["n_paths"] == 1).all() and (c["delay_spread_m"] == 0).all()
     assert (c["bounces"][c["type"] != BS] == 1).all()
+
+
+def _c():
+    return 299_792_458.0
+
+
+def test_gains_and_doppler_hand_computed():
+    """Normal incidence on a concrete wall, a point scatterer, a receiver driving at the BS."""
+    # BS [0, 0, 10], wall face x = 20 (concrete). Receiver 0 at [5, 0, 10] driving towards -x at 10 m/s.
+    scn = scenario_from_dict({
+        "name": "onewall", "bs": [0.0, 0.0, 10.0], "dt": 0.5, "steps": 1,
+        "buildings": [{"name": "w", "min": [20.0, -5.0, 0.0], "max": [25.0, 5.0, 20.0]}],
+        "scatterers": [{"name": "s", "position": [5.0, 30.0, 10.0]}],
+        "vehicles": [{"name": "car0", "initial_state": [5.0, 0.0, 10.0, np.pi, 10.0, 0.0, 0.0]},
+                     {"name": "car1", "initial_state": [5.0, 20.0, 10.0, np.pi / 2, 4.0, 0.0, 0.0]}],
+        "sensor": {"fov_range": 40.0},
+    })
+    f = scn.frequency_hz
+    lam = _c() / f
+    t = AnalyticSource(scn, rcs_m2=2.0).trace_tables(0, vehicle_trajectories(scn, 1)[0])
+    c, r = t["paths"], t["rays"]
+    row = {(int(rx), str(i)): j for j, (rx, i) in enumerate(zip(c["rx"], c["landmark_id"]))}
+    a = c["a_re"] if "a_re" in c else None
+    ra = r["a_re"] + 1j * r["a_im"]
+    rrow = {(int(rx), str(i)): j for j, (rx, i) in enumerate(zip(r["rx"], r["landmark_id"]))}
+    # LOS: |a| = lambda / (4 pi 5); moving straight at the BS: Doppler +10 / lambda
+    j = rrow[(0, "bs")]
+    assert ra[j] == pytest.approx(lam / (4 * np.pi * 5.0), rel=1e-12)
+    assert r["doppler_hz"][j] == pytest.approx(10.0 / lam, abs=1e-9)
+    assert c["doppler_hz"][row[(0, "bs")]] == pytest.approx(10.0 / lam, abs=1e-9)
+    # VA at normal incidence: Gamma = (1 - sqrt(eta)) / (1 + sqrt(eta)), ITU concrete at 28 GHz
+    fg = f / 1e9
+    eta = 5.24 - 1j * 0.0462 * fg**0.7822 / (2 * np.pi * f * 8.8541878128e-12)
+    gamma = (1 - np.sqrt(eta)) / (1 + np.sqrt(eta))
+    j = rrow[(0, "w:-x")]
+    assert ra[j] == pytest.approx(gamma * lam / (4 * np.pi * 35.0), rel=1e-9)
+    # the image [40, 0, 10] is ahead of... behind the receiver driving away from it: -10 / lambda
+    assert r["doppler_hz"][j] == pytest.approx(-10.0 / lam, abs=1e-9)
+    assert r["bounce1_type"][j] == 1 and r["bounce1_object"][j] == "w"
+    np.testing.assert_allclose([r["bounce1_x"][j], r["bounce1_y"][j], r["bounce1_z"][j]], [20, 0, 10])
+    # SP at [5, 30, 10]: d1 = |[5, 30, 0]|, d2 = 30 (receiver 0); a = sqrt(2) lambda / ((4 pi)^1.5 d1 d2)
+    d1 = np.hypot(5.0, 30.0)
+    j = rrow[(0, "s")]
+    assert ra[j] == pytest.approx(np.sqrt(2.0) * lam / ((4 * np.pi) ** 1.5 * d1 * 30.0), rel=1e-12)
+    assert r["doppler_hz"][j] == pytest.approx(0.0, abs=1e-9)  # moving perpendicular to the SP direction
+    # VS: car1 at [5, 20, 10] moving +y at 4 m/s seen by car0 (moving -x at 10 m/s):
+    # f = (v0 . u(s - u0) - v1 . (u(s - b) + u(s - u0))) / lambda
+    s_, b_, u0 = np.array([5.0, 20, 10]), np.array([0.0, 0, 10]), np.array([5.0, 0, 10])
+    v0, v1 = np.array([-10.0, 0, 0]), np.array([0.0, 4, 0])
+    unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
+    want = (v0 @ unit(s_ - u0) - v1 @ (unit(s_ - b_) + unit(s_ - u0))) / lam
+    assert r["doppler_hz"][rrow[(0, "car1")]] == pytest.approx(want, abs=1e-9)
+    assert want == pytest.approx(-4.0 * (20 / np.hypot(5, 20) + 1.0) / lam)
+    assert a is None  # paths carries power and Doppler; the complex gain lives in rays
+    # paths link to their ray: same delay and power
+    for i in range(len(c["rx"])):
+        k = np.flatnonzero((r["rx"] == c["rx"][i]) & (r["ray"] == c["ray"][i]))
+        assert k.size == 1 and r["landmark_id"][k[0]] == c["landmark_id"][i]
+        assert r["delay_s"][k[0]] * _c() == pytest.approx(c["toa_m"][i], rel=1e-12)
+        assert r["power_db"][k[0]] == pytest.approx(c["power_db"][i], abs=1e-12)
+
+
+def test_fresnel_normal_incidence_and_grazing():
+    """ITU-R P.2040 convention: at normal incidence Gamma_TE = -Gamma_TM = (1 - sqrt(eta)) / (1 + sqrt(eta));
+    both tend to -1 at grazing incidence."""
+    eta = relative_permittivity("concrete", 28e9)
+    g = fresnel_reflection(np.array([1.0, 1.0, 1e-6, 1e-6]), eta, np.array([True, False, True, False]))
+    assert g[0] == pytest.approx(-g[1]) and g[0] == pytest.approx((1 - np.sqrt(eta)) / (1 + np.sqrt(eta)))
+    assert g[2] == pytest.approx(-1.0, abs=1e-4) and g[3] == pytest.approx(-1.0, abs=1e-4)
+    assert relative_permittivity("metal", 28e9).imag < -1e6  # a conductor
 
 
 def test_rows_sorted_and_deterministic(paper):

@@ -18,7 +18,7 @@ from mmslam.cli import main
 from mmslam.errors import CacheError, MmslamError
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
-    MANIFEST, cache_dir_for, load_cache, vehicle_columns, write_chunk, write_manifest,
+    MANIFEST, cache_dir_for, file_metadata, load_cache, vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS
 from mmslam.raytrace.trace import make_source, trace_scenario
@@ -40,11 +40,11 @@ class FailingSource(AnalyticSource):
         self.fail_at = fail_at
         self.calls: list[int] = []
 
-    def trace_step(self, step, states):
+    def trace_tables(self, step, states):
         self.calls.append(step)
         if step == self.fail_at:
             raise RuntimeError("boom")
-        return super().trace_step(step, states)
+        return super().trace_tables(step, states)
 
 
 def _tables(c):
@@ -63,9 +63,9 @@ def test_roundtrip_matches_source(tmp_path, paper):
     d = trace_scenario(paper, src, tmp_path, steps=7, chunk_steps=3, progress=False)
     assert d == cache_dir_for(tmp_path, paper, src) and d.parent == tmp_path
     assert d.name.startswith("paper-analytic-")
-    files = sorted(p.name for p in d.iterdir())
-    assert files == [MANIFEST] + [f"paths-{i:05d}.parquet" for i in range(3)] + \
-        [f"vehicles-{i:05d}.parquet" for i in range(3)]
+    files = sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file())
+    assert files == [MANIFEST] + [f"{t}/part-{i:05d}.parquet" for t in ("paths", "rays", "vehicles")
+                                  for i in range(3)]
     c = load_cache(tmp_path)  # a root holding exactly one cache is accepted
     assert c.path == d and c.steps == 7
     m = c.manifest
@@ -132,9 +132,9 @@ def test_orphan_chunk_and_temp_files_are_cleaned_on_resume(tmp_path, paper):
     m["chunks"] = m["chunks"][:1]
     m["steps_completed"] = 3
     write_manifest(d, m)
-    (d / ".paths-00002.parquet.abc.tmp").write_bytes(b"partial")
+    (d / "paths" / ".part-00002.parquet.abc.tmp").write_bytes(b"partial")
     trace_scenario(paper, src, tmp_path, steps=6, chunk_steps=3, progress=False)
-    assert not list(d.glob("*.tmp")) and load_cache(d).steps == 6
+    assert not list(d.rglob("*.tmp")) and load_cache(d).steps == 6
 
 
 def test_kill_at_any_moment_then_rerun(tmp_path, paper):
@@ -179,7 +179,7 @@ def test_kill_at_any_moment_then_rerun(tmp_path, paper):
 
 def test_force_retraces(tmp_path, paper):
     d = trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=4, progress=False)
-    (d / "paths-00000.parquet").write_bytes(b"garbage")
+    (d / "paths" / "part-00000.parquet").write_bytes(b"garbage")
     with pytest.raises(CacheError, match="--force"):
         trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=4, progress=False)
     src = FailingSource(paper, fail_at=-1)
@@ -189,31 +189,31 @@ def test_force_retraces(tmp_path, paper):
 
 def test_truncated_chunk_is_a_one_line_cache_error_and_exit_2(tmp_path, paper, capsys):
     d = trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=8, chunk_steps=4, progress=False)
-    f = d / "paths-00001.parquet"
+    f = d / "paths" / "part-00001.parquet"
     f.write_bytes(f.read_bytes()[:100])
     with pytest.raises(CacheError) as e:
         load_cache(d)
     msg = str(e.value)
-    assert "paths-00001.parquet" in msg and "--force" in msg and "\n" not in msg
+    assert "paths/part-00001.parquet" in msg and "--force" in msg and "\n" not in msg
     capsys.readouterr()
     assert main(["paths", str(d)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "paths-00001.parquet" in err and len(err.splitlines()) == 1
+    assert err.startswith("error: ") and "paths/part-00001.parquet" in err and len(err.splitlines()) == 1
 
 
 def test_corrupt_parquet_with_matching_sha_and_missing_chunk(tmp_path, paper):
     d = trace_scenario(paper, AnalyticSource(paper), tmp_path, steps=4, chunk_steps=2, progress=False)
     m = json.loads((d / MANIFEST).read_text())
     junk = b"PAR1" + b"\x00" * 64 + b"PAR1"
-    (d / "vehicles-00001.parquet").write_bytes(junk)
+    (d / "vehicles" / "part-00001.parquet").write_bytes(junk)
     import hashlib
 
     m["chunks"][1]["sha256"]["vehicles"] = hashlib.sha256(junk).hexdigest()
     write_manifest(d, m)
-    with pytest.raises(CacheError, match=r"vehicles-00001\.parquet: unreadable Parquet"):
+    with pytest.raises(CacheError, match=r"vehicles/part-00001\.parquet: unreadable Parquet"):
         load_cache(d)
-    (d / "vehicles-00001.parquet").unlink()
-    with pytest.raises(CacheError, match=r"vehicles-00001\.parquet: chunk file missing"):
+    (d / "vehicles" / "part-00001.parquet").unlink()
+    with pytest.raises(CacheError, match=r"vehicles/part-00001\.parquet: chunk file missing"):
         load_cache(d)
 
 
@@ -292,8 +292,12 @@ def _rewrite_chunk(d: Path, idx: int, mutate) -> None:
     sel = (c.paths["step"] >= ch["step_start"]) & (c.paths["step"] < ch["step_stop"])
     paths = {k: v[sel].copy() for k, v in c.paths.items()}
     mutate(paths)
+    rays = c.read_rays()
+    rsel = (rays["step"] >= ch["step_start"]) & (rays["step"] < ch["step_stop"])
     veh = vehicle_columns(c.states[ch["step_start"]:ch["step_stop"]], ch["step_start"], c.scenario.dt)
-    m["chunks"][idx] = write_chunk(d, idx, ch["step_start"], veh, paths)
+    m["chunks"][idx] = write_chunk(d, idx, ch["step_start"],
+                                   {"vehicles": veh, "rays": {k: v[rsel] for k, v in rays.items()},
+                                    "paths": paths}, file_metadata(m))
     write_manifest(d, m)
 
 
@@ -330,10 +334,10 @@ def test_nan_in_path_row_is_a_one_line_error(tmp_path, paper, capsys):
 
 def test_trace_refuses_nan_from_a_source(tmp_path, paper):
     class NanSource(AnalyticSource):
-        def trace_step(self, step, states):
-            c = super().trace_step(step, states)
+        def trace_tables(self, step, states):
+            c = super().trace_tables(step, states)
             if step == 3:
-                c["aoa_el"][0] = np.nan
+                c["paths"]["aoa_el"][0] = np.nan
             return c
 
     with pytest.raises(CacheError, match="'aoa_el' is nan at step 3"):
