@@ -1,4 +1,4 @@
-"""CLI commands of this subpackage: ``mmslam trace`` and ``mmslam paths``."""
+"""CLI commands of this subpackage: ``mmslam trace``, ``mmslam paths`` and ``mmslam export``."""
 from __future__ import annotations
 
 import io
@@ -116,3 +116,36 @@ def register(app: typer.Typer) -> None:
         if plot is not None:
             plot_toa(c, plot)
             typer.echo(f"wrote {plot}")
+
+    @app.command("export")
+    def export_cmd(
+        cache_dir: Path = typer.Argument(..., help="A cache directory (or a root holding one cache)."),
+        cir: bool = typer.Option(False, "--cir", help="Channel impulse response taps (sinc pulse at --bandwidth)."),
+        cfr: bool = typer.Option(False, "--cfr", help="Channel frequency response at the subcarriers."),
+        bandwidth: float = typer.Option(400e6, "--bandwidth", help="Bandwidth W in Hz."),
+        subcarriers: int = typer.Option(1024, "--subcarriers",
+                                        help="Subcarriers (CFR; spacing W / N) or taps l_min..N-1 (CIR)."),
+        l_min: int = typer.Option(0, "--l-min", help="First CIR tap index (negative: sinc leakage before 0)."),
+        time_steps: int = typer.Option(1, "--time-steps", help="Doppler evolution: samples at t = n / W per step."),
+        no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
+                                                 help="Keep absolute delays (default: first ray of a link at 0)."),
+        out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta)."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing --out file."),
+    ) -> None:
+        """Export the CIR or CFR of every step and receiver of a cache (from its rays table) to an .npz file."""
+        from mmslam.outputs import check_target
+        from mmslam.raytrace.cache import atomic_write_bytes, load_cache
+        from mmslam.raytrace.channel import cache_channel_response
+
+        if cir == cfr:
+            raise ConfigError("mmslam export: give exactly one of --cir or --cfr")
+        if out.suffix != ".npz":
+            raise ConfigError(f"--out {out}: expected a file name ending in .npz")
+        c = load_cache(cache_dir)
+        check_target(out, "channel", force, protect=(c.path,))
+        resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
+                                      n_subcarriers=subcarriers, l_min=l_min, num_time_steps=time_steps,
+                                      normalize_delays=not no_normalize_delays)
+        atomic_write_bytes(out, resp.to_npz_bytes())
+        typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
+                   f"{'frequency' if cfr else 'tap'})")
