@@ -275,3 +275,17 @@ def rays_columns(*, step: int, rx: np.ndarray, typ: np.ndarray, landmark_id: np.
             cols[f"bounce{k + 1}_{c}"] = np.where(has, verts[:, k, j] if k < D else np.nan, np.nan)
     return sort_rays({k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t))
                       for k, t in RAY_COLUMNS.items()})
+
+
+def schema_markdown() -> str:
+    """Markdown tables of every column (name, dtype on disk, unit, meaning), as in ``docs/dataset.md``."""
+    lines = []
+    labels = {"type": ", ".join(TYPE_LABELS), "interaction": ", ".join(INTERACTION_LABELS),
+              "tx": ", ".join(TX_LABELS), "vehicle": "the vehicle names"}
+    for table, spec in TABLE_SPECS.items():
+        lines += [f"### `{table}`", "", "| column | type | unit | meaning |", "|---|---|---|---|"]
+        for k, c in spec.items():
+            typ = f"dictionary ({labels[c.enum]})" if c.enum else c.dtype
+            lines.append(f"| `{k}` | {typ} | {c.unit or '-'} | {c.doc} |")
+        lines.append("")
+    return "\n".join(lines)

@@ -167,3 +167,11 @@ def test_export_cfr_and_cir_hand_computed(tmp_path, capsys):
 def test_subcarrier_frequencies_like_sionna():
     np.testing.assert_allclose(subcarrier_frequencies(4, 1.0), [-2, -1, 0, 1])
     np.testing.assert_allclose(subcarrier_frequencies(5, 2.0), [-4, -2, 0, 2, 4])
+
+
+def test_docs_list_every_column_with_its_unit():
+    from mmslam.raytrace.schema import schema_markdown
+
+    doc = (Path(__file__).parents[1] / "docs" / "dataset.md").read_text()
+    for line in schema_markdown().splitlines():
+        assert line in doc, line
