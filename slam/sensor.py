@@ -11,6 +11,17 @@ drawn from a caller-supplied :class:`numpy.random.Generator`:
 
 A measurement is ``z = [TOA + B, AOD az, AOD el, AOA az - heading, AOA el]`` (m, rad; azimuths
 wrapped to ``(-pi, pi]``), see :mod:`mmslam.slam.measurement`.
+
+Two detection / noise models:
+
+- **constant** (default; the paper's): ``p_D = sensor.p_detect``, noise ``R = diag(toa_std^2,
+  angle_std^2 x 4)`` for every path;
+- **power-aware** (``link=LinkBudget(...)``): from each path's ``power_db`` (the traced path gain)
+  the link budget gives its SNR, the SNR gives the detection probability (envelope detector at a
+  fixed false-alarm rate, Marcum Q) and the measurement standard deviations (Cramer-Rao bounds of
+  delay and angles: std proportional to ``1 / sqrt(SNR)``, inversely to the bandwidth / array
+  size). Each measurement carries its own covariance (:attr:`Measurements.R_meas`); clutter
+  slots carry the covariance at the detection threshold SNR. See :class:`LinkBudget`.
 """
 from __future__ import annotations
 
@@ -25,6 +36,9 @@ from mmslam.scenes.scenario import Scenario, SensorParams
 
 from .dynamics import wrap_angle
 from .measurement import BS, MEAS_DIM, OTHER, SP, VA, VS
+
+SPEED_OF_LIGHT = 299_792_458.0  # m/s
+BOLTZMANN_DBM_HZ = -173.975  # 10 log10(k T0 / 1 mW) at T0 = 290 K, dBm/Hz
 
 _Z_COLUMNS = ("toa_m", "aod_az", "aod_el", "aoa_az", "aoa_el")
 _LM_COLUMNS = ("lm_x", "lm_y", "lm_z")
@@ -47,7 +61,14 @@ class Measurements:
             turn_rate, clock_bias]`` with the simulated clock-bias random walk.
         clutter_intensity: ``c(z) = clutter_mean / V`` with the measurement-space volume
             ``V = clutter_toa_max * 2pi * pi * 2pi * pi`` (units 1 / (m rad^4)).
-        R: ``(5, 5)`` true measurement-noise covariance ``diag(toa_std^2, angle_std^2 x 4)``.
+        R: ``(5, 5)`` true measurement-noise covariance ``diag(toa_std^2, angle_std^2 x 4)`` (the
+            constant model; with a link budget: the covariance at the detection threshold SNR).
+        R_meas: ``(steps, n_veh, J, 5)`` per-measurement noise variances (diagonal of its
+            covariance, m^2 and rad^2): ``diag(R)`` everywhere for the constant model, the
+            path's CRB variances for the power-aware model (clutter: those at the threshold SNR);
+            0 where padded.
+        snr_db: ``(steps, n_veh, J)`` the path's SNR (dB) under the link budget; NaN for clutter,
+            padding and the constant model.
     """
 
     z: np.ndarray
@@ -58,6 +79,8 @@ class Measurements:
     true_states: np.ndarray
     clutter_intensity: float
     R: np.ndarray
+    R_meas: np.ndarray | None = None
+    snr_db: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -85,6 +108,89 @@ def clutter_intensity(params: SensorParams) -> float:
 def noise_covariance(params: SensorParams) -> np.ndarray:
     """True measurement-noise covariance ``diag(toa_std^2, angle_std^2 x 4)``, ``(5, 5)``."""
     return np.diag([params.toa_std**2] + [params.angle_std**2] * 4)
+
+
+@dataclass(frozen=True)
+class LinkBudget:
+    """Power-aware sensor model: link budget, detector and Cramer-Rao accuracy (28 GHz defaults).
+
+    SNR of a path with path gain ``G`` dB (the cache's ``power_db``)::
+
+        SNR_dB = tx_power_dbm + tx_gain_dbi + rx_gain_dbi + G + processing_gain_db
+                 - (-173.975 + 10 log10(bandwidth_hz) + noise_figure_db)
+
+    Defaults: 20 dBm transmit power, an 8 x 8 BS array (18.1 dBi = 10 log10 64) and a 4 x 4
+    vehicle array (12.0 dBi), 400 MHz bandwidth, 9 dB noise figure, no processing gain (one
+    snapshot), false-alarm probability 1e-4 per resolution cell. A LOS path at 80 m (-99.5 dB)
+    then has an SNR of about 29 dB, a wall reflection at 200 m about 13 dB.
+
+    Detection probability (non-fluctuating path, envelope detector with the threshold set for
+    ``pfa``): ``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` (Marcum Q), increasing in SNR, equal to
+    ``pfa`` as the SNR goes to 0 (linear) and to 0.5 at SNR = 9.4 dB for ``pfa = 1e-4``.
+
+    Standard deviations (Cramer-Rao bounds, flat spectrum over the bandwidth ``B``, uniform
+    half-wavelength arrays of ``N`` elements per axis, evaluated at broadside):
+    ``std_toa = c sqrt(3) / (pi B sqrt(2 SNR))`` m (RMS bandwidth ``B / sqrt(12)``) and
+    ``std_angle = sqrt(6 / (pi^2 N (N^2 - 1) 2 SNR))`` rad with ``N = tx_array`` for AOD and
+    ``N = rx_array`` for AOA. Halving the SNR multiplies every std by ``sqrt(2)``.
+    """
+
+    tx_power_dbm: float = 20.0
+    tx_gain_dbi: float = 18.06
+    rx_gain_dbi: float = 12.04
+    bandwidth_hz: float = 400e6
+    noise_figure_db: float = 9.0
+    processing_gain_db: float = 0.0
+    pfa: float = 1e-4
+    tx_array: int = 8
+    rx_array: int = 4
+
+    def __post_init__(self) -> None:
+        for k in ("tx_power_dbm", "tx_gain_dbi", "rx_gain_dbi", "noise_figure_db", "processing_gain_db"):
+            if not math.isfinite(getattr(self, k)):
+                raise MmslamError(f"link budget {k}={getattr(self, k)!r}: expected a finite number (dB)")
+        if not (math.isfinite(self.bandwidth_hz) and self.bandwidth_hz > 0):
+            raise MmslamError(f"link budget bandwidth_hz={self.bandwidth_hz!r}: expected a positive bandwidth (Hz)")
+        if not 0.0 < self.pfa < 1.0:
+            raise MmslamError(f"link budget pfa={self.pfa!r}: expected a probability in (0, 1)")
+        for k in ("tx_array", "rx_array"):
+            if int(getattr(self, k)) < 2:
+                raise MmslamError(f"link budget {k}={getattr(self, k)!r}: expected at least 2 elements per axis")
+
+    @property
+    def noise_dbm(self) -> float:
+        """Thermal noise power over the bandwidth plus the noise figure, dBm."""
+        return BOLTZMANN_DBM_HZ + 10.0 * math.log10(self.bandwidth_hz) + self.noise_figure_db
+
+    def snr_db(self, path_gain_db: np.ndarray) -> np.ndarray:
+        """SNR (dB) of paths with gains ``path_gain_db`` (dB, e.g. the cache's ``power_db``)."""
+        return (self.tx_power_dbm + self.tx_gain_dbi + self.rx_gain_dbi + np.asarray(path_gain_db, float)
+                + self.processing_gain_db - self.noise_dbm)
+
+    def detect_prob(self, snr_db: np.ndarray) -> np.ndarray:
+        """``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` (non-central chi-square, 2 degrees of freedom)."""
+        from scipy.stats import ncx2
+
+        snr = 10.0 ** (np.asarray(snr_db, float) / 10.0)
+        return ncx2.sf(-2.0 * math.log(self.pfa), 2, 2.0 * snr)
+
+    def threshold_snr_db(self) -> float:
+        """SNR (dB) at which ``p_D = 0.5``: the typical SNR of a false alarm's covariance."""
+        from scipy.optimize import brentq
+
+        return float(brentq(lambda x: float(self.detect_prob(x)) - 0.5, -20.0, 40.0))
+
+    def stds(self, snr_db: np.ndarray) -> np.ndarray:
+        """CRB standard deviations ``(..., 5)``: ``[toa (m), aod_az, aod_el, aoa_az, aoa_el (rad)]``."""
+        snr = 10.0 ** (np.asarray(snr_db, float) / 10.0)
+        k = 1.0 / np.sqrt(2.0 * snr)
+        toa = SPEED_OF_LIGHT * math.sqrt(3.0) / (math.pi * self.bandwidth_hz) * k
+
+        def ang(n: int) -> float:
+            return math.sqrt(6.0 / (math.pi**2 * n * (n * n - 1)))
+
+        at, ar = ang(int(self.tx_array)), ang(int(self.rx_array))
+        return np.stack([toa, at * k, at * k, ar * k, ar * k], axis=-1)
 
 
 def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | np.ndarray,
@@ -121,7 +227,8 @@ def _used_types(scn: Scenario, include_types: Sequence[int]) -> np.ndarray:
 
 def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                           rng: np.random.Generator,
-                          include_types: Sequence[int] = (BS, VA, SP, VS)) -> Measurements:
+                          include_types: Sequence[int] = (BS, VA, SP, VS),
+                          link: LinkBudget | None = None) -> Measurements:
     """Draw one Monte Carlo run of measurement sets from noise-free paths.
 
     Args:
@@ -135,6 +242,8 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
         rng: the only source of randomness.
         include_types: landmark types whose paths become measurements. ``OTHER`` (4) paths are
             used if and only if ``scn.sensor.emit_other`` is set, whatever this argument says.
+        link: ``None`` for the constant model (``p_detect``, ``toa_std``, ``angle_std``), or a
+            :class:`LinkBudget` for the power-aware model (needs ``power_db`` on every used row).
 
     Returns:
         :class:`Measurements`.
@@ -195,13 +304,34 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
             raise MmslamError(f"paths column '{c}' is NaN/inf at step {step[i]} (rx {rx[i]}, "
                               f"landmark '{ids[i]}'); an SP/VS row needs its landmark position")
 
-    # ---- detection (FOV + p_D) and noise
+    # ---- per-row detection probability and noise std: constant, or from the link budget
     n = idx.size
+    if link is None:
+        pd_row = np.full(n, sp.p_detect)
+        std_row = np.broadcast_to(np.sqrt(np.diag(noise_covariance(sp))), (n, MEAS_DIM))
+        snr_row = np.full(n, np.nan)
+        R_out = noise_covariance(sp)
+        var_clutter = np.diag(R_out)
+    else:
+        if "power_db" not in paths:
+            raise MmslamError("paths table has no column 'power_db'; the power-aware sensor model needs it")
+        snr_row = link.snr_db(np.asarray(paths["power_db"], dtype=float)[idx])
+        bad = ~np.isfinite(snr_row)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise MmslamError(f"paths column 'power_db' is {paths['power_db'][idx[i]]} at step {step[i]} (rx {rx[i]}, "
+                              f"landmark '{ids[i]}'); the power-aware sensor model needs every path's power")
+        pd_row = link.detect_prob(snr_row)
+        std_row = link.stds(snr_row)
+        var_clutter = link.stds(link.threshold_snr_db()) ** 2
+        R_out = np.diag(var_clutter)
+
+    # ---- detection (FOV + p_D) and noise
     u_det = rng.random(n)
-    noise = rng.standard_normal((n, MEAS_DIM)) * np.sqrt(np.diag(noise_covariance(sp)))
+    noise = rng.standard_normal((n, MEAS_DIM)) * std_row
     upos = true[step, rx, 0:3]
     in_fov = ~point | (np.linalg.norm(np.where(point[:, None], lm, 0.0) - upos, axis=-1) <= sp.fov_range)
-    det = in_fov & (u_det < sp.p_detect)
+    det = in_fov & (u_det < pd_row)
     z = g.copy()
     z[:, 0] += true[step, rx, 6]
     z[:, 3] = z[:, 3] - true[step, rx, 3]
@@ -228,6 +358,8 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
     all_type = np.concatenate([typ[det], np.full(n_c, -1)]).astype(np.int8)
     all_id = np.concatenate([ids[det].astype(object), np.full(n_c, "", dtype=object)])
     all_pos = np.concatenate([np.where(typ[det, None] == OTHER, np.nan, lm[det]), np.full((n_c, 3), np.nan)])
+    all_var = np.concatenate([std_row[det] ** 2, np.broadcast_to(var_clutter, (n_c, MEAS_DIM))])
+    all_snr = np.concatenate([snr_row[det], np.full(n_c, np.nan)])
     keys = rng.random(all_set.size)
     order = np.lexsort((keys, all_set))
     s_sorted = all_set[order]
@@ -247,4 +379,8 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
     otype[ks, vs, slot] = all_type[order]
     oid[ks, vs, slot] = all_id[order]
     opos[ks, vs, slot] = all_pos[order]
-    return Measurements(Z, mask, otype, oid, opos, true, clutter_intensity(sp), noise_covariance(sp))
+    rvar = np.zeros((steps, n_veh, J, MEAS_DIM))
+    rvar[ks, vs, slot] = all_var[order]
+    snr = np.full((steps, n_veh, J), np.nan)
+    snr[ks, vs, slot] = all_snr[order]
+    return Measurements(Z, mask, otype, oid, opos, true, clutter_intensity(sp), R_out, rvar, snr)

@@ -235,3 +235,103 @@ def test_fov_detect_prob_matches_norm_reference(paper):
         d = np.linalg.norm(lm - u, axis=-1)
         ref = np.where((t in (SP, VS)) & (d > sp.fov_range), 0.0, sp.p_detect)
         np.testing.assert_array_equal(fov_detect_prob(u, lm, t, sp), ref)
+
+
+# ---------------------------------------------------------------- power-aware model (issue 11)
+def test_link_budget_crb_scaling_and_hand_values():
+    from mmslam.slam.sensor import LinkBudget
+
+    lb = LinkBudget()
+    snr = np.array([-5.0, 10.0, 20.0, 35.0])
+    half = lb.stds(snr - 10 * math.log10(2.0))  # halving the SNR
+    np.testing.assert_allclose(half, math.sqrt(2.0) * lb.stds(snr), rtol=1e-12)
+    # hand values at SNR 20 dB (100): std_toa = c sqrt(3) / (pi B sqrt(200)); ULA of N: sqrt(6 / (pi^2 N (N^2-1) 200))
+    s = lb.stds(20.0)
+    assert s[0] == pytest.approx(299_792_458.0 * math.sqrt(3) / (math.pi * 400e6 * math.sqrt(200)), rel=1e-12)
+    assert s[1] == s[2] == pytest.approx(math.sqrt(6 / (math.pi**2 * 8 * 63 * 200)), rel=1e-12)
+    assert s[3] == s[4] == pytest.approx(math.sqrt(6 / (math.pi**2 * 4 * 15 * 200)), rel=1e-12)
+    # twice the bandwidth halves the delay std; angles do not care
+    s2 = dataclasses.replace(lb, bandwidth_hz=800e6).stds(20.0)
+    assert s2[0] == pytest.approx(s[0] / 2) and s2[1] == pytest.approx(s[1])
+    # link budget: noise -173.975 + 10 log10(400e6) + 9 dB = -78.955 dBm; SNR of a -100 dB path
+    assert lb.noise_dbm == pytest.approx(-78.9544, abs=1e-3)
+    assert lb.snr_db(-100.0) == pytest.approx(20 + 18.06 + 12.04 - 100 + 78.9544, abs=1e-3)
+
+
+def test_link_budget_detection_probability_is_marcum_q_and_falls_with_snr():
+    from scipy.integrate import quad
+    from scipy.special import i0e
+
+    from mmslam.slam.sensor import LinkBudget
+
+    lb = LinkBudget(pfa=1e-3)
+    b = math.sqrt(-2 * math.log(1e-3))
+    for snr_db in (0.0, 6.0, 10.0, 13.0):
+        a = math.sqrt(2 * 10 ** (snr_db / 10))
+        # Q_1(a, b) = int_b^inf x exp(-(x^2 + a^2) / 2) I0(a x) dx, with I0(z) = i0e(z) e^z
+        q, _ = quad(lambda x: x * math.exp(-(x - a) ** 2 / 2) * i0e(a * x), b, np.inf)
+        assert float(lb.detect_prob(snr_db)) == pytest.approx(q, rel=1e-6), snr_db
+    grid = np.linspace(-20, 30, 101)
+    pd_ = lb.detect_prob(grid)
+    assert np.all(np.diff(pd_) >= 0) and np.all(np.diff(pd_[pd_ < 0.999]) > 0)  # falls with falling SNR
+    assert pd_[0] == pytest.approx(1e-3, rel=0.1) and pd_[-1] > 0.999999
+    assert float(lb.detect_prob(lb.threshold_snr_db())) == pytest.approx(0.5, abs=1e-9)
+    with pytest.raises(MmslamError, match="pfa"):
+        LinkBudget(pfa=0.0)
+    with pytest.raises(MmslamError, match="bandwidth_hz"):
+        LinkBudget(bandwidth_hz=-1.0)
+
+
+def test_power_aware_measurements_noise_detection_and_r_per_measurement(paper):
+    from mmslam.slam.sensor import LinkBudget
+
+    lb = LinkBudget()
+    scn = _sensor(paper, clutter_mean=0.5, vehicle_noise_std=(0, 0, 0, 0, 0, 0, 0.0))
+    n = 4000
+    g_strong = -100.0
+    g_weak = g_strong - 10 * math.log10(2.0)  # half the SNR
+    g_edge = lb.threshold_snr_db() - lb.snr_db(0.0)  # p_D = 0.5
+    rows = [dict(BS_ROW, power_db=g_strong), dict(VA_FAR, power_db=g_weak),
+            dict(SP_NEAR, power_db=g_edge)]
+    states, paths = _repeat_static(n, rows_per_step=rows)
+    out = simulate_measurements(scn, states, paths, np.random.default_rng(7), link=lb)
+    again = simulate_measurements(scn, states, paths, np.random.default_rng(7), link=lb)
+    np.testing.assert_array_equal(out.z, again.z)
+    ids = out.origin_id
+    sd = {}
+    for lm_id, row, g in (("bs", BS_ROW, g_strong), ("wall", VA_FAR, g_weak)):
+        sel = (ids == lm_id) & out.mask
+        z = out.z[sel]
+        err = z - np.array([row["toa_m"] + 300.0, row["aod_az"], row["aod_el"], row["aoa_az"], row["aoa_el"]])
+        want = lb.stds(lb.snr_db(g))
+        np.testing.assert_allclose(err.std(0), want, rtol=6 / math.sqrt(2 * sel.sum()))
+        np.testing.assert_allclose(out.R_meas[sel], np.broadcast_to(want**2, (sel.sum(), 5)), rtol=1e-12)
+        np.testing.assert_allclose(out.snr_db[sel], lb.snr_db(g))
+        sd[lm_id] = err.std(0)[0]
+    assert sd["wall"] / sd["bs"] == pytest.approx(math.sqrt(2), rel=0.1)  # halved SNR: sqrt(2) x the std
+    # detection: both strong paths almost always, the edge path half the time
+    assert np.sum(ids == "bs") / n > 0.999 and np.sum(ids == "wall") / n > 0.999
+    frac = np.sum(ids == "sp_near") / n
+    assert abs(frac - 0.5) < 5 * math.sqrt(0.25 / n)
+    # clutter slots carry the covariance at the threshold SNR
+    cl = out.mask & (out.origin_type == -1)
+    assert cl.sum() > 0
+    np.testing.assert_allclose(out.R_meas[cl], np.broadcast_to(lb.stds(lb.threshold_snr_db()) ** 2, (cl.sum(), 5)))
+    np.testing.assert_allclose(np.diag(out.R), lb.stds(lb.threshold_snr_db()) ** 2)
+    assert np.isnan(out.snr_db[cl]).all()
+
+
+def test_constant_model_unchanged_and_r_meas_is_diag_r(paper):
+    scn = _sensor(paper, clutter_mean=1.0)
+    states, paths = _repeat_static(50, rows_per_step=[BS_ROW, VA_FAR])
+    out = simulate_measurements(scn, states, paths, np.random.default_rng(2))
+    np.testing.assert_allclose(out.R_meas[out.mask], np.broadcast_to(np.diag(out.R), (out.mask.sum(), 5)))
+    assert np.all(out.R_meas[~out.mask] == 0) and np.isnan(out.snr_db).all()
+
+
+def test_power_aware_model_needs_power(paper):
+    from mmslam.slam.sensor import LinkBudget
+
+    states, paths = _repeat_static(3, rows_per_step=[dict(BS_ROW, power_db=np.nan)])
+    with pytest.raises(MmslamError, match=r"'power_db' is nan at step 0"):
+        simulate_measurements(paper, states, paths, np.random.default_rng(0), link=LinkBudget())
