@@ -1,0 +1,85 @@
+"""What the power-aware sensor model (issue 11) does to the ablation: constant vs link budget.
+
+For each scenario (analytic trace, its path powers from Friis / Fresnel / radar equation), runs
+every variant over ``--mc`` seeds twice: with the paper's constant sensor model and with
+``LinkBudget`` (p_D and noise from each path's SNR). The filter is unchanged: it uses one R, the
+sensor's ``meas.R`` times ``r_scale`` (for the power-aware model the covariance at the detection
+threshold SNR), not the per-measurement ``R_meas``. Prints detection rates and noise stds per
+landmark type, and per variant the mean vehicle position error and the mean GOSPA of the fused map
+(steps >= 5). Noisy timings; a measurement, not a test.
+
+    .venv/bin/python benchmarks/bench_sensor_model.py --scenarios paper,street --mc 3 --particles 100
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import tempfile
+import time
+
+import numpy as np
+
+import mmslam.slam.sensor as sensor_mod
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.raytrace.cache import load_cache
+from mmslam.raytrace.trace import trace_scenario
+from mmslam.scenes.scenario import load_preset
+from mmslam.slam.filter import run_filter
+from mmslam.slam.sensor import LinkBudget, simulate_measurements
+
+TYPES = {0: "BS", 1: "VA", 2: "SP", 3: "VS"}
+
+
+def detection_stats(scn, cache, link, seed=0):
+    m = simulate_measurements(scn, cache.states, cache.paths, np.random.default_rng(seed), link=link)
+    out = {}
+    for t, name in TYPES.items():
+        n_rows = int(np.sum(cache.paths["type"] == t))
+        sel = m.mask & (m.origin_type == t)
+        out[name] = {"rows": n_rows, "detected": float(sel.sum() / max(n_rows, 1)),
+                     "toa_std_m": float(np.sqrt(np.median(m.R_meas[sel][:, 0]))) if sel.any() else None,
+                     "angle_std_rad": float(np.sqrt(np.median(m.R_meas[sel][:, 3]))) if sel.any() else None}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenarios", default="paper,street")
+    ap.add_argument("--variants", default="baseline,cm1,proposed")
+    ap.add_argument("--mc", type=int, default=3)
+    ap.add_argument("--particles", type=int, default=100)
+    ap.add_argument("--processing-gain-db", type=float, default=0.0)
+    a = ap.parse_args()
+    link = LinkBudget(processing_gain_db=a.processing_gain_db)
+    orig = sensor_mod.simulate_measurements
+    res = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in a.scenarios.split(","):
+            scn = load_preset(name)
+            cache = load_cache(trace_scenario(scn, AnalyticSource(scn), tmp, progress=False))
+            res[name] = {"detections": {"constant": detection_stats(scn, cache, None),
+                                        "link": detection_stats(scn, cache, link)}}
+            for model in ("constant", "link"):
+                # run_filter imports simulate_measurements from the module at call time
+                sensor_mod.simulate_measurements = orig if model == "constant" else functools.partial(orig, link=link)
+                try:
+                    for v in a.variants.split(","):
+                        pos, gos, t0 = [], {}, time.perf_counter()
+                        for seed in range(a.mc):
+                            r = run_filter(scn, cache.states, cache.paths, variant=v, particles=a.particles, seed=seed)
+                            k = r.vehicles["step"] >= 5
+                            pos.append(float(np.sqrt(np.mean(r.vehicles["pos_err"][k] ** 2))))
+                            mk = (r.metrics["map"] == "fused") & (r.metrics["step"] >= 5)
+                            for t in ("VA", "SP", "VS"):
+                                gos.setdefault(t, []).append(float(np.mean(r.metrics["gospa"][mk & (r.metrics["type"] == t)])))
+                        res[name][f"{model}/{v}"] = {"pos_rmse_m": float(np.mean(pos)),
+                                                     **{f"gospa_{t}": float(np.nanmean(g)) for t, g in gos.items()},
+                                                     "wall_s": time.perf_counter() - t0}
+                finally:
+                    sensor_mod.simulate_measurements = orig
+    print(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
