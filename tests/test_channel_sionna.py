@@ -104,6 +104,8 @@ def test_vs_doppler_includes_the_other_cars_motion(traced):
 
 
 def test_cfr_and_taps_equal_sionna(traced):
+    """Float32 tolerance: Sionna evaluates the phases 2 pi (f_c + f) tau (up to ~1e4 rad) in float32;
+    measured max |difference| / max |H|: CFR ~1e-3, taps ~2e-5."""
     scn, _, out = traced
     fc = scn.frequency_hz
     for k, (t, ref) in out.items():
@@ -118,7 +120,8 @@ def test_cfr_and_taps_equal_sionna(traced):
         taps, ax, _, _ = channel_response(r, kind="cir", carrier_hz=fc, bandwidth_hz=400e6, n_subcarriers=64,
                                           n_rx=2, l_min=-3, l_max=40)
         assert ax[0] == -3 and ax[-1] == 40
-        np.testing.assert_allclose(taps[0], ref["taps"].reshape(2, 1, 44), atol=2e-3 * scale, rtol=0)
+        tscale = np.abs(ref["taps"]).max()
+        np.testing.assert_allclose(taps[0], ref["taps"].reshape(2, 1, 44), atol=1e-4 * tscale, rtol=0)
         # the cir's (a, tau) of the valid paths: same multiset of normalised delays per receiver
         _, tau = ref["cir"]
         tau = tau.reshape(2, -1)
