@@ -2,7 +2,8 @@
 
 For each scenario (analytic trace, its path powers from Friis / Fresnel / radar equation), runs
 every variant over ``--mc`` seeds twice: with the paper's constant sensor model and with
-``LinkBudget`` (p_D and noise from each path's SNR). The filter is unchanged: it uses one R, the
+``sensor.model=link`` (p_D and noise from each path's SNR; the same as ``mmslam ablate ... --set
+sensor.model=link``). The filter is unchanged: it uses one R, the
 sensor's ``meas.R`` times ``r_scale`` (for the power-aware model the covariance at the detection
 threshold SNR), not the per-measurement ``R_meas``. Prints detection rates and noise stds per
 landmark type, and per variant the mean vehicle position error and the mean GOSPA of the fused map
@@ -13,18 +14,16 @@ landmark type, and per variant the mean vehicle position error and the mean GOSP
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import tempfile
 import time
 
 import numpy as np
 
-import mmslam.slam.sensor as sensor_mod
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import load_cache
 from mmslam.raytrace.trace import trace_scenario
-from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import run_filter
 from mmslam.slam.sensor import LinkBudget, simulate_measurements
 
@@ -52,7 +51,6 @@ def main() -> None:
     ap.add_argument("--processing-gain-db", type=float, default=0.0)
     a = ap.parse_args()
     link = LinkBudget(processing_gain_db=a.processing_gain_db)
-    orig = sensor_mod.simulate_measurements
     res = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in a.scenarios.split(","):
@@ -61,23 +59,20 @@ def main() -> None:
             res[name] = {"detections": {"constant": detection_stats(scn, cache, None),
                                         "link": detection_stats(scn, cache, link)}}
             for model in ("constant", "link"):
-                # run_filter imports simulate_measurements from the module at call time
-                sensor_mod.simulate_measurements = orig if model == "constant" else functools.partial(orig, link=link)
-                try:
-                    for v in a.variants.split(","):
-                        pos, gos, t0 = [], {}, time.perf_counter()
-                        for seed in range(a.mc):
-                            r = run_filter(scn, cache.states, cache.paths, variant=v, particles=a.particles, seed=seed)
-                            k = r.vehicles["step"] >= 5
-                            pos.append(float(np.sqrt(np.mean(r.vehicles["pos_err"][k] ** 2))))
-                            mk = (r.metrics["map"] == "fused") & (r.metrics["step"] >= 5)
-                            for t in ("VA", "SP", "VS"):
-                                gos.setdefault(t, []).append(float(np.mean(r.metrics["gospa"][mk & (r.metrics["type"] == t)])))
-                        res[name][f"{model}/{v}"] = {"pos_rmse_m": float(np.mean(pos)),
-                                                     **{f"gospa_{t}": float(np.nanmean(g)) for t, g in gos.items()},
-                                                     "wall_s": time.perf_counter() - t0}
-                finally:
-                    sensor_mod.simulate_measurements = orig
+                s = scn if model == "constant" else with_overrides(
+                    scn, ["sensor.model=link", f"sensor.processing_gain_db={a.processing_gain_db}"])
+                for v in a.variants.split(","):
+                    pos, gos, t0 = [], {}, time.perf_counter()
+                    for seed in range(a.mc):
+                        r = run_filter(s, cache.states, cache.paths, variant=v, particles=a.particles, seed=seed)
+                        k = r.vehicles["step"] >= 5
+                        pos.append(float(np.sqrt(np.mean(r.vehicles["pos_err"][k] ** 2))))
+                        mk = (r.metrics["map"] == "fused") & (r.metrics["step"] >= 5)
+                        for t in ("VA", "SP", "VS"):
+                            gos.setdefault(t, []).append(float(np.mean(r.metrics["gospa"][mk & (r.metrics["type"] == t)])))
+                    res[name][f"{model}/{v}"] = {"pos_rmse_m": float(np.mean(pos)),
+                                                 **{f"gospa_{t}": float(np.nanmean(g)) for t, g in gos.items()},
+                                                 "wall_s": time.perf_counter() - t0}
     print(json.dumps(res, indent=1))
 
 

@@ -116,6 +116,22 @@ class SensorParams:
     true_process_noise: bool = param(False, "add the process noise (all but the clock bias) to the "
                                      "true, traced trajectory too (off: the traced trajectory is the truth)")
     emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")
+    model: str = param("constant", "detection / noise model: constant (p_detect, toa_std, angle_std for every "
+                       "path) or link (p_D and noise std from each path's power via the link budget below: "
+                       "mmslam.slam.sensor.LinkBudget)", choices=("constant", "link"))
+    tx_power_dbm: float = param(20.0, "link model: BS transmit power", "dBm", lo=-50.0, hi=80.0)
+    tx_gain_dbi: float = param(18.06, "link model: BS array gain (8 x 8 elements: 10 log10 64)", "dBi",
+                               lo=-20.0, hi=60.0)
+    rx_gain_dbi: float = param(12.04, "link model: vehicle array gain (4 x 4 elements)", "dBi", lo=-20.0, hi=60.0)
+    bandwidth_hz: float = param(400e6, "link model: signal bandwidth (noise bandwidth and delay accuracy)", "Hz",
+                                lo=0.0, lo_open=True, hi=1e11)
+    noise_figure_db: float = param(9.0, "link model: receiver noise figure", "dB", lo=0.0, hi=40.0)
+    processing_gain_db: float = param(0.0, "link model: coherent integration gain (pilots / snapshots)", "dB",
+                                      lo=0.0, hi=80.0)
+    pfa: float = param(1e-4, "link model: false-alarm probability of the detector per resolution cell", "",
+                       lo=0.0, lo_open=True, hi=1.0, hi_open=True)
+    tx_array: int = param(8, "link model: BS array elements per axis (AOD accuracy)", "", lo=2, hi=1024)
+    rx_array: int = param(4, "link model: vehicle array elements per axis (AOA accuracy)", "", lo=2, hi=1024)
 
 
 @dataclass(frozen=True)

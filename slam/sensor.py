@@ -16,8 +16,8 @@ Two detection / noise models:
 
 - **constant** (default; the paper's): ``p_D = sensor.p_detect``, noise ``R = diag(toa_std^2,
   angle_std^2 x 4)`` for every path;
-- **power-aware** (``link=LinkBudget(...)``): from each path's ``power_db`` (the traced path gain)
-  the link budget gives its SNR, the SNR gives the detection probability (envelope detector at a
+- **power-aware** (``sensor.model = "link"``, or ``link=LinkBudget(...)``): from each path's
+  ``power_db`` (the traced path gain) the link budget gives its SNR, the SNR gives the detection probability (envelope detector at a
   fixed false-alarm rate, Marcum Q) and the measurement standard deviations (Cramer-Rao bounds of
   delay and angles: std proportional to ``1 / sqrt(SNR)``, inversely to the bandwidth / array
   size). Each measurement carries its own covariance (:attr:`Measurements.R_meas`); clutter
@@ -25,6 +25,7 @@ Two detection / noise models:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -135,15 +136,20 @@ class LinkBudget:
     ``N = rx_array`` for AOA. Halving the SNR multiplies every std by ``sqrt(2)``.
     """
 
-    tx_power_dbm: float = 20.0
-    tx_gain_dbi: float = 18.06
-    rx_gain_dbi: float = 12.04
-    bandwidth_hz: float = 400e6
-    noise_figure_db: float = 9.0
-    processing_gain_db: float = 0.0
-    pfa: float = 1e-4
-    tx_array: int = 8
-    rx_array: int = 4
+    tx_power_dbm: float = SensorParams.tx_power_dbm
+    tx_gain_dbi: float = SensorParams.tx_gain_dbi
+    rx_gain_dbi: float = SensorParams.rx_gain_dbi
+    bandwidth_hz: float = SensorParams.bandwidth_hz
+    noise_figure_db: float = SensorParams.noise_figure_db
+    processing_gain_db: float = SensorParams.processing_gain_db
+    pfa: float = SensorParams.pfa
+    tx_array: int = SensorParams.tx_array
+    rx_array: int = SensorParams.rx_array
+
+    @classmethod
+    def from_sensor(cls, params: SensorParams) -> "LinkBudget":
+        """The link budget of a scenario's ``[sensor]`` section (its ``tx_power_dbm`` ... ``rx_array``)."""
+        return cls(**{f.name: getattr(params, f.name) for f in dataclasses.fields(cls)})
 
     def __post_init__(self) -> None:
         for k in ("tx_power_dbm", "tx_gain_dbi", "rx_gain_dbi", "noise_figure_db", "processing_gain_db"):
@@ -242,8 +248,9 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
         rng: the only source of randomness.
         include_types: landmark types whose paths become measurements. ``OTHER`` (4) paths are
             used if and only if ``scn.sensor.emit_other`` is set, whatever this argument says.
-        link: ``None`` for the constant model (``p_detect``, ``toa_std``, ``angle_std``), or a
-            :class:`LinkBudget` for the power-aware model (needs ``power_db`` on every used row).
+        link: a :class:`LinkBudget` for the power-aware model (needs ``power_db`` on every used
+            row); ``None``: the scenario's ``sensor.model`` decides (``constant``: ``p_detect``,
+            ``toa_std``, ``angle_std``; ``link``: :meth:`LinkBudget.from_sensor`).
 
     Returns:
         :class:`Measurements`.
@@ -306,6 +313,8 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
 
     # ---- per-row detection probability and noise std: constant, or from the link budget
     n = idx.size
+    if link is None and sp.model == "link":
+        link = LinkBudget.from_sensor(sp)
     if link is None:
         pd_row = np.full(n, sp.p_detect)
         std_row = np.broadcast_to(np.sqrt(np.diag(noise_covariance(sp))), (n, MEAS_DIM))

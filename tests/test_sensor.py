@@ -335,3 +335,21 @@ def test_power_aware_model_needs_power(paper):
     states, paths = _repeat_static(3, rows_per_step=[dict(BS_ROW, power_db=np.nan)])
     with pytest.raises(MmslamError, match=r"'power_db' is nan at step 0"):
         simulate_measurements(paper, states, paths, np.random.default_rng(0), link=LinkBudget())
+
+
+def test_sensor_model_link_is_a_scenario_option(paper):
+    """`sensor.model = "link"` (e.g. `--set sensor.model=link`) uses the scenario's link budget."""
+    from mmslam.scenes.scenario import with_overrides
+    from mmslam.slam.sensor import LinkBudget
+
+    assert paper.sensor.model == "constant"  # the paper's constant model stays the default
+    scn = with_overrides(paper, ["sensor.model=link", "sensor.tx_power_dbm=25"])
+    assert LinkBudget.from_sensor(scn.sensor) == LinkBudget(tx_power_dbm=25.0)
+    states, paths = _repeat_static(20, rows_per_step=[dict(BS_ROW, power_db=-110.0), dict(VA_FAR, power_db=-120.0)])
+    a = simulate_measurements(scn, states, paths, np.random.default_rng(4))
+    b = simulate_measurements(paper, states, paths, np.random.default_rng(4), link=LinkBudget(tx_power_dbm=25.0))
+    np.testing.assert_array_equal(a.z, b.z)
+    np.testing.assert_array_equal(a.R_meas, b.R_meas)
+    assert not np.array_equal(a.z, simulate_measurements(paper, states, paths, np.random.default_rng(4)).z)
+    with pytest.raises(MmslamError):
+        with_overrides(paper, ["sensor.model=fancy"])
