@@ -99,7 +99,8 @@ def register(app: typer.Typer) -> None:
         c = load_cache(cache_dir)
         names = c.vehicle_names
         counts = path_counts(c.paths, c.steps, len(names))
-        tbl = Table(title=f"{c.path.name}: {c.steps} steps, {len(c.paths['rx'])} paths "
+        n_rays = sum(int(ch["rows"]["rays"]) for ch in c.manifest["chunks"])
+        tbl = Table(title=f"{c.path.name}: {c.steps} steps, {len(c.paths['rx'])} paths from {n_rays} rays "
                           f"(source {c.manifest['source']})")
         tbl.add_column("step", justify="right")
         tbl.add_column("rx")

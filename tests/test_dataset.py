@@ -175,3 +175,26 @@ def test_docs_list_every_column_with_its_unit():
     doc = (Path(__file__).parents[1] / "docs" / "dataset.md").read_text()
     for line in schema_markdown().splitlines():
         assert line in doc, line
+
+
+def test_rays_columns_fill_every_bounce_slot_and_refuse_too_many():
+    from mmslam.raytrace.schema import rays_columns
+
+    it = np.array([[1, 2, 0], [0, 0, 0]])
+    obj = np.array([["w", "s", ""], ["", "", ""]], dtype=object)
+    v = np.arange(18, dtype=float).reshape(2, 3, 3)
+    r = rays_columns(step=3, rx=np.array([1, 0]), typ=np.array([4, 0]), landmark_id=np.array(["w+s", "bs"], object),
+                     a=np.array([1e-6 + 1e-6j, 2e-5]), delay_s=np.array([2e-7, 1e-7]), angles=np.zeros((2, 4)),
+                     doppler_hz=np.array([5.0, -1.0]), itype=it, objects=obj, verts=v, ray=np.array([0, 0]))
+    # sorted by (rx, ray): the LOS ray of rx 0 first
+    assert r["rx"].tolist() == [0, 1] and r["bounces"].tolist() == [0, 2]
+    assert r["bounce1_object"].tolist() == ["", "w"] and r["bounce2_object"].tolist() == ["", "s"]
+    assert r["bounce2_type"].tolist() == [0, 2] and r["bounce3_type"].tolist() == [0, 0]
+    assert r["bounce2_x"][1] == 3.0 and np.isnan(r["bounce2_x"][0]) and np.isnan(r["bounce3_z"]).all()
+    assert r["power_db"][0] == pytest.approx(20 * np.log10(2e-5))
+    assert r["power_db"][1] == pytest.approx(20 * np.log10(np.sqrt(2) * 1e-6))
+    with pytest.raises(ValueError, match="4 interaction slots"):
+        rays_columns(step=0, rx=np.array([0]), typ=np.array([4]), landmark_id=np.array(["x"], object),
+                     a=np.array([1.0]), delay_s=np.array([1.0]), angles=np.zeros((1, 4)), doppler_hz=np.zeros(1),
+                     itype=np.ones((1, 4)), objects=np.full((1, 4), "o", object), verts=np.zeros((1, 4, 3)),
+                     ray=np.zeros(1))
