@@ -1,6 +1,7 @@
 """What the power-aware sensor model (issue 11) does to the ablation: constant vs link budget.
 
-For each scenario (analytic trace, its path powers from Friis / Fresnel / radar equation), runs
+For each scenario (analytic trace, its path powers from Friis / Fresnel / radar equation, or a
+Sionna trace with ``--source sionna``), runs
 every variant over ``--mc`` seeds twice: with the paper's constant sensor model and with
 ``sensor.model=link`` (p_D and noise from each path's SNR; the same as ``mmslam ablate ... --set
 sensor.model=link``). The filter is unchanged: it uses one R, the
@@ -22,7 +23,7 @@ import numpy as np
 
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import load_cache
-from mmslam.raytrace.trace import trace_scenario
+from mmslam.raytrace.trace import make_source, trace_scenario
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import run_filter
 from mmslam.slam.sensor import LinkBudget, simulate_measurements
@@ -49,13 +50,15 @@ def main() -> None:
     ap.add_argument("--mc", type=int, default=3)
     ap.add_argument("--particles", type=int, default=100)
     ap.add_argument("--processing-gain-db", type=float, default=0.0)
+    ap.add_argument("--source", default="analytic", help="analytic or sionna (traced once per scenario)")
     a = ap.parse_args()
     link = LinkBudget(processing_gain_db=a.processing_gain_db)
     res = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in a.scenarios.split(","):
             scn = load_preset(name)
-            cache = load_cache(trace_scenario(scn, AnalyticSource(scn), tmp, progress=False))
+            src = AnalyticSource(scn) if a.source == "analytic" else make_source(a.source, scn)
+            cache = load_cache(trace_scenario(scn, src, tmp, progress=False))
             res[name] = {"detections": {"constant": detection_stats(scn, cache, None),
                                         "link": detection_stats(scn, cache, link)}}
             for model in ("constant", "link"):
