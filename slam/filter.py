@@ -183,8 +183,11 @@ class LocalFilter:
                     g = concat(g, births[t])
             self.maps[t] = g
 
-    def correct(self, Z: np.ndarray) -> None:
+    def correct(self, Z: np.ndarray, R_z: np.ndarray | None = None) -> None:
         """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
+
+        ``R_z``: ``(J, 5, 5)`` one filter covariance per measurement (power-aware sensor model),
+        or None for the filter's constant ``R``.
 
         Raises FloatingPointError if a corrected map breaks the PHD-mass invariant (more than
         the predicted mass plus ``J`` for some particle; :func:`~mmslam.slam.gmphd.check_phd_mass`).
@@ -192,9 +195,10 @@ class LocalFilter:
         J = Z.shape[0]
         if not self.update or J == 0:
             return
+        R = self.R if R_z is None else np.asarray(R_z, float).reshape(J, 5, 5)
         p_bs = self.pd_fn(self.s[:, 0:3], np.broadcast_to(self.bs, (self.P, 3)), BS)
-        bs_term = bs_logterm(self.s, Z, self.R, self.bs, np.asarray(p_bs, float))
-        terms = [type_terms(self.maps[t], t, self.s, Z, self.R, self.bs, self.pd_fn,
+        bs_term = bs_logterm(self.s, Z, R, self.bs, np.asarray(p_bs, float))
+        terms = [type_terms(self.maps[t], t, self.s, Z, R, self.bs, self.pd_fn,
                             vs_extent(self.scn) if t == VS else None) for t in self.types]
         lpsi = log_psi(terms, bs_term, self.log_clutter, (self.P, J))
         for tc in terms:
@@ -236,11 +240,13 @@ class LocalFilter:
         return e, False
 
     # ------------------------------------------------------------------ one step
-    def step(self, Z: np.ndarray, speed: float | None = None, turn_rate: float | None = None) -> StepEstimate:
+    def step(self, Z: np.ndarray, speed: float | None = None, turn_rate: float | None = None,
+             R_z: np.ndarray | None = None) -> StepEstimate:
         """One vehicle-step: predict (unless first step), correct with ``Z (J, 5)``, reduce, estimate, resample.
 
         ``speed`` (m/s) and ``turn_rate`` (rad/s) are the known inputs of the previous step
         (ignored on the first call). The measurements are kept for the next step's births.
+        ``R_z``: ``(J, 5, 5)`` per-measurement covariances for the correction (births keep ``R``).
         """
         Z = np.asarray(Z, float).reshape(-1, 5)
         if not np.isfinite(Z).all():
@@ -250,7 +256,7 @@ class LocalFilter:
             if speed is None or turn_rate is None:
                 raise ValueError("speed and turn_rate are required after the first step")
             self.predict(float(speed), float(turn_rate))
-        self.correct(Z)
+        self.correct(Z, R_z)
         self.reduce()
         self.logw, w = normalise_log_weights(self.logw)
         mean, cov, avg = self.estimate(w)
@@ -636,9 +642,13 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], 
         if center is not None and k > 0:
             center.predict()
         for n, f in enumerate(filters):
-            Z = np.asarray(meas.z[k, n], float)[np.asarray(meas.mask[k, n], bool)]
+            sel = np.asarray(meas.mask[k, n], bool)
+            Z = np.asarray(meas.z[k, n], float)[sel]
             spd, tr = (true[k - 1, n, 4], true[k - 1, n, 5]) if k > 0 else (None, None)
-            est = f.step(Z, spd, tr)
+            # power-aware sensor: each measurement's own (CRB) covariance, scaled like R
+            R_z = (None if meas.R_meas is None else
+                   scn.filter.r_scale * np.einsum("ja,ab->jab", np.asarray(meas.R_meas[k, n], float)[sel], np.eye(5)))
+            est = f.step(Z, spd, tr, R_z)
             ts = true[k, n]
             vt.add(step=k, vehicle=n, x=est.mean[0], y=est.mean[1], z=est.mean[2], heading=est.mean[3],
                    bias=est.mean[6], true_x=ts[0], true_y=ts[1], true_z=ts[2], true_heading=ts[3],

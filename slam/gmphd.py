@@ -370,13 +370,23 @@ class FlatInnovation:
 
     ``loglik (J, N)``: ``log N(z_j; zhat, S)``; ``y (5, J, N)``: whitened residuals
     ``L^-1 (z_j - zhat)`` (``S = L L^T``); ``gain (d, 5, N)``: ``A = Pxz L^-T`` (``K r = A y``);
-    ``P_post (d, d, N) = P - A A^T``.
+    ``P_post (d, d, N) = P - A A^T``. With one covariance per measurement (``R (J, 5, 5)``),
+    ``S``, the gain and the posterior depend on the measurement: ``gain (d, 5, J, N)`` and
+    ``P_post (d, d, J, N)`` (see :meth:`gain_of` / :meth:`post_of`).
     """
 
     loglik: np.ndarray
     y: np.ndarray
     gain: np.ndarray
     P_post: np.ndarray
+
+    def gain_of(self, j: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """``(d, 5, K)`` gains of the pairs (measurement ``j[k]``, Gaussian ``n[k]``)."""
+        return self.gain[:, :, j, n] if self.gain.ndim == 4 else self.gain[:, :, n]
+
+    def post_of(self, j: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """``(d, d, K)`` posterior covariances of the pairs (measurement ``j[k]``, Gaussian ``n[k]``)."""
+        return self.P_post[:, :, j, n] if self.P_post.ndim == 4 else self.P_post[:, :, n]
 
 
 def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: int, bs: np.ndarray,
@@ -391,7 +401,8 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
         m: ``(N, d)`` means (d = 3 for VA/SP, 7 for VS; position first, m).
         P: ``(N, d, d)`` SPD covariances.
         states: ``(N, 7)`` vehicle state of each Gaussian's particle.
-        Z: ``(J, 5)`` measurements; R: ``(5, 5)`` filter measurement covariance.
+        Z: ``(J, 5)`` measurements; R: ``(5, 5)`` filter measurement covariance, or ``(J, 5, 5)``
+            one per measurement (power-aware sensor model: the CRB covariance of each path).
         extent: ``(3, 3)`` covariance (m^2, global frame) of the scatter point about the landmark
             position, or None for a point landmark. The measurement is ``z = h(x + e) + n`` with
             ``e ~ N(0, extent)`` independent of the state (a vehicle body reflects from anywhere on
@@ -406,6 +417,18 @@ def flat_innovation(m: np.ndarray, P: np.ndarray, states: np.ndarray, lm_type: i
         extent = np.asarray(extent, float).reshape(3, 3)
         if not np.any(extent):
             extent = None
+    R = np.asarray(R, float)
+    if R.ndim == 3:  # one covariance per measurement: one innovation per (measurement, Gaussian)
+        if R.shape != (Z.shape[0], 5, 5):
+            raise ValueError(f"R has shape {R.shape}; expected (5, 5) or ({Z.shape[0]}, 5, 5)")
+        parts = [flat_innovation(m, P, states, lm_type, bs, Z[j:j + 1], R[j], stage, extent)
+                 for j in range(Z.shape[0])]
+        if not parts:
+            return flat_innovation(m, P, states, lm_type, bs, Z, np.eye(5), stage, extent)
+        return FlatInnovation(np.concatenate([p.loglik for p in parts], axis=0),
+                              np.concatenate([p.y for p in parts], axis=1),
+                              np.stack([p.gain for p in parts], axis=2),
+                              np.stack([p.P_post for p in parts], axis=2))
     if not (np.isfinite(m).all() and np.isfinite(P).all()):
         raise FloatingPointError(f"non-finite covariance in {stage}")
     if n <= INNOVATION_BLOCK:
@@ -552,16 +575,20 @@ def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
                p_d: np.ndarray) -> np.ndarray:
     """``log(p_D N(z_j; h(s_p, b, BS), R))`` for the known BS, shape ``(P, J)``.
 
-    ``p_d`` is ``(P,)``: the BS detection probability for each particle.
+    ``p_d`` is ``(P,)``: the BS detection probability for each particle. ``R``: ``(5, 5)``, or
+    ``(J, 5, 5)`` one covariance per measurement.
     """
     zhat = measure(states, bs, BS, bs)  # (P, 5)
     r = Z[None, :, :] - zhat[:, None, :]
     for c in AZIMUTH_COMPONENTS:
         r[..., c] = wrap_angle(r[..., c])
-    L = safe_cholesky(R, "BS likelihood")
-    y = np.linalg.solve(L, r.reshape(-1, MEAS_DIM).T).T.reshape(r.shape)
-    half_logdet = np.log(np.diag(L)).sum()
-    ll = -0.5 * np.einsum("pja,pja->pj", y, y) - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+    R = np.asarray(R, float)
+    Rj = np.broadcast_to(R, (Z.shape[0], MEAS_DIM, MEAS_DIM)) if R.ndim == 2 else R
+    ll = np.empty(r.shape[:2])
+    for j in range(Z.shape[0]):
+        L = safe_cholesky(Rj[j], "BS likelihood")
+        y = np.linalg.solve(L, r[:, j].T).T  # (P, 5)
+        ll[:, j] = -0.5 * np.einsum("pa,pa->p", y, y) - np.log(np.diag(L)).sum() - 0.5 * MEAS_DIM * _LOG_2PI
     with np.errstate(divide="ignore"):
         return np.log(p_d)[:, None] + ll
 
@@ -658,8 +685,8 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     upd = live & is_det & (n_idx >= 0)  # updated components with an innovation
     if upd.any():
         n_u, j_u = n_idx[upd], j_idx[upd]
-        m[upd] += np.einsum("iak,ak->ki", inn.gain[:, :, n_u], inn.y[:, j_u, n_u])
-        Pc[upd] = symmetrize(inn.P_post[:, :, n_u].transpose(2, 0, 1))
+        m[upd] += np.einsum("iak,ak->ki", inn.gain_of(j_u, n_u), inn.y[:, j_u, n_u])
+        Pc[upd] = symmetrize(inn.post_of(j_u, n_u).transpose(2, 0, 1))
     m[~live] = 0.0
     Pc[~live] = np.eye(d)
     out = GM(w, m, Pc, live)

@@ -363,3 +363,25 @@ def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
     pos = np.zeros((3, 2, 3))
     seen = _first_seen(paths, 2, 3, pos, scn.sensor)[VA]
     assert len(seen[0]) == 1 and len(seen[1]) == 1  # vehicle 0: the two facades are one VA
+
+
+def test_power_aware_sensor_gives_the_filter_each_measurements_covariance(paper, monkeypatch):
+    """sensor.model = link: every correction gets R_z = r_scale diag(R_meas) of exactly its measurements."""
+    from mmslam.scenes.scenario import with_overrides
+    from mmslam.slam import filter as F
+
+    scn, states, paths = paper
+    scn = with_overrides(scn, ["sensor.model=link"])
+    seen = []
+    orig = F.LocalFilter.step
+
+    def spy(self, Z, speed=None, turn_rate=None, R_z=None):
+        seen.append((Z.shape[0], None if R_z is None else R_z.copy()))
+        return orig(self, Z, speed, turn_rate, R_z)
+
+    monkeypatch.setattr(F.LocalFilter, "step", spy)
+    run_filter(scn, states, paths, variant="proposed", particles=10, seed=0, steps=6)
+    assert len(seen) == 12 and all(R is not None and R.shape == (J, 5, 5) for J, R in seen)
+    J, R = seen[-1]
+    assert np.all(R[:, ~np.eye(5, dtype=bool)] == 0) and np.all(np.diagonal(R, axis1=1, axis2=2) > 0)
+    assert len({tuple(np.round(np.diag(r), 12)) for r in R}) > 1  # measurements differ in accuracy

@@ -349,3 +349,32 @@ def test_flat_innovation_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_
     A_mc = mc @ np.linalg.inv(np.linalg.cholesky(S_mc)).T
     np.testing.assert_allclose(A_ext, A_mc, atol=0.03 * np.abs(A_ext).max())
     assert np.abs(A_ext - A_pt).max() > 0.2 * np.abs(A_ext).max()  # the point model's gain is different
+
+
+@pytest.mark.parametrize("lm_type", [VA, VS])
+def test_per_measurement_R_equal_to_the_shared_R_gives_the_shared_innovation(lm_type):
+    """R (J, 5, 5) with every R_j = R is the constant model: same likelihoods and residuals, and each
+    measurement's gain / posterior equals the shared one; a larger R_j lowers that likelihood peak."""
+    from mmslam.slam.gmphd import flat_innovation
+
+    rng = np.random.default_rng(1)
+    d = 7 if lm_type == VS else 3
+    bs = np.array([0.0, 0.0, 40.0])
+    m = np.c_[rng.uniform(20, 60, (4, 2)), rng.uniform(0, 5, (4, 1)), rng.normal(size=(4, d - 3))]
+    A = rng.normal(size=(4, d, d)) * 0.3
+    P = A @ A.transpose(0, 2, 1) + np.eye(d) * 0.5
+    st = np.c_[rng.uniform(-5, 5, (4, 3)), rng.uniform(-1, 1, (4, 1)), np.full((4, 2), 5.0), np.full((4, 1), 2.0)]
+    R = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
+    Z = np.array([[70.0, 0.3, -0.4, 0.5, -0.1], [90.0, 1.0, -0.2, 1.1, 0.0], [60.0, 0.1, -0.5, 0.2, 0.05]])
+    shared = flat_innovation(m, P, st, lm_type, bs, Z, R, "t")
+    per = flat_innovation(m, P, st, lm_type, bs, Z, np.stack([R] * 3), "t")
+    np.testing.assert_allclose(per.loglik, shared.loglik, rtol=1e-12)
+    np.testing.assert_allclose(per.y, shared.y, rtol=1e-12, atol=1e-15)
+    for j in range(3):
+        np.testing.assert_allclose(per.gain[:, :, j], shared.gain, rtol=1e-12)
+        np.testing.assert_allclose(per.post_of(np.full(4, j), np.arange(4)), shared.P_post, rtol=1e-12)
+    wide = flat_innovation(m, P, st, lm_type, bs, Z, np.stack([R, 4 * R, R]), "t")
+    np.testing.assert_allclose(wide.loglik[[0, 2]], shared.loglik[[0, 2]], rtol=1e-12)
+    assert not np.allclose(wide.loglik[1], shared.loglik[1])
+    bs_shared = bs_logterm(st, Z, R, bs, np.full(4, 0.9))
+    np.testing.assert_allclose(bs_logterm(st, Z, np.stack([R] * 3), bs, np.full(4, 0.9)), bs_shared, rtol=1e-12)
