@@ -4,9 +4,9 @@ For each scenario (analytic trace, its path powers from Friis / Fresnel / radar 
 Sionna trace with ``--source sionna``), runs
 every variant over ``--mc`` seeds twice: with the paper's constant sensor model and with
 ``sensor.model=link`` (p_D and noise from each path's SNR; the same as ``mmslam ablate ... --set
-sensor.model=link``). The filter is unchanged: it uses one R, the
-sensor's ``meas.R`` times ``r_scale`` (for the power-aware model the covariance at the detection
-threshold SNR), not the per-measurement ``R_meas``. Prints detection rates and noise stds per
+sensor.model=link``). Under the power-aware model the filter corrects each measurement with its
+own covariance (``r_scale`` times ``R_meas``); its detection probability stays the constant
+``filter.p_detect_<type>``. Prints detection rates and noise stds per
 landmark type, and per variant the mean vehicle position error and the mean GOSPA of the fused map
 (steps >= 5). Noisy timings; a measurement, not a test.
 
