@@ -47,8 +47,8 @@ NONE, SPECULAR, DIFFUSE = 0, 1, 2
 K_BUILDING, K_GROUND, K_SCATTERER, K_VEHICLE, K_STATIC = 0, 1, 2, 3, 4
 
 _FACE_TAGS = list(FACES)  # "+x", "-x", "+y", "-y", "+z", "-z"
-_NORMAL_Q = 1e3  # normal quantization (1e-3)
-_OFFSET_Q = 1e2  # plane offset quantization (1 cm)
+_NORMAL_Q = 1e4  # normal quantization (1e-4)
+_OFFSET_Q = 1e3  # plane offset quantization (1 mm)
 
 
 @dataclass(frozen=True)
@@ -69,10 +69,15 @@ class SceneIndex:
     vehicle: np.ndarray
     ground_z: float
     bs: np.ndarray
+    planes: "PlaneTable | None" = None
 
     @classmethod
-    def from_scenario(cls, scn: Scenario, extra_static: list[str] | tuple[str, ...] = ()) -> "SceneIndex":
-        """Index of a scenario's objects plus ``extra_static`` names (objects of an external XML)."""
+    def from_scenario(cls, scn: Scenario, extra_static: list[str] | tuple[str, ...] = (),
+                      planes: "PlaneTable | None" = None) -> "SceneIndex":
+        """Index of a scenario's objects plus ``extra_static`` names (objects of an external XML).
+
+        ``planes``: the plane table of the static triangles (:func:`plane_table`), if known.
+        """
         names: list[str] = []
         kind, lo, hi, ref, veh = [], [], [], [], []
         nan3 = np.full(3, np.nan)
@@ -95,12 +100,119 @@ class SceneIndex:
             lo.append(nan3); hi.append(nan3); ref.append(nan3); veh.append(-1)
         return cls(tuple(names), np.asarray(kind, np.int64), np.asarray(lo).reshape(-1, 3),
                    np.asarray(hi).reshape(-1, 3), np.asarray(ref).reshape(-1, 3), np.asarray(veh, np.int64),
-                   float(scn.ground.z) if scn.ground is not None else float("nan"), scn.bs_array)
+                   float(scn.ground.z) if scn.ground is not None else float("nan"), scn.bs_array, planes)
 
     def index_of(self, names: list[str] | np.ndarray) -> np.ndarray:
         """Object names -> indices (-1 for names not in the index)."""
         lut = {n: i for i, n in enumerate(self.names)}
         return np.asarray([lut.get(str(n), -1) for n in names], np.int64)
+
+
+@dataclass(frozen=True)
+class PlaneTable:
+    """Distinct planes of a set of static triangles (see :func:`plane_table`).
+
+    ``normal (P, 3)`` unit normals oriented towards the BS, ``offset (P,)`` plane offsets
+    ``d = n . x`` (m), ``ids`` the landmark ids ``plane(nx,ny,nz,d)``; ``tri_plane (T,)`` the
+    plane of each input triangle (-1: degenerate triangle), ``tri_normal (T, 3)`` the plane
+    normal per triangle (NaN for degenerate ones): what a tracer passes to :func:`label_paths`
+    as a hit triangle's normal, so that the labeller finds the plane by exact lookup.
+    """
+
+    normal: np.ndarray
+    offset: np.ndarray
+    ids: tuple[str, ...]
+    tri_plane: np.ndarray
+    tri_normal: np.ndarray
+
+    def lookup(self, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """Plane index of hits with table normals ``normal (n, 3)`` at points ``point (n, 3)``.
+
+        Among the planes with exactly that normal, the one whose offset is nearest ``n . point``;
+        -1 where no plane has that normal.
+        """
+        out = np.full(len(normal), -1, np.int64)
+        if not len(normal) or not len(self.normal):
+            return out
+        un, inv = np.unique(normal, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        for j, nv in enumerate(un):
+            cand = np.flatnonzero(np.all(self.normal == nv, axis=1))
+            if not cand.size:
+                continue
+            rows = np.flatnonzero(inv == j)
+            d = point[rows] @ nv
+            out[rows] = cand[np.argmin(np.abs(d[:, None] - self.offset[cand][None, :]), axis=1)]
+        return out
+
+
+def _plane_id(cell: np.ndarray) -> str:
+    return (f"plane({cell[0] / _NORMAL_Q:+.4f},{cell[1] / _NORMAL_Q:+.4f},{cell[2] / _NORMAL_Q:+.4f},"
+            f"{cell[3] / _OFFSET_Q:+.3f})")
+
+
+def plane_table(triangles: np.ndarray, bs: np.ndarray) -> PlaneTable:
+    """Group triangles ``(T, 3, 3)`` (m, global frame) by the plane they lie in.
+
+    Each triangle's normal is oriented towards the BS ``bs (3,)`` and quantized with its offset
+    into a cell (normal to 1e-4, offset to 1 mm: float32 vertices of a city scene are coplanar to
+    about 1e-5). Cells are taken in order of decreasing triangle
+    area (ties: cell order); each cell not yet taken starts a plane and takes every untaken cell
+    within one quantum in all four coordinates, so a plane whose offset sits on a rounding
+    boundary is still one plane. A plane's normal and offset are the area-weighted means of its
+    triangles'; its id is formatted from its first cell (ids are unique). Deterministic.
+    """
+    tri = np.asarray(triangles, float).reshape(-1, 3, 3)
+    bs = np.asarray(bs, float)
+    nv = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(nv, axis=1)
+    ok = area2 > 1e-12 * np.maximum(1.0, np.max(np.abs(tri), axis=(1, 2))) ** 2
+    T = len(tri)
+    tri_plane = np.full(T, -1, np.int64)
+    tri_normal = np.full((T, 3), np.nan)
+    if not np.any(ok):
+        return PlaneTable(np.zeros((0, 3)), np.zeros(0), (), tri_plane, tri_normal)
+    idx = np.flatnonzero(ok)
+    n = nv[idx] / area2[idx, None]
+    c = tri[idx].mean(axis=1)
+    n = np.where((np.sum((bs - c) * n, axis=1) < 0)[:, None], -n, n)
+    d = np.sum(n * c, axis=1)
+    cells = np.concatenate([np.round(n * _NORMAL_Q), np.round(d * _OFFSET_Q)[:, None]], axis=1).astype(np.int64)
+    ucell, inv = np.unique(cells, axis=0, return_inverse=True)  # rows sorted lexicographically
+    inv = inv.reshape(-1)
+    w = np.bincount(inv, weights=area2[idx], minlength=len(ucell))
+    order = np.lexsort(tuple(ucell[:, k] for k in range(3, -1, -1)) + (-w,))
+
+    def code(c: np.ndarray) -> np.ndarray:  # one opaque, sortable value per cell
+        return np.ascontiguousarray(c, dtype=">i8").view(np.dtype((np.void, 32))).reshape(-1)
+
+    srt = np.argsort(code(ucell))
+    codes = code(ucell)[srt]
+    offs = np.array(np.meshgrid(*([[-1, 0, 1]] * 4), indexing="ij")).reshape(4, -1).T
+    nb = np.empty((len(ucell), len(offs)), np.int64)  # neighbouring cells (-1: none)
+    for j, o in enumerate(offs):
+        c2 = code(ucell + o)
+        pos = np.minimum(np.searchsorted(codes, c2), len(codes) - 1)
+        nb[:, j] = np.where(codes[pos] == c2, srt[pos], -1)
+    owner = np.full(len(ucell), -1, np.int64)
+    seeds = []
+    for u in order:
+        if owner[u] >= 0:
+            continue
+        cand = nb[u][nb[u] >= 0]
+        owner[cand[owner[cand] < 0]] = len(seeds)
+        seeds.append(u)
+    plane_of = owner[inv]
+    P = len(seeds)
+    wa = area2[idx]
+    sn = np.zeros((P, 3))
+    np.add.at(sn, plane_of, n * wa[:, None])
+    normal = sn / np.linalg.norm(sn, axis=1, keepdims=True)
+    offset = np.bincount(plane_of, weights=d * wa, minlength=P) / np.bincount(plane_of, weights=wa, minlength=P)
+    tri_plane[idx] = plane_of
+    tri_normal[idx] = normal[plane_of]
+    ids = tuple(_plane_id(ucell[u]) for u in seeds)
+    return PlaneTable(normal, offset, ids, tri_plane, tri_normal)
 
 
 def _box_face(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -218,16 +330,26 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
     if np.any(is_va_ground):
         lm[is_va_ground] = mirror_point(bs, np.array([0.0, 0.0, index.ground_z]), np.array([0.0, 0.0, 1.0]))
         sub[is_va_ground, 0] = _FACE_TAGS.index("+z")
+    plane_ix = np.full(n, -1, np.int64)  # row of index.planes (-1: none)
     if np.any(is_va_plane):
+        pp = p0[is_va_plane]
+        if index.planes is not None:
+            plane_ix[is_va_plane] = index.planes.lookup(nrm[is_va_plane, 0], pp)
+        known = plane_ix[is_va_plane] >= 0
         nn = nrm[is_va_plane, 0]
         nn = nn / np.linalg.norm(nn, axis=1, keepdims=True)
-        pp = p0[is_va_plane]
         sgn = np.where(np.sum((bs - pp) * nn, axis=1) < 0, -1.0, 1.0)
         nn = nn * sgn[:, None]
         dd = np.sum(nn * pp, axis=1)
-        lm[is_va_plane] = mirror_point(bs, pp, nn)
-        sub[is_va_plane, 0:3] = np.round(nn * _NORMAL_Q).astype(np.int64)
-        sub[is_va_plane, 3] = np.round(dd * _OFFSET_Q).astype(np.int64)
+        qsub = np.concatenate([np.round(nn * _NORMAL_Q), np.round(dd * _OFFSET_Q)[:, None]], axis=1).astype(np.int64)
+        if np.any(known):
+            pk = plane_ix[is_va_plane][known]
+            nn[known] = index.planes.normal[pk]
+            dd[known] = index.planes.offset[pk]
+            qsub[known] = [-1, -1, -1, 0]  # table planes are keyed by their row, not by rounding
+            qsub[known, 3] = pk
+        lm[is_va_plane] = mirror_point(bs, nn * dd[:, None], nn)
+        sub[is_va_plane] = qsub
     if np.any(is_sp):
         lm[is_sp] = index.ref[o0[is_sp]]
     if np.any(is_vs):
@@ -235,7 +357,7 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
 
     # ---------------------------------------------------------------- cluster key
     objkey = np.where((typ == OTHER)[:, None], obj, np.where(np.arange(D)[None, :] == 0, obj, -1))
-    objkey = np.where((typ == BS)[:, None], -1, objkey)
+    objkey = np.where((typ == BS)[:, None] | is_va_plane[:, None], -1, objkey)  # a plane VA is its plane
     # OTHER paths from an unknown object keep the interaction types apart too
     key = np.concatenate([rx[:, None], typ[:, None], objkey, sub,
                           np.where((typ == OTHER)[:, None], itype, 0)], axis=1)
@@ -258,13 +380,10 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
         if t == BS:
             ids[j] = "bs"
         elif t == VA:
-            name = index.names[o0[r]]
             if is_va_plane[r]:
-                q = sub[r]
-                ids[j] = (f"{name}:plane({q[0] / _NORMAL_Q:+.3f},{q[1] / _NORMAL_Q:+.3f},"
-                          f"{q[2] / _NORMAL_Q:+.3f},{q[3] / _OFFSET_Q:+.2f})")
+                ids[j] = index.planes.ids[plane_ix[r]] if plane_ix[r] >= 0 else _plane_id(sub[r])
             else:
-                ids[j] = f"{name}:{_FACE_TAGS[sub[r, 0]]}"
+                ids[j] = f"{index.names[o0[r]]}:{_FACE_TAGS[sub[r, 0]]}"
         elif t in (SP, VS):
             ids[j] = index.names[o0[r]]
         else:

@@ -1,7 +1,9 @@
 """Sionna RT path source: the only module that imports Sionna / Mitsuba / Dr.Jit.
 
 :class:`SionnaSource` builds the scenario's scene once (:func:`mmslam.scenes.meshes.build_scene`),
-loads it with ``merge_shapes=False`` (one Sionna object per scenario object) and per step:
+loads it with one Sionna object per scenario object (box buildings, scatterers, ground, cars) and
+the shapes of an external XML scene merged per radio material (Sionna's ``merge_shapes``: the
+per-object cost dominates a city trace; Munich's 2367 objects become about 10), and per step:
 
 1. moves every car body to its vehicle's state (position and heading; the vertex buffer is
    rewritten from the exact vehicle-frame box, so no drift accumulates) and sets its velocity;
@@ -10,7 +12,9 @@ loads it with ``merge_shapes=False`` (one Sionna object per scenario object) and
    isotropic single antennas, LOS + specular + diffuse reflection, no refraction/diffraction);
 4. converts the valid paths to NumPy once (complex coefficients ``a``, delays, angles, Doppler
    shifts, interactions, vertices) and labels them (:mod:`mmslam.raytrace.labels`): every valid
-   path becomes a row of the ``rays`` table, the strongest per landmark a row of ``paths``.
+   path becomes a row of the ``rays`` table, the strongest per landmark a row of ``paths``. A
+   specular bounce on the external scene is a VA of the hit triangle's plane (a plane table built
+   once from the loaded triangles), whichever building or merged shape the triangle belongs to.
 
 Every receiver moves with its vehicle's velocity (set on the receiver and on the car body), so
 Sionna's Doppler shifts include the receiver's motion and that of the car a VS path bounces off.
@@ -31,6 +35,7 @@ heading-corrected); elevation = pi/2 - Sionna's zenith angle.
 from __future__ import annotations
 
 import importlib.metadata
+import re
 import tempfile
 from pathlib import Path
 
@@ -38,7 +43,7 @@ import numpy as np
 
 from mmslam.backend import import_mitsuba
 from mmslam.errors import ConfigError, MmslamError
-from mmslam.raytrace.labels import SceneIndex, label_paths
+from mmslam.raytrace.labels import SceneIndex, label_paths, plane_table
 from mmslam.raytrace.schema import SIONNA_INTERACTION_CODE, ray_numbers, rays_columns
 from mmslam.scenes.meshes import build_scene, car_local_vertices, car_pose_vertices
 from mmslam.scenes.scenario import Scenario
@@ -136,8 +141,16 @@ class SionnaSource:
         import sionna.rt as rt
 
         self._rt = rt
+        # scenario objects (box buildings, scatterers, ground, cars) stay separate objects: the labeller
+        # needs their names and the cars move; an external scene's shapes are merged per material
+        keep = [b.name for b in scn.buildings] + [s.name for s in scn.scatterers] + scn.vehicle_names
+        if scn.ground is not None:
+            keep.append("ground")
+        self.merged = bool(scn.xml_scene)
+        exclude = "^mesh-(" + "|".join(re.escape(k) for k in keep) + ")$"
         try:
-            self.scene = rt.load_scene(str(self.xml_path), merge_shapes=False)
+            self.scene = rt.load_scene(str(self.xml_path), merge_shapes=self.merged,
+                                       merge_shapes_exclude_regex=exclude if self.merged else None)
         except Exception as e:  # Mitsuba/Sionna parse errors: name the file and the cause
             msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ConfigError(f"{self.xml_path}: Sionna could not load the scene ({msg}); check xml_scene "
@@ -161,7 +174,16 @@ class SionnaSource:
         if scn.ground is not None:
             scen_names.add("ground")
         extra = sorted(n for n in self.scene.objects if n not in scen_names)
-        self.index = SceneIndex.from_scenario(scn, extra_static=extra)
+        # triangles of the external scene's (merged) shapes, stacked in ``extra`` order:
+        # triangle (object index o, primitive i) = row self._nrm_off[o] + i
+        tris = []
+        for n in extra:
+            mesh = self.scene.objects[n].mi_mesh
+            vp = np.asarray(mesh.vertex_positions_buffer().numpy(), float).reshape(-1, 3)
+            fc = np.asarray(mesh.faces_buffer().numpy(), np.int64).reshape(-1, 3)
+            tris.append(vp[fc])
+        planes = plane_table(np.concatenate(tris) if tris else np.zeros((0, 3, 3)), scn.bs_array)
+        self.index = SceneIndex.from_scenario(scn, extra_static=extra, planes=planes)
         missing = sorted(scen_names - set(self.scene.objects))
         if missing:
             raise MmslamError(f"{self.xml_path}: objects {missing} missing from the loaded Sionna scene; "
@@ -187,22 +209,16 @@ class SionnaSource:
             self._car_local[v.name] = exact[j]
             self._vp_key[v.name] = key
 
-        # triangle normals of static objects without a known box (external XML scenes), stacked:
+        # hit-triangle normal = the normal of its plane in the plane table (exact lookup when labelling):
         # normal of (object index o, primitive i) = self._normals[self._nrm_off[o] + i]
         self._nrm_off = np.full(len(self.index.names), -1, np.int64)
         self._nrm_count = np.zeros(len(self.index.names), np.int64)
-        blocks, off = [], 0
-        for n in extra:
-            mesh = self.scene.objects[n].mi_mesh
-            vp = np.asarray(mesh.vertex_positions_buffer().numpy(), float).reshape(-1, 3)
-            fc = np.asarray(mesh.faces_buffer().numpy(), np.int64).reshape(-1, 3)
-            nv = np.cross(vp[fc[:, 1]] - vp[fc[:, 0]], vp[fc[:, 2]] - vp[fc[:, 0]])
-            ln = np.linalg.norm(nv, axis=1, keepdims=True)
-            blocks.append(np.where(ln > 0, nv / np.where(ln > 0, ln, 1.0), np.nan))
+        off = 0
+        for n, t in zip(extra, tris):
             k = self.index.names.index(n)
-            self._nrm_off[k], self._nrm_count[k] = off, len(fc)
-            off += len(fc)
-        self._normals = np.concatenate(blocks) if blocks else np.zeros((0, 3))
+            self._nrm_off[k], self._nrm_count[k] = off, len(t)
+            off += len(t)
+        self._normals = planes.tri_normal
         self._steps_traced = 0
         self._capacity = _PathCapacity()
         # Sionna creates a car's velocity attribute with literal values on the first assignment and
@@ -222,7 +238,8 @@ class SionnaSource:
         return {"max_depth": self.max_depth, "samples_per_src": self.samples_per_src, "seed": self.seed,
                 "los": True, "specular_reflection": True, "diffuse_reflection": True, "refraction": False,
                 "diffraction": False, "synthetic_array": True, "deterministic": True, "antenna": "iso/V",
-                "seed_per_step": "SeedSequence([seed, step])"}
+                "seed_per_step": "SeedSequence([seed, step])",
+                "merge_external_shapes": self.merged, "va_labels": "plane table"}
 
     def versions(self) -> dict[str, str]:
         """Installed versions of sionna-rt, mitsuba and drjit, and the Mitsuba variant in use."""

@@ -129,10 +129,10 @@ def test_ground_and_xml_plane_va():
     nrm[3, 0] = [1.0, 0.0, 0.0]
     out = label_paths(idx, antennas=ANT, normals=nrm, **p)
     got = {(int(r), int(t), str(i)): k for k, (r, t, i) in enumerate(zip(out["rx"], out["type"], out["landmark_id"]))}
-    assert set(got) == {(0, VA, "ground:+z"), (0, VA, "facade:plane(+1.000,+0.000,+0.000,-5.00)"), (1, OTHER, "facade")}
+    assert set(got) == {(0, VA, "ground:+z"), (0, VA, "plane(+1.0000,+0.0000,+0.0000,-5.000)"), (1, OTHER, "facade")}
     k = got[(0, VA, "ground:+z")]
     np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [0, 0, -10])
-    k = got[(0, VA, "facade:plane(+1.000,+0.000,+0.000,-5.00)")]
+    k = got[(0, VA, "plane(+1.0000,+0.0000,+0.0000,-5.000)")]
     np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [-10, 0, 10], atol=1e-12)
     assert out["n_paths"][k] == 2 and out["delay_spread_m"][k] == pytest.approx(1.0)
 
@@ -156,3 +156,62 @@ def test_non_finite_input_is_rejected():
     p["toa_m"][1] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
         label_paths(idx, antennas=ANT, **p)
+
+
+def _box_triangles(lo, hi) -> np.ndarray:
+    from mmslam.scenes.meshes import box_mesh
+
+    m = box_mesh(np.asarray(lo, float), np.asarray(hi, float))
+    return np.asarray(m.vertices)[np.asarray(m.faces)]
+
+
+def test_plane_table_of_a_box_has_its_six_face_planes_oriented_to_the_bs():
+    from mmslam.raytrace.labels import plane_table
+
+    tri = _box_triangles([20.0, -10.0, 0.0], [22.0, 10.0, 15.0])  # 12 triangles
+    pt = plane_table(tri, BS_POS)
+    assert len(pt.ids) == 6 and len(set(pt.ids)) == 6
+    # each face's two triangles share a plane; the BS (x = 0, z = 10) sees x = 20 from its -x side
+    assert all(np.sum(pt.tri_plane == p) == 2 for p in range(6))
+    # the BS is at x < 20, -10 < y < 10, 0 < z < 15: every normal points back towards it
+    want = {"plane(-1.0000,+0.0000,+0.0000,-20.000)", "plane(-1.0000,+0.0000,+0.0000,-22.000)",
+            "plane(+0.0000,-1.0000,+0.0000,-10.000)", "plane(+0.0000,+1.0000,+0.0000,-10.000)",
+            "plane(+0.0000,+0.0000,+1.0000,+0.000)", "plane(+0.0000,+0.0000,-1.0000,-15.000)"}
+    assert set(pt.ids) == want
+    for p in range(6):  # the normal points to the BS's side of each plane
+        assert np.dot(pt.normal[p], BS_POS) - pt.offset[p] > 0
+
+
+def test_plane_table_keeps_one_plane_across_a_rounding_boundary_and_separates_near_planes():
+    from mmslam.raytrace.labels import plane_table
+
+    # two triangles of the plane x = 5.0005 (a 1 mm rounding boundary), one nudged by 1e-7 m
+    a = np.array([[5.0005, 0.0, 0.0], [5.0005, 1.0, 0.0], [5.0005, 0.0, 1.0]])
+    b = a + [[-2e-7, 3.0, 0.0]]
+    c = a + [[0.01, 6.0, 0.0]]  # a parallel facade 1 cm behind: another plane
+    pt = plane_table(np.stack([a, b, c]), np.array([0.0, 0.0, 0.0]))
+    assert pt.tri_plane[0] == pt.tri_plane[1] != pt.tri_plane[2]
+    assert len(pt.ids) == 2
+
+
+def test_coplanar_facades_of_two_objects_are_one_va_with_the_exact_image():
+    """A specular hit is a VA of its plane, not of its object: two buildings' facades on x = -5 give one
+    VA row (both paths in its cluster), the BS mirrored in x = -5, the same id at any hit point."""
+    from mmslam.raytrace.labels import plane_table
+
+    scn = _scn()
+    tri_a = np.array([[[-5.0, 0.0, 0.0], [-5.0, 4.0, 0.0], [-5.0, 0.0, 8.0]]])
+    tri_b = np.array([[[-5.0, 10.0, 0.0], [-5.0, 14.0, 0.0], [-5.0, 10.0, 8.0]]])
+    pt = plane_table(np.concatenate([tri_a, tri_b]), BS_POS)
+    assert len(pt.ids) == 1
+    idx = SceneIndex.from_scenario(scn, extra_static=["house_a", "house_b"], planes=pt)
+    ids = []
+    for pa, pb in (([-5.0, 1.0, 4.0], [-5.0, 11.0, 2.0]), ([-5.0, 2.5, 1.0], [-5.0, 12.0, 6.0])):
+        rows = [(0, [("house_a", SPECULAR, pa)], 30.0, -95.0), (0, [("house_b", SPECULAR, pb)], 31.0, -99.0)]
+        nrm = np.full((2, 3, 3), np.nan)
+        nrm[:, 0] = pt.tri_normal[[0, 1]]
+        out = label_paths(idx, antennas=ANT, normals=nrm, **_paths(idx, rows))
+        assert list(out["type"]) == [VA] and out["n_paths"][0] == 2
+        np.testing.assert_allclose([out["lm_x"][0], out["lm_y"][0], out["lm_z"][0]], [-10.0, 0.0, 10.0], atol=1e-12)
+        ids.append(str(out["landmark_id"][0]))
+    assert ids == ["plane(+1.0000,+0.0000,+0.0000,-5.000)"] * 2

@@ -230,8 +230,8 @@ def test_external_xml_scene_va_by_plane(tmp_path):
     lab = src.trace_step(0, st)
     ids = {str(i): j for j, i in enumerate(lab["landmark_id"])}
     assert "bs" in ids
-    va = [i for i in ids if i.startswith("wall:plane(")]
-    assert len(va) == 1
+    va = [i for i in ids if i.startswith("plane(")]
+    assert va == ["plane(+1.0000,+0.0000,+0.0000,+0.000)"]  # the wall x = 0, normal towards the BS
     j = ids[va[0]]
     lm = np.array([lab["lm_x"][j], lab["lm_y"][j], lab["lm_z"][j]])
     np.testing.assert_allclose(lm, [-1.5, 0.0, 2.0], atol=1e-3)
@@ -342,3 +342,35 @@ def test_bs_va_rows_agree_with_analytic_source(traced):
                 assert abs(np.angle(np.exp(1j * (lab[c][j] - ref[c][i])))) < 1e-3, (k, key, c)
             if key[1] == "bs":  # free-space LOS: isotropic antennas, no material involved
                 assert lab["power_db"][j] == pytest.approx(ref["power_db"][i], abs=0.05)
+
+
+@pytest.mark.slow
+def test_munich_merged_va_labels_are_exact_planes_of_the_scene(tmp_path):
+    """Munich loads as a few merged shapes; every VA row's bounce point lies on the plane whose mirror
+    image is its landmark (the perpendicular bisector of BS and landmark), its TOA is the distance
+    image -> antenna, and an id names the same landmark at every step."""
+    from mmslam.raytrace.sionna_adapter import SionnaSource
+
+    scn = load_preset("munich")
+    states = vehicle_trajectories(scn)
+    src = SionnaSource(scn, max_depth=1, samples_per_src=2 * 10**5, scene_dir=tmp_path)
+    assert src.merged and len(src.scene.objects) < 30  # 2367 objects unmerged
+    b = scn.bs_array
+    seen: dict[str, np.ndarray] = {}
+    n_va = 0
+    for k in (0, 13, 27):
+        lab = src.trace_step(k, states[k])
+        for i in _rows(lab, VA):
+            lm = np.array([lab["lm_x"][i], lab["lm_y"][i], lab["lm_z"][i]])
+            p = np.array([lab["bounce_x"][i], lab["bounce_y"][i], lab["bounce_z"][i]])
+            n = (b - lm) / np.linalg.norm(b - lm)
+            assert abs(np.dot(n, p - (b + lm) / 2)) < 1e-2, lab["landmark_id"][i]
+            u = states[k, lab["rx"][i], :3]
+            assert lab["toa_m"][i] == pytest.approx(np.linalg.norm(lm - u), abs=1e-2)
+            lid = str(lab["landmark_id"][i])
+            assert lid.startswith("plane(")
+            if lid in seen:
+                np.testing.assert_array_equal(seen[lid], lm)
+            seen[lid] = lm
+            n_va += 1
+    assert n_va >= 5
