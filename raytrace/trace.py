@@ -28,6 +28,7 @@ from mmslam.raytrace.cache import (
     read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, sort_paths, sort_rays
+from mmslam.scenes.geometry import check_vehicle_poses
 from mmslam.scenes.scenario import Scenario
 from mmslam.scenes.trajectory import true_trajectories
 
@@ -224,6 +225,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
         return cache_dir
 
     states = true_trajectories(scn, n_steps)
+    check_vehicle_poses(scn, states)  # every pose against the scene meshes, before any tracing
     bar = None
     if progress:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,

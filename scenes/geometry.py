@@ -1,0 +1,376 @@
+"""Static scene geometry as plain triangles, and ray casting on it in NumPy (no Sionna, no Mitsuba).
+
+:func:`static_geometry` gathers every static triangle of a scenario's scene: the shapes of its
+external XML scene (``xml_scene``, PLY meshes; each XML shape is one object) plus the scenario's
+own box buildings, scatterers and ground. Vehicles are not static and are left out.
+
+Two ray casters work on it, both exact on the triangles (no tolerance other than float64):
+
+- :meth:`StaticGeometry.vertical_hits`: every surface crossed by the vertical line through each
+  query point ``(x, y)`` (height map, terrain, "what is above / below a car"); triangles are
+  bucketed on a 2-D grid, so a query costs only the triangles over its cell. Vertical triangles
+  (walls) have no area in plan and are never hit by a vertical line.
+- :meth:`StaticGeometry.segments_blocked`: whether each segment ``a -> b`` crosses any triangle
+  (Moeller-Trumbore, vectorised over segment x triangle pairs that pass a bounding-box test).
+
+Global frame: x east, y north, z up, metres.
+"""
+from __future__ import annotations
+
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mmslam.errors import ConfigError
+from mmslam.scenes.scenario import Scenario
+
+
+# ====================================================================== PLY reading
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def read_ply_triangles(path: str | Path) -> np.ndarray:
+    """Triangles ``(T, 3, 3)`` (float64, the file's coordinates) of a PLY mesh.
+
+    Binary little-endian PLY with triangle faces is read directly (fast: a city scene has
+    thousands of small files); anything else is read with trimesh (polygons triangulated).
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read the mesh ({e.strerror}); check the XML scene's filename") from None
+    end = data.find(b"end_header\n")
+    if data.startswith(b"ply") and end > 0:
+        head = data[:end].decode("ascii", "replace").splitlines()
+        if "format binary_little_endian 1.0" in head:
+            tri = _read_binary_ply(head, data[end + len(b"end_header\n"):])
+            if tri is not None:
+                return tri
+    import trimesh
+
+    m = trimesh.load(p, process=False, force="mesh")
+    return np.asarray(m.vertices, float)[np.asarray(m.faces, np.int64)].reshape(-1, 3, 3)
+
+
+def _read_binary_ply(head: list[str], body: bytes) -> np.ndarray | None:
+    elems: list[tuple[str, int, list[list[str]]]] = []
+    for line in head:
+        w = line.split()
+        if w[:1] == ["element"]:
+            elems.append((w[1], int(w[2]), []))
+        elif w[:1] == ["property"] and elems:
+            elems[-1][2].append(w[1:])
+    if [e[0] for e in elems[:2]] != ["vertex", "face"] or len(elems) != 2:
+        return None
+    (_, nv, vprops), (_, nf, fprops) = elems
+    if any(pr[0] == "list" for pr in vprops) or len(fprops) != 1 or fprops[0][0] != "list":
+        return None
+    vdt = np.dtype([(pr[1], "<" + _PLY_TYPES[pr[0]]) for pr in vprops])
+    verts = np.frombuffer(body, vdt, count=nv)
+    xyz = np.stack([verts["x"], verts["y"], verts["z"]], axis=1).astype(float)
+    ct, it = _PLY_TYPES[fprops[0][1]], _PLY_TYPES[fprops[0][2]]
+    fdt = np.dtype([("n", "<" + ct), ("v", "<" + it, (3,))])
+    rest = body[vdt.itemsize * nv:]
+    if len(rest) < fdt.itemsize * nf:
+        return None
+    faces = np.frombuffer(rest, fdt, count=nf)
+    if nf and not np.all(faces["n"] == 3):
+        return None
+    return xyz[faces["v"].astype(np.int64)]
+
+
+# ====================================================================== geometry
+@dataclass
+class StaticGeometry:
+    """Static triangles of a scene.
+
+    ``triangles (T, 3, 3)`` m, global frame; ``obj (T,)`` index into ``names``; ``kind[i]`` of
+    object ``i``: ``"xml"`` (a shape of the external scene), ``"building"``, ``"scatterer"`` or
+    ``"ground"`` (the scenario's own).
+    """
+
+    triangles: np.ndarray
+    obj: np.ndarray
+    names: tuple[str, ...]
+    kind: tuple[str, ...]
+    cell: float = 4.0
+    _grid: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def has_ground(self) -> bool:
+        """True if anything can be under a vehicle (an external scene or a scenario ground)."""
+        return any(k in ("xml", "ground") for k in self.kind)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box ``(lo (3,), hi (3,))`` of all triangles, m."""
+        t = self.triangles.reshape(-1, 3)
+        return t.min(axis=0), t.max(axis=0)
+
+    # ------------------------------------------------------------------ vertical rays
+    def _plan_index(self) -> dict:
+        if self._grid:
+            return self._grid
+        tri = self.triangles
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+        keep = np.flatnonzero(np.abs(det) > 1e-12)  # triangles with an area in plan
+        lo = tri[keep, :, :2].min(axis=1)
+        hi = tri[keep, :, :2].max(axis=1)
+        origin = lo.min(axis=0) if len(keep) else np.zeros(2)
+        i0 = np.floor((lo - origin) / self.cell).astype(np.int64)
+        i1 = np.floor((hi - origin) / self.cell).astype(np.int64)
+        nx = int(i1[:, 0].max() + 1) if len(keep) else 1
+        ny = int(i1[:, 1].max() + 1) if len(keep) else 1
+        span = (i1 - i0 + 1)
+        cnt = span[:, 0] * span[:, 1]
+        rep = np.repeat(np.arange(len(keep)), cnt)
+        local = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        cx = i0[rep, 0] + local % span[rep, 0]
+        cy = i0[rep, 1] + local // span[rep, 0]
+        cid = cx * ny + cy
+        order = np.argsort(cid, kind="stable")
+        starts = np.searchsorted(cid[order], np.arange(nx * ny + 1))
+        self._grid = {"tri": keep[rep[order]], "starts": starts, "origin": origin, "nx": nx, "ny": ny,
+                      "det": det}
+        return self._grid
+
+    def vertical_hits(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All crossings of the vertical lines through ``xy (n, 2)`` with the triangles.
+
+        Returns ``(point (h,), z (h,), tri (h,))``: the query index, the height (m) and the
+        triangle of each crossing (a point on a shared edge may report both triangles).
+        """
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        g = self._plan_index()
+        if not len(g["tri"]):
+            e = np.zeros(0, np.int64)
+            return e, np.zeros(0), e
+        ij = np.floor((xy - g["origin"]) / self.cell).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g["nx"]) & (ij[:, 1] < g["ny"])
+        cid = np.where(inside, ij[:, 0] * g["ny"] + ij[:, 1], 0)
+        s0 = np.where(inside, g["starts"][cid], 0)
+        s1 = np.where(inside, g["starts"][cid + 1], 0)
+        cnt = s1 - s0
+        pt = np.repeat(np.arange(len(xy)), cnt)
+        k = np.repeat(s0 - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
+        t = g["tri"][k]
+        tri = self.triangles[t]
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        p = xy[pt]
+        det = g["det"][t]
+        l1 = ((p[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1])) / det
+        l2 = ((b[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1]) - (p[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])) / det
+        eps = 1e-12
+        hit = (l1 >= -eps) & (l2 >= -eps) & (l1 + l2 <= 1 + eps)
+        z = a[:, 2] + l1 * (b[:, 2] - a[:, 2]) + l2 * (c[:, 2] - a[:, 2])
+        return pt[hit], z[hit], t[hit]
+
+    def height_map(self, xy: np.ndarray, below: float | np.ndarray = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """Highest surface at or below height ``below`` (scalar or ``(n,)``) over each point: ``(z (n,), obj (n,))``.
+
+        ``z`` is NaN and ``obj`` -1 where no surface is below (off the map).
+        """
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        pt, z, t = self.vertical_hits(xy)
+        sel = z <= np.broadcast_to(np.asarray(below, float), (len(xy),))[pt]
+        pt, z, t = pt[sel], z[sel], t[sel]
+        out = np.full(len(xy), -np.inf)
+        np.maximum.at(out, pt, z)
+        obj = np.full(len(xy), -1, np.int64)
+        top = z == out[pt]
+        obj[pt[top]] = self.obj[t[top]]
+        return np.where(np.isfinite(out), out, np.nan), obj
+
+    def lowest_above(self, xy: np.ndarray, z0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lowest surface strictly above ``z0 (n,)`` over each point: ``(z (n,), obj (n,))`` (NaN / -1: none)."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        z0 = np.broadcast_to(np.asarray(z0, float), (len(xy),))
+        pt, z, t = self.vertical_hits(xy)
+        sel = z > z0[pt]
+        pt, z, t = pt[sel], z[sel], t[sel]
+        out = np.full(len(xy), np.inf)
+        np.minimum.at(out, pt, z)
+        obj = np.full(len(xy), -1, np.int64)
+        low = z == out[pt]
+        obj[pt[low]] = self.obj[t[low]]
+        return np.where(np.isfinite(out), out, np.nan), obj
+
+    # ------------------------------------------------------------------ segments
+    def segments_blocked(self, a: np.ndarray, b: np.ndarray, exclude_tri: np.ndarray | None = None,
+                         margin: float = 1e-3) -> np.ndarray:
+        """Whether each segment ``a (n, 3) -> b (n, 3)`` crosses a triangle, ``(n,)`` bool.
+
+        The first and last ``margin`` m of each segment are ignored (a path touching the
+        surface it reflects on, or an antenna on a surface, is not blocked by it);
+        ``exclude_tri (n,)`` (-1: none) is a triangle each segment may cross.
+        """
+        a = np.asarray(a, float).reshape(-1, 3)
+        b = np.asarray(b, float).reshape(-1, 3)
+        n = len(a)
+        out = np.zeros(n, bool)
+        if n == 0 or not len(self.triangles):
+            return out
+        ex = np.full(n, -1, np.int64) if exclude_tri is None else np.asarray(exclude_tri, np.int64)
+        tri = self.triangles
+        tlo, thi = tri.min(axis=1), tri.max(axis=1)
+        slo, shi = np.minimum(a, b), np.maximum(a, b)
+        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        for i in range(n):
+            cand = np.flatnonzero(np.all(tlo <= shi[i] + 1e-9, axis=1) & np.all(thi >= slo[i] - 1e-9, axis=1))
+            cand = cand[cand != ex[i]]
+            if not cand.size:
+                continue
+            d = b[i] - a[i]
+            L = float(np.linalg.norm(d))
+            if L <= 2 * margin:
+                continue
+            pv = np.cross(d, e2[cand])
+            det = np.sum(e1[cand] * pv, axis=1)
+            ok = np.abs(det) > 1e-15
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            tv = a[i] - v0[cand]
+            u = np.sum(tv * pv, axis=1) * inv
+            qv = np.cross(tv, e1[cand])
+            v = (qv @ d) * inv
+            s = np.sum(e2[cand] * qv, axis=1) * inv  # fraction of the segment
+            m = margin / L
+            out[i] = bool(np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > m) & (s < 1 - m)))
+        return out
+
+
+# ====================================================================== building it
+def _xml_shapes(path: Path) -> list[tuple[str, Path]]:
+    """(object name, mesh file) of every top-level shape of a Mitsuba XML scene."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise ConfigError(f"{path}: not valid XML ({e}); fix or replace the file") from None
+    out = []
+    for el in root:
+        if el.tag != "shape":
+            continue
+        sid = el.get("id", "")
+        name = sid[5:] if sid.startswith("mesh-") else sid
+        if el.get("type") not in ("ply", "obj"):
+            raise ConfigError(f"{path}: shape '{sid}' of type '{el.get('type')}': only ply / obj meshes are "
+                              "supported for collision checks and street maps; convert it to a mesh")
+        if el.find("transform") is not None:
+            raise ConfigError(f"{path}: shape '{sid}' has a <transform>; bake it into the mesh (only meshes in "
+                              "world coordinates are supported)")
+        fn = next((s.get("value", "") for s in el.iter("string") if s.get("name") == "filename"), "")
+        f = Path(fn) if os.path.isabs(fn) else path.parent / fn
+        out.append((name, f))
+    return out
+
+
+def static_geometry(scn: Scenario, include_scenario: bool = True) -> StaticGeometry:
+    """Every static triangle of ``scn``'s scene (external XML shapes + buildings, scatterers, ground)."""
+    from mmslam.scenes.meshes import box_mesh, ground_mesh, resolve_xml_scene, scatterer_mesh
+
+    tris, objs, names, kinds = [], [], [], []
+
+    def add(name: str, kind: str, t: np.ndarray) -> None:
+        t = np.asarray(t, float).reshape(-1, 3, 3)
+        objs.append(np.full(len(t), len(names), np.int64))
+        tris.append(t)
+        names.append(name)
+        kinds.append(kind)
+
+    if scn.xml_scene:
+        base = None if scn.source_file.startswith(("<", "preset:")) else Path(scn.source_file).parent
+        for name, f in _xml_shapes(resolve_xml_scene(scn.xml_scene, base)):
+            add(name, "xml", read_ply_triangles(f) if f.suffix.lower() == ".ply" else _trimesh_triangles(f))
+    if include_scenario:
+        for b in scn.buildings:
+            m = box_mesh(np.asarray(b.min), np.asarray(b.max))
+            add(b.name, "building", np.asarray(m.vertices)[np.asarray(m.faces)])
+        for s in scn.scatterers:
+            m = scatterer_mesh(s)
+            add(s.name, "scatterer", np.asarray(m.vertices)[np.asarray(m.faces)])
+        if scn.ground is not None:
+            m = ground_mesh(scn.ground.z, scn.ground.extent)
+            add("ground", "ground", np.asarray(m.vertices)[np.asarray(m.faces)])
+    if not tris:
+        return StaticGeometry(np.zeros((0, 3, 3)), np.zeros(0, np.int64), (), ())
+    return StaticGeometry(np.concatenate(tris), np.concatenate(objs), tuple(names), tuple(kinds))
+
+
+def _trimesh_triangles(f: Path) -> np.ndarray:
+    import trimesh
+
+    if not f.is_file():
+        raise ConfigError(f"{f}: mesh file not found; check the XML scene's filename")
+    m = trimesh.load(f, process=False, force="mesh")
+    return np.asarray(m.vertices, float)[np.asarray(m.faces, np.int64)]
+
+
+# ====================================================================== vehicle poses
+TERRAIN_TOL_M = 0.25
+"""How far (m) the bottom of a car body may sink below the surface under its antenna."""
+
+
+def footprint_points(v, state: np.ndarray) -> np.ndarray:
+    """Nine plan points ``(9, 2)`` of a car's footprint (corners, edge midpoints, centre) at ``state``."""
+    x, y, h = float(state[0]), float(state[1]), float(state[3])
+    fx, fy = np.meshgrid([-0.5, 0.0, 0.5], [-0.5, 0.0, 0.5])
+    lx, ly = fx.ravel() * v.length, fy.ravel() * v.width
+    c, s = np.cos(h), np.sin(h)
+    return np.stack([x + c * lx - s * ly, y + s * lx + c * ly], axis=1)
+
+
+def check_vehicle_poses(scn: Scenario, states: np.ndarray, geom: StaticGeometry | None = None) -> None:
+    """Raise a one-line :class:`ConfigError` at the first car pose that collides with the scene.
+
+    ``states (steps, n_vehicles, 7)``. For every vehicle and step, over the nine footprint points
+    (:func:`footprint_points`) of its body (``z`` from ``antenna z - roof_gap - height`` to
+    ``antenna z - roof_gap``):
+
+    - *below the terrain*: the surface under the antenna is more than ``TERRAIN_TOL_M`` above
+      the body's bottom;
+    - *inside an object*: the vertical line upwards from the body's mid-height crosses one
+      object's triangles an odd number of times (the point is inside that closed mesh; a roof
+      over an open-bottomed building counts too; a bridge deck over the car does not);
+    - *off the map* (scenes with an external XML or a ground only): no surface under the antenna.
+    """
+    states = np.asarray(states, float)
+    geom = static_geometry(scn) if geom is None else geom
+    if not len(geom.triangles):
+        return
+    steps, nv = states.shape[:2]
+    for i, v in enumerate(scn.vehicles):
+        st = states[:, i]
+        bottom = st[:, 2] - v.roof_gap - v.height
+        zu, ou = geom.height_map(st[:, :2], below=st[:, 2] - v.roof_gap)  # the road under the antenna
+        sunk = np.flatnonzero(np.nan_to_num(zu, nan=-np.inf) > bottom + TERRAIN_TOL_M)
+        if sunk.size:
+            k = int(sunk[0])
+            raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, y={st[k, 1]:.1f}) "
+                              f"is {zu[k] - bottom[k]:.2f} m below the surface of object '{geom.names[ou[k]]}' "
+                              f"(z = {zu[k]:.2f} m); raise its antenna height z or let it follow the terrain")
+        pts = np.concatenate([footprint_points(v, st[k]) for k in range(steps)])  # (steps * 9, 2)
+        z0 = np.repeat(bottom + v.height / 2.0, 9)
+        pt, z, t = geom.vertical_hits(pts)
+        above = z > z0[pt]
+        key = pt[above] * len(geom.names) + geom.obj[t[above]]
+        uk, cnt = np.unique(key, return_counts=True)
+        odd = uk[cnt % 2 == 1]
+        if odd.size:
+            k = int(odd[0] // len(geom.names)) // 9
+            obj = geom.names[int(odd[0] % len(geom.names))]
+            raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, y={st[k, 1]:.1f}) "
+                              f"is inside object '{obj}' of the scene; move its route onto a street "
+                              "(mmslam scene streets shows them)")
+        if geom.has_ground:
+            off = np.flatnonzero(np.isnan(zu))
+            if off.size:
+                k = int(off[0])
+                raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, "
+                                  f"y={st[k, 1]:.1f}) is off the map (no ground under it); keep its route inside "
+                                  "the scene")
