@@ -42,6 +42,10 @@ def make_source(name: str, scn: Scenario, max_depth: int = 1, samples: int = 1_0
     ``max_depth`` (1..3), ``samples`` (rays per source) and ``seed`` only affect ``sionna``.
     """
     if name == "analytic":
+        if scn.xml_scene:  # the external scene's triangles: blockage and first-order reflections
+            from mmslam.raytrace.mesh_analytic import MeshAnalyticSource
+
+            return MeshAnalyticSource(scn)
         return AnalyticSource(scn)
     if name == "sionna":
         if not 1 <= int(max_depth) <= 3:

@@ -203,13 +203,13 @@ class StaticGeometry:
         return np.where(np.isfinite(out), out, np.nan), obj
 
     # ------------------------------------------------------------------ segments
-    def segments_blocked(self, a: np.ndarray, b: np.ndarray, exclude_tri: np.ndarray | None = None,
+    def segments_blocked(self, a: np.ndarray, b: np.ndarray, exclude_obj: np.ndarray | None = None,
                          margin: float = 1e-3) -> np.ndarray:
         """Whether each segment ``a (n, 3) -> b (n, 3)`` crosses a triangle, ``(n,)`` bool.
 
         The first and last ``margin`` m of each segment are ignored (a path touching the
         surface it reflects on, or an antenna on a surface, is not blocked by it);
-        ``exclude_tri (n,)`` (-1: none) is a triangle each segment may cross.
+        ``exclude_obj (n,)`` (-1: none) is an object each segment may cross (a scatterer's own mesh).
         """
         a = np.asarray(a, float).reshape(-1, 3)
         b = np.asarray(b, float).reshape(-1, 3)
@@ -217,14 +217,15 @@ class StaticGeometry:
         out = np.zeros(n, bool)
         if n == 0 or not len(self.triangles):
             return out
-        ex = np.full(n, -1, np.int64) if exclude_tri is None else np.asarray(exclude_tri, np.int64)
+        ex = np.full(n, -1, np.int64) if exclude_obj is None else np.asarray(exclude_obj, np.int64)
         tri = self.triangles
         tlo, thi = tri.min(axis=1), tri.max(axis=1)
         slo, shi = np.minimum(a, b), np.maximum(a, b)
         v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
         for i in range(n):
             cand = np.flatnonzero(np.all(tlo <= shi[i] + 1e-9, axis=1) & np.all(thi >= slo[i] - 1e-9, axis=1))
-            cand = cand[cand != ex[i]]
+            if ex[i] >= 0:
+                cand = cand[self.obj[cand] != ex[i]]
             if not cand.size:
                 continue
             d = b[i] - a[i]

@@ -125,6 +125,11 @@ def _material_xml(mid: str, itu_type: str, scattering: float) -> ET.Element:
     return e
 
 
+def _xml_signature(el: ET.Element) -> tuple:
+    """An element's tag, attributes and children, whitespace ignored (to compare two definitions)."""
+    return (el.tag, sorted(el.attrib.items()), [_xml_signature(c) for c in el])
+
+
 def _shape_xml(name: str, filename: str, mid: str) -> ET.Element:
     e = ET.Element("shape", {"type": "ply", "id": f"mesh-{name}"})
     ET.SubElement(e, "string", {"name": "filename", "value": filename})
@@ -232,9 +237,16 @@ def build_scene(scn: Scenario, out_dir: str | Path) -> Path:
     mats: dict[str, tuple[str, float]] = {}
     for _, (_, itu, sc) in objs.items():
         mats.setdefault(material_id(itu, sc), (itu, sc))
+    ext_ids = {}
     for el in ext_bsdfs:
         root.append(el)
+        ext_ids[el.get("id")] = el
     for mid, (itu, sc) in mats.items():
+        if mid in ext_ids:  # an XML that mmslam wrote already defines this material: reuse it if identical
+            if _xml_signature(ext_ids[mid]) != _xml_signature(_material_xml(mid, itu, sc)):
+                raise ConfigError(f"xml_scene '{scn.xml_scene}': material id '{mid}' is defined differently "
+                                  "there; rename that material in the XML")
+            continue
         root.append(_material_xml(mid, itu, sc))
     for el in ext_shapes:
         root.append(el)
