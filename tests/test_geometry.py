@@ -103,3 +103,20 @@ def test_trace_cli_refuses_a_colliding_route_with_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.count("\n") == 0
     assert "vehicle 'car1' at step 9" in err and "'block'" in err
+
+
+def test_scene_show_draws_munich_heights(tmp_path, capsys):
+    """The height raster under `scene show`: the Neues Rathaus roof (26 m) under the BS, the street (0 m)
+    under car_a's start; the CLI writes the PNG."""
+    from mmslam.scenes.meshes import height_raster
+
+    scn = load_preset("munich")
+    z, (x0, x1, y0, y1) = height_raster(scn, true_trajectories(scn))
+    ny, nx = z.shape
+    at = lambda x, y: z[int((y - y0) / (y1 - y0) * ny), int((x - x0) / (x1 - x0) * nx)]  # noqa: E731
+    assert at(8.5, 21.0) == pytest.approx(26.0, abs=1.0)
+    assert at(0.0, 100.0) == pytest.approx(0.0, abs=1e-6)
+    assert x0 <= -62.0 - 59 and x1 >= 190.0 + 59  # trajectories + 60 m margin
+    png = tmp_path / "plan.png"
+    assert main(["scene", "show", "munich", "--out", str(png)]) == 0
+    assert png.stat().st_size > 10_000
