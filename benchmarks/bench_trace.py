@@ -66,7 +66,17 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=10**6, help="samples_per_src")
     ap.add_argument("--max-depth", type=int, default=1)
     ap.add_argument("--cpu", action="store_true", help="force the LLVM (CPU) backend")
+    ap.add_argument("--no-merge", action="store_true",
+                    help="load external scenes unmerged (one object per XML shape), for an A/B comparison")
     args = ap.parse_args()
+    if args.no_merge:
+        from mmslam.backend import import_mitsuba
+
+        import_mitsuba()
+        import sionna.rt as rt
+
+        load = rt.load_scene
+        rt.load_scene = lambda *a, **k: load(*a, **{**k, "merge_shapes": False})
     if args.cpu:
         os.environ["MMSLAM_FORCE_CPU"] = "1"
     print(f"{'scenario':<10} {'objects':>7} {'cars':>4} {'steps':>5} {'load s':>7} {'warm s':>7} "
@@ -78,6 +88,7 @@ def main() -> None:
               f"{r['misses']:>8} {r['load']:>7.2f}  {'/'.join(map(str, r['counts']))}", flush=True)
     v = r["versions"]
     print(f"backend {v['variant']}, sionna-rt {v['sionna-rt']}, drjit {v['drjit']}, samples_per_src {args.samples}, "
+          f"{'unmerged' if args.no_merge else 'merged'} external scenes, "
           f"max_depth {args.max_depth}; targets: munich median <= 500 ms, paper 40 steps <= 10 s (CPU)")
 
 

@@ -115,7 +115,7 @@ class StaticGeometry:
 
     # ------------------------------------------------------------------ vertical rays
     def _plan_index(self) -> dict:
-        if self._grid:
+        if "tri" in self._grid:
             return self._grid
         tri = self.triangles
         a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
@@ -137,8 +137,8 @@ class StaticGeometry:
         cid = cx * ny + cy
         order = np.argsort(cid, kind="stable")
         starts = np.searchsorted(cid[order], np.arange(nx * ny + 1))
-        self._grid = {"tri": keep[rep[order]], "starts": starts, "origin": origin, "nx": nx, "ny": ny,
-                      "det": det}
+        self._grid.update({"tri": keep[rep[order]], "starts": starts, "origin": origin, "nx": nx, "ny": ny,
+                           "det": det})
         return self._grid
 
     def vertical_hits(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,6 +207,8 @@ class StaticGeometry:
                          margin: float = 1e-3) -> np.ndarray:
         """Whether each segment ``a (n, 3) -> b (n, 3)`` crosses a triangle, ``(n,)`` bool.
 
+        Vectorised over (segment, triangle) pairs from a plan grid (:meth:`_segment_index`).
+
         The first and last ``margin`` m of each segment are ignored (a path touching the
         surface it reflects on, or an antenna on a surface, is not blocked by it);
         ``exclude_obj (n,)`` (-1: none) is an object each segment may cross (a scatterer's own mesh).
@@ -218,32 +220,66 @@ class StaticGeometry:
         if n == 0 or not len(self.triangles):
             return out
         ex = np.full(n, -1, np.int64) if exclude_obj is None else np.asarray(exclude_obj, np.int64)
-        tri = self.triangles
-        tlo, thi = tri.min(axis=1), tri.max(axis=1)
-        slo, shi = np.minimum(a, b), np.maximum(a, b)
-        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        for i in range(n):
-            cand = np.flatnonzero(np.all(tlo <= shi[i] + 1e-9, axis=1) & np.all(thi >= slo[i] - 1e-9, axis=1))
-            if ex[i] >= 0:
-                cand = cand[self.obj[cand] != ex[i]]
-            if not cand.size:
-                continue
-            d = b[i] - a[i]
-            L = float(np.linalg.norm(d))
-            if L <= 2 * margin:
-                continue
-            pv = np.cross(d, e2[cand])
-            det = np.sum(e1[cand] * pv, axis=1)
-            ok = np.abs(det) > 1e-15
-            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            tv = a[i] - v0[cand]
-            u = np.sum(tv * pv, axis=1) * inv
-            qv = np.cross(tv, e1[cand])
-            v = (qv @ d) * inv
-            s = np.sum(e2[cand] * qv, axis=1) * inv  # fraction of the segment
-            m = margin / L
-            out[i] = bool(np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > m) & (s < 1 - m)))
+        g = self._segment_index()
+        c = g["cell"]
+        # sample each segment's plan projection every c / 2: a triangle registered in the cells of its
+        # plan bounding box grown by one cell is then in the cell of some sample of every segment it crosses
+        L = np.hypot(b[:, 0] - a[:, 0], b[:, 1] - a[:, 1])
+        ns = np.maximum(2, np.ceil(L / (c / 2)).astype(np.int64) + 1)
+        seg = np.repeat(np.arange(n), ns)
+        f = (np.arange(ns.sum()) - np.repeat(np.cumsum(ns) - ns, ns)) / np.repeat(ns - 1, ns)
+        pxy = a[seg, :2] + f[:, None] * (b[seg, :2] - a[seg, :2])
+        ij = np.floor((pxy - g["origin"]) / c).astype(np.int64)
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g["nx"]) & (ij[:, 1] < g["ny"])
+        seg, cid = seg[ok], ij[ok, 0] * g["ny"] + ij[ok, 1]
+        sc = np.unique(seg * (g["nx"] * g["ny"]) + cid)
+        seg, cid = sc // (g["nx"] * g["ny"]), sc % (g["nx"] * g["ny"])
+        s0, s1 = g["starts"][cid], g["starts"][cid + 1]
+        cnt = s1 - s0
+        sp = np.repeat(seg, cnt)
+        k = np.repeat(s0 - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
+        pair = np.unique(sp * len(self.triangles) + g["tri"][k])
+        sp, t = pair // len(self.triangles), pair % len(self.triangles)
+        keep = self.obj[t] != ex[sp]
+        sp, t = sp[keep], t[keep]
+        tri = self.triangles[t]
+        d = b[sp] - a[sp]
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        pv = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, pv)
+        good = np.abs(det) > 1e-15
+        inv = np.where(good, 1.0 / np.where(good, det, 1.0), 0.0)
+        tv = a[sp] - tri[:, 0]
+        u = np.einsum("ij,ij->i", tv, pv) * inv
+        qv = np.cross(tv, e1)
+        v = np.einsum("ij,ij->i", d, qv) * inv
+        s = np.einsum("ij,ij->i", e2, qv) * inv
+        m = margin / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+        hit = good & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > m) & (s < 1 - m)
+        out[np.unique(sp[hit])] = True
         return out
+
+    def _segment_index(self) -> dict:
+        """Plan grid (cells of ``4 * self.cell`` m) -> triangles whose plan bbox, grown by a cell, meets it."""
+        if "seg" in self._grid:
+            return self._grid["seg"]
+        c = 4.0 * self.cell
+        tri = self.triangles
+        lo = tri[:, :, :2].min(axis=1)
+        hi = tri[:, :, :2].max(axis=1)
+        origin = lo.min(axis=0) - 2 * c
+        i0 = np.floor((lo - origin) / c).astype(np.int64) - 1
+        i1 = np.floor((hi - origin) / c).astype(np.int64) + 1
+        nx, ny = int(i1[:, 0].max() + 3), int(i1[:, 1].max() + 3)
+        span = i1 - i0 + 1
+        cnt = span[:, 0] * span[:, 1]
+        rep = np.repeat(np.arange(len(tri)), cnt)
+        local = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        cid = (i0[rep, 0] + local % span[rep, 0]) * ny + (i0[rep, 1] + local // span[rep, 0])
+        order = np.argsort(cid, kind="stable")
+        self._grid["seg"] = {"tri": rep[order], "starts": np.searchsorted(cid[order], np.arange(nx * ny + 1)),
+                             "origin": origin, "nx": nx, "ny": ny, "cell": c}
+        return self._grid["seg"]
 
 
 # ====================================================================== building it
