@@ -1,7 +1,8 @@
-"""CLI commands of this subpackage: ``mmslam scene list | build | show``."""
+"""CLI commands of this subpackage: ``mmslam scene list | build | show | streets``."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -48,3 +49,47 @@ def register(app: typer.Typer) -> None:
 
         scn = resolve_scenario(scenario)
         typer.echo(f"wrote {plot_plan(scn, out)}")
+
+    @scene.command("streets")
+    def streets_cmd(
+        scene_spec: str = typer.Argument(..., metavar="SCENE",
+                                         help="A scenario with an xml_scene (preset or .toml), or an XML scene "
+                                              "(sionna:<name> or a .xml file)."),
+        out: Path = typer.Option(Path("streets.png"), "--out", help="PNG of the street map."),
+        data: Optional[Path] = typer.Option(None, "--data", help="Also save the grids (.npz)."),
+        res: float = typer.Option(2.0, "--res", help="Grid resolution (m)."),
+        clearance: float = typer.Option(3.0, "--clearance", help="Free space: at least this far from kerbs (m)."),
+    ) -> None:
+        """Drivable free space (ray-cast height map) and street centrelines of an external scene, drawn and saved.
+
+        With a scenario, its vehicles' routes and the BS are drawn too. Scenarios place cars on
+        the streets with `route = [[x, y], ...]` (snapped) or `n_vehicles = N` (seeded random).
+        """
+        import numpy as np
+
+        from mmslam.errors import ConfigError
+        from mmslam.scenes.geometry import xml_geometry
+        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.streets import plot_streets, save_street_map, street_map
+        from mmslam.scenes.trajectory import true_trajectories
+
+        if not 0.25 <= res <= 20.0:
+            raise ConfigError(f"--res {res}: expected 0.25 .. 20 m")
+        if not 0.0 <= clearance <= 50.0:
+            raise ConfigError(f"--clearance {clearance}: expected 0 .. 50 m")
+        routes, bs = {}, None
+        if scene_spec.startswith("sionna:") or scene_spec.endswith(".xml"):
+            geom, title = xml_geometry(scene_spec), scene_spec
+        else:
+            scn = resolve_scenario(scene_spec)
+            if not scn.xml_scene:
+                raise ConfigError(f"{scn.source_file}: no xml_scene; streets are computed for external city scenes "
+                                  "(e.g. xml_scene = \"sionna:munich\")")
+            geom, title, bs = xml_geometry(scn.xml_scene, scn.source_file), f"{scn.name} ({scn.xml_scene})", scn.bs_array
+            traj = true_trajectories(scn)
+            routes = {v.name: traj[:, i, :2] for i, v in enumerate(scn.vehicles)}
+        sm = street_map(geom, res=res, clearance=clearance)
+        typer.echo(f"wrote {plot_streets(sm, out, f'streets of {title}', routes, bs)} "
+                   f"({int(sm.free.sum() * res * res)} m^2 free space, {int(sm.centre.sum())} centreline cells)")
+        if data is not None:
+            typer.echo(f"wrote {save_street_map(sm, data)}")

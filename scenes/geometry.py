@@ -307,9 +307,38 @@ def _xml_shapes(path: Path) -> list[tuple[str, Path]]:
     return out
 
 
+_XML_CACHE: dict[tuple[str, float], StaticGeometry] = {}
+
+
+def xml_geometry(spec: str, source_file: str = "<memory>") -> StaticGeometry:
+    """Triangles of an external XML scene (``sionna:<name>`` or a path relative to ``source_file``'s folder).
+
+    Kept in memory per file and modification time (read-only: do not modify the arrays).
+    """
+    from mmslam.scenes.meshes import resolve_xml_scene
+
+    base = None if source_file.startswith(("<", "preset:")) else Path(source_file).parent
+    path = resolve_xml_scene(spec, base)
+    key = (str(path), path.stat().st_mtime)
+    if key not in _XML_CACHE:
+        tris, objs, names = [], [], []
+        for name, f in _xml_shapes(path):
+            t = read_ply_triangles(f) if f.suffix.lower() == ".ply" else _trimesh_triangles(f)
+            objs.append(np.full(len(t), len(names), np.int64))
+            tris.append(t)
+            names.append(name)
+        if not tris:
+            g = StaticGeometry(np.zeros((0, 3, 3)), np.zeros(0, np.int64), (), ())
+        else:
+            g = StaticGeometry(np.concatenate(tris), np.concatenate(objs), tuple(names), ("xml",) * len(names))
+        _XML_CACHE.clear()
+        _XML_CACHE[key] = g
+    return _XML_CACHE[key]
+
+
 def static_geometry(scn: Scenario, include_scenario: bool = True) -> StaticGeometry:
     """Every static triangle of ``scn``'s scene (external XML shapes + buildings, scatterers, ground)."""
-    from mmslam.scenes.meshes import box_mesh, ground_mesh, resolve_xml_scene, scatterer_mesh
+    from mmslam.scenes.meshes import box_mesh, ground_mesh, scatterer_mesh
 
     tris, objs, names, kinds = [], [], [], []
 
@@ -321,9 +350,9 @@ def static_geometry(scn: Scenario, include_scenario: bool = True) -> StaticGeome
         kinds.append(kind)
 
     if scn.xml_scene:
-        base = None if scn.source_file.startswith(("<", "preset:")) else Path(scn.source_file).parent
-        for name, f in _xml_shapes(resolve_xml_scene(scn.xml_scene, base)):
-            add(name, "xml", read_ply_triangles(f) if f.suffix.lower() == ".ply" else _trimesh_triangles(f))
+        x = xml_geometry(scn.xml_scene, scn.source_file)
+        for o, name in enumerate(x.names):
+            add(name, "xml", x.triangles[x.obj == o])
     if include_scenario:
         for b in scn.buildings:
             m = box_mesh(np.asarray(b.min), np.asarray(b.max))
@@ -336,6 +365,8 @@ def static_geometry(scn: Scenario, include_scenario: bool = True) -> StaticGeome
             add("ground", "ground", np.asarray(m.vertices)[np.asarray(m.faces)])
     if not tris:
         return StaticGeometry(np.zeros((0, 3, 3)), np.zeros(0, np.int64), (), ())
+    if not include_scenario and scn.xml_scene:
+        return xml_geometry(scn.xml_scene, scn.source_file)  # the cached object, its grids included
     return StaticGeometry(np.concatenate(tris), np.concatenate(objs), tuple(names), tuple(kinds))
 
 

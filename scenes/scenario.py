@@ -288,7 +288,9 @@ class Scenario:
 
 # ====================================================================== loading
 _TOP_KEYS = {"name", "bs", "vehicles", "buildings", "scatterers", "ground", "dt", "steps",
-             "frequency_hz", "seed", "xml_scene", "sensor", "filter", "fusion", "evaluation"}
+             "frequency_hz", "seed", "xml_scene", "sensor", "filter", "fusion", "evaluation", "n_vehicles"}
+_ROUTE_KEYS = {"name", "route", "speed", "clock_bias", "antenna_height", "length", "width", "height", "roof_gap",
+               "material", "scattering_coefficient"}
 
 
 def _err(src: str, key: str, expected: str) -> ConfigError:
@@ -370,9 +372,11 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
     if not isinstance(data, dict):
         raise ConfigError(f"{src}: expected a TOML table at top level")
     _check_keys(src, "", data, _TOP_KEYS)
-    for req in ("name", "bs", "vehicles"):
+    for req in ("name", "bs"):
         if req not in data:
             raise _err(src, req, "required key is missing")
+    if "vehicles" not in data and "n_vehicles" not in data:
+        raise _err(src, "vehicles", "required key is missing (or give n_vehicles = N with an xml_scene)")
     name = _name(src, "name", data["name"])
     seed = _num(src, "seed", data.get("seed", 0), lo=0, integer=True)
     if seed_override is not None:
@@ -445,9 +449,11 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
                         _material(src, "ground.material", g.get("material", "concrete")))
 
     vehicles = []
-    raw_v = data["vehicles"]
+    raw_v = data.get("vehicles", [])
     if not isinstance(raw_v, list):
         raise _err(src, "vehicles", "expected an array of tables [[vehicles]]")
+    if "n_vehicles" in data or any(isinstance(v, dict) and "route" in v for v in raw_v):
+        raw_v = _street_vehicles(src, data, raw_v, bs, dt, steps, seed)
     if not raw_v:
         raise _err(src, "vehicles", "expected at least one [[vehicles]] entry; a scene needs a receiver")
     vkeys = {f.name for f in dataclasses.fields(Vehicle)}
@@ -468,7 +474,9 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
             raw_w = v.get("waypoints")
             if not isinstance(raw_w, list) or len(raw_w) < 2:
                 raise _err(src, w + "waypoints", "expected at least two [x, y] points for motion = 'waypoints'")
-            wps = tuple(_vec(src, f"{w}waypoints[{j}]", p, 2) for j, p in enumerate(raw_w))  # type: ignore[misc]
+            wps = tuple(_vec(src, f"{w}waypoints[{j}]", p, (2, 3)) for j, p in enumerate(raw_w))  # type: ignore[misc]
+            if len({len(p) for p in wps}) != 1:
+                raise _err(src, w + "waypoints", "expected all [x, y] or all [x, y, z] points, not a mix")
             if st[4] <= 0:
                 raise _err(src, w + "initial_state[4]", "expected speed > 0 for motion = 'waypoints'")
             if abs(st[0] - wps[0][0]) > 1e-6 or abs(st[1] - wps[0][1]) > 1e-6:
@@ -510,6 +518,63 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
                     scatterers=tuple(scatterers), ground=ground, dt=dt, steps=steps,
                     frequency_hz=freq, seed=seed, xml_scene=xml_scene, sensor=sensor, filter=filt,
                     fusion=fusion, evaluation=ev, source_file=src)
+
+
+def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[float, ...], dt: float, steps: int,
+                     seed: int) -> list:
+    """Vehicles with ``route = [[x, y], ...]`` and ``n_vehicles = N`` -> plain waypoint vehicles on the streets.
+
+    Route points are snapped to the street centrelines of the ``xml_scene`` and joined along the
+    streets (:func:`mmslam.scenes.streets.plan_route`); ``n_vehicles`` adds N cars ``car_000``...
+    on seeded random routes near the BS (:func:`mmslam.scenes.streets.random_routes`; speeds
+    U(4, 8) m/s from ``numpy.random.default_rng([seed, 0x5354])``). Waypoints are 3-D: the
+    antenna (``antenna_height`` m, default 1.6) follows the terrain.
+    """
+    if not data.get("xml_scene"):
+        raise _err(src, "n_vehicles" if "n_vehicles" in data else "vehicles.route",
+                   "street routes need an xml_scene (an external city scene); give waypoints instead")
+    n_rand = 0
+    if "n_vehicles" in data:
+        n_rand = int(_num(src, "n_vehicles", data["n_vehicles"], lo=1, hi=100, integer=True))
+    from mmslam.scenes.streets import scenario_street_context
+
+    ctx = scenario_street_context(src, data, bs)
+    out = []
+    for i, v in enumerate(raw_v):
+        if not isinstance(v, dict) or "route" not in v:
+            out.append(v)
+            continue
+        w = f"vehicles[{i}]."
+        _check_keys(src, w, v, _ROUTE_KEYS)
+        if "name" not in v:
+            raise _err(src, w + "name", "required key is missing")
+        pts = v["route"]
+        if not isinstance(pts, list) or len(pts) < 2:
+            raise _err(src, w + "route", "expected at least two [x, y] points")
+        xy = np.array([_vec(src, f"{w}route[{j}]", p, 2) for j, p in enumerate(pts)])
+        speed = _num(src, w + "speed", v.get("speed", 6.0), lo=0.0, lo_open=True, hi=60.0)
+        ah = _num(src, w + "antenna_height", v.get("antenna_height", 1.6), lo=0.5, hi=10.0)
+        wp = ctx.route(xy, ah)
+        rest = {k: v[k] for k in v if k not in ("route", "speed", "clock_bias", "antenna_height")}
+        out.append(_waypoint_vehicle(rest, wp, speed, float(v.get("clock_bias", 0.0))))
+    if n_rand:
+        rng = np.random.default_rng([seed, 0x5354])
+        speeds = rng.uniform(4.0, 8.0, n_rand)
+        routes = ctx.random(n_rand, speeds * dt * steps, rng)
+        taken = {v.get("name") for v in out if isinstance(v, dict)}
+        for k, (wp, sp) in enumerate(zip(routes, speeds)):
+            name = f"car_{k:03d}"
+            if name in taken:
+                raise _err(src, "n_vehicles", f"vehicle name '{name}' is taken; rename that vehicle")
+            out.append(_waypoint_vehicle({"name": name}, wp, float(sp), 100.0 * (k + 1)))
+    return out
+
+
+def _waypoint_vehicle(base: dict, wp: np.ndarray, speed: float, bias: float) -> dict:
+    d = wp[1, :2] - wp[0, :2]
+    heading = float(np.arctan2(d[1], d[0]))
+    return {**base, "motion": "waypoints", "waypoints": [[float(a) for a in p] for p in wp],
+            "initial_state": [float(wp[0, 0]), float(wp[0, 1]), float(wp[0, 2]), heading, float(speed), 0.0, bias]}
 
 
 def dict_from_resolved(d: dict[str, Any]) -> dict[str, Any]:

@@ -17,6 +17,7 @@ Global frame: x east, y north, z up, metres.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -218,6 +219,17 @@ def _waypoints(sm: StreetMap, xy: np.ndarray, antenna_height: float, tol: float)
     return np.concatenate([xy, (terrain_z(sm, xy) + antenna_height)[:, None]], axis=1)
 
 
+def _truncate(wp: np.ndarray, length: float) -> np.ndarray:
+    """Waypoints ``(k, 3)`` cut at plan length ``length`` m (the last point interpolated)."""
+    L = np.hypot(*np.diff(wp[:, :2], axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    if cum[-1] <= length:
+        return wp
+    k = int(np.searchsorted(cum, length, side="right"))  # cum[k - 1] <= length < cum[k]
+    f = (length - cum[k - 1]) / L[k - 1]
+    return np.concatenate([wp[:k], (wp[k - 1] + f * (wp[k] - wp[k - 1]))[None]])
+
+
 def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, length_m: np.ndarray,
                   rng: np.random.Generator, radius: float = 150.0, min_los: float = 0.6,
                   antenna_height: float = 1.6, tries: int = 40) -> list[np.ndarray]:
@@ -253,11 +265,12 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
                 continue
             b = int(ok[rng.integers(ok.size)])
             wp = _waypoints(sm, xy_all[_path_cells(pred, a, b)], antenna_height, 0.5)
+            wp = _truncate(wp, length_m[i] + 1.0)  # the car stops at the end: score only what it drives
             seg = np.diff(wp[:, :2], axis=0)
             L = np.hypot(seg[:, 0], seg[:, 1])
             if L.sum() < length_m[i]:
                 continue
-            t = np.arange(0.0, L.sum(), 5.0)
+            t = np.linspace(0.0, L.sum(), 16)
             cum = np.concatenate([[0.0], np.cumsum(L)])
             k = np.clip(np.searchsorted(cum, t, side="right") - 1, 0, len(L) - 1)
             f = (t - cum[k]) / np.where(L[k] > 0, L[k], 1.0)
@@ -272,3 +285,88 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
             raise ConfigError(f"could not draw route {i + 1} of {n} near the BS; lower n_vehicles or the speeds")
         out.append(best)
     return out
+
+
+class _StreetContext:
+    """A scene's street map, built once, for planning the routes of one scenario."""
+
+    def __init__(self, geom: StaticGeometry, bs: np.ndarray) -> None:
+        self.geom = geom
+        self.bs = np.asarray(bs, float)
+        self.sm = street_map(geom)
+
+    def route(self, xy: np.ndarray, antenna_height: float) -> np.ndarray:
+        return plan_route(self.sm, xy, antenna_height)
+
+    def random(self, n: int, lengths: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+        return random_routes(self.sm, self.geom, self.bs, n, lengths, rng)
+
+
+_CTX: dict[tuple, _StreetContext] = {}
+
+
+def scenario_street_context(src: str, data: dict, bs) -> _StreetContext:
+    """The street context of a scenario dict's ``xml_scene`` (kept in memory per scene and BS)."""
+    from mmslam.scenes.geometry import xml_geometry
+
+    geom = xml_geometry(str(data["xml_scene"]), src)
+    key = (id(geom), tuple(map(float, bs)))
+    if key not in _CTX:
+        _CTX.clear()
+        _CTX[key] = _StreetContext(geom, np.asarray(bs, float))
+    return _CTX[key]
+
+
+def save_street_map(sm: StreetMap, path: str | Path) -> Path:
+    """Write the street map as ``.npz`` (``top, ground, road, free, centre, kerb`` grids and
+    ``x0, y0, res, clearance``; cell (i, j) centred at ``(x0 + (j + 0.5) res, y0 + (i + 0.5) res)``), atomically."""
+    import io
+
+    from mmslam.scenes.meshes import _atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, top=sm.top, ground=sm.ground, road=sm.road, free=sm.free, centre=sm.centre,
+                        kerb=sm.kerb, x0=sm.x0, y0=sm.y0, res=sm.res, clearance=sm.clearance)
+    p = Path(path)
+    _atomic_write_bytes(p, buf.getvalue())
+    return p
+
+
+def plot_streets(sm: StreetMap, out_png: str | Path, title: str, routes: dict[str, np.ndarray] | None = None,
+                 bs: np.ndarray | None = None) -> Path:
+    """PNG: top-surface height (grey), drivable free space (green), centrelines (blue), routes, BS."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mmslam.scenes.meshes import _atomic_write_bytes
+
+    fig, ax = plt.subplots(figsize=(9, 8))
+    z = np.ma.masked_invalid(sm.top)
+    im = ax.imshow(z, origin="lower", extent=sm.extent, cmap="Greys", vmin=float(np.nanmin(sm.top)),
+                   vmax=float(np.nanpercentile(sm.top, 99)), interpolation="nearest", zorder=0)
+    fig.colorbar(im, ax=ax, shrink=0.6, label="top surface z [m]")
+    ax.imshow(np.ma.masked_where(~sm.free, np.ones_like(sm.top)), origin="lower", extent=sm.extent, cmap="Greens",
+              vmin=0, vmax=2, alpha=0.45, interpolation="nearest", zorder=1)
+    c = sm.centre_xy(np.argwhere(sm.centre))
+    ax.plot(c[:, 0], c[:, 1], ".", ms=1.0, color="tab:blue", label="street centrelines", zorder=2)
+    ax.plot([], [], "s", color="tab:green", alpha=0.45, label=f"free space (>= {sm.clearance:g} m from kerbs)")
+    for name, wp in (routes or {}).items():
+        ax.plot(wp[:, 0], wp[:, 1], "-", lw=1.5, label=name, zorder=3)
+        ax.plot(wp[0, 0], wp[0, 1], "o", mfc="white", color="k", ms=4, zorder=4)
+    if bs is not None:
+        ax.plot(bs[0], bs[1], "^", color="k", ms=10, label="BS", zorder=5)
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    p = Path(out_png)
+    _atomic_write_bytes(p, buf.getvalue())
+    return p

@@ -5,7 +5,9 @@
 turn rate are set so that the CT model maps the position at step k exactly onto the position at
 step k+1 (a circular arc whose chord is the true displacement), so the filter's known inputs
 (speed, turn rate) are consistent with the truth. Heading may jump by half the chord-direction
-change at polyline corners; on straight legs the motion is exact.
+change at polyline corners; on straight legs the motion is exact. Waypoints ``[x, y, z]``
+(street routes, :mod:`mmslam.scenes.streets`) give the antenna height along the route: the car
+moves at its speed in plan and z is interpolated linearly (it follows the terrain).
 """
 from __future__ import annotations
 
@@ -27,8 +29,9 @@ def _ct_trajectory(v: Vehicle, steps: int, dt: float, rng: np.random.Generator |
 
 
 def _polyline_positions(wps: np.ndarray, speed: float, times: np.ndarray) -> np.ndarray:
+    """Positions at ``times`` moving at plan speed ``speed`` along ``wps (k, 2 or 3)`` (z interpolated)."""
     seg = np.diff(wps, axis=0)
-    seg_len = np.linalg.norm(seg, axis=1)
+    seg_len = np.linalg.norm(seg[:, :2], axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg_len)])
     dist = np.minimum(speed * times, cum[-1])  # stop at the last waypoint
     i = np.clip(np.searchsorted(cum, dist, side="right") - 1, 0, len(seg) - 1)
@@ -39,7 +42,8 @@ def _polyline_positions(wps: np.ndarray, speed: float, times: np.ndarray) -> np.
 def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
     wps = np.asarray(v.waypoints, dtype=float)
     t = np.arange(steps + 1) * dt
-    xy = _polyline_positions(wps, v.initial_state[4], t)
+    pos = _polyline_positions(wps, v.initial_state[4], t)
+    xy = pos[:, :2]
     d = np.diff(xy, axis=0)  # (steps, 2) chord of each step
     chord = np.linalg.norm(d, axis=1)
     moving = chord > 1e-9
@@ -58,7 +62,7 @@ def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
         speed = np.where(np.abs(half) > 1e-12, chord * half / np.sin(half) / dt, chord / dt)
     s = np.zeros((steps, 7))
     s[:, 0:2] = xy[:-1]
-    s[:, 2] = v.initial_state[2]
+    s[:, 2] = pos[:-1, 2] if wps.shape[1] == 3 else v.initial_state[2]  # 3-D waypoints: z follows the terrain
     s[:, 3] = heading
     s[:, 4] = speed
     s[:, 5] = turn
