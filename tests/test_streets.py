@@ -1,0 +1,95 @@
+"""Street maps, routes snapped to streets, seeded random routes (scenes/streets.py) on Sionna's city scenes."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.cli import main
+from mmslam.errors import ConfigError
+from mmslam.scenes.geometry import check_vehicle_poses, static_geometry, xml_geometry
+from mmslam.scenes.scenario import load_scenario
+from mmslam.scenes.streets import street_map
+from mmslam.scenes.trajectory import true_trajectories
+
+
+def test_canyon_street_map_by_hand():
+    """simple_street_canyon: the main street y in (-8.61, 9.57) is road with its centre near y = 0.5;
+    a building roof (building_6, z = 50.9) is not road; free space keeps 3 m from the kerbs."""
+    sm = street_map(xml_geometry("sionna:simple_street_canyon"), res=0.5, clearance=3.0)
+    ij = sm.cell_of(np.array([[0.0, 0.5], [0.0, -20.0], [0.0, -7.0], [0.0, 8.0]]))
+    road = sm.road[ij[:, 0], ij[:, 1]]
+    free = sm.free[ij[:, 0], ij[:, 1]]
+    assert road.tolist() == [True, False, True, True]
+    assert free.tolist() == [True, False, False, False]  # 1.6 m from the kerb at y = -8.61 / 9.57
+    assert sm.top[ij[1, 0], ij[1, 1]] == pytest.approx(50.94, abs=0.01)
+    col = sm.centre[:, ij[0, 1]]
+    ys = sm.centre_xy(np.stack([np.flatnonzero(col), np.full(col.sum(), ij[0, 1])], axis=1))[:, 1]
+    assert np.any(np.abs(ys - 0.48) <= 0.5)  # the centreline of the main street: (-8.61 + 9.57) / 2
+
+
+def test_route_points_are_snapped_and_joined_along_streets(tmp_path):
+    toml = tmp_path / "r.toml"
+    toml.write_text("""
+name = "routed"
+xml_scene = "sionna:simple_street_canyon"
+bs = [-33.0, -10.0, 25.0]
+steps = 30
+[[vehicles]]
+name = "car_r"
+speed = 5.0
+route = [[-60.0, -3.0], [24.0, 0.0], [24.0, 40.0]]
+""")
+    scn = load_scenario(toml)
+    v = scn.vehicles[0]
+    wp = np.asarray(v.waypoints)
+    assert v.motion == "waypoints" and wp.shape[1] == 3
+    g = xml_geometry("sionna:simple_street_canyon")
+    floor_z = float(g.triangles[g.obj == g.names.index("floor")][:, :, 2].mean())  # -0.03 m, flat
+    np.testing.assert_allclose(wp[:, 2], 1.6 + floor_z, atol=1e-6)  # the antenna 1.6 m above the floor
+    sm = street_map(g)
+    np.testing.assert_allclose(wp[[0, -1], :2], sm.snap(np.array([[-60.0, -3.0], [24.0, 40.0]])))  # snapped ends
+    assert abs(wp[0, 1] - 0.48) < 1.5 and abs(wp[-1, 0] - 24.0) < 2.0  # on the centrelines of the two streets
+    assert sm.free[tuple(sm.cell_of(wp[:, :2]).T)].all()  # every waypoint in the free space
+    check_vehicle_poses(scn, true_trajectories(scn))
+    st = true_trajectories(scn)
+    np.testing.assert_allclose(st[:, 0, 2], 1.6 + floor_z, atol=1e-6)  # z follows the (flat) terrain
+    # a route that needs no xml_scene is refused in one line
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\nbs = [0.0, 0.0, 10.0]\n[[vehicles]]\nname = "c"\nroute = [[0.0, 0.0], [10.0, 0.0]]\n')
+    with pytest.raises(ConfigError, match="street routes need an xml_scene"):
+        load_scenario(bad)
+
+
+def test_scene_streets_cli_writes_png_and_npz(tmp_path, capsys):
+    png, npz = tmp_path / "s.png", tmp_path / "s.npz"
+    assert main(["scene", "streets", "sionna:simple_street_canyon", "--out", str(png), "--data", str(npz)]) == 0
+    assert png.stat().st_size > 10_000
+    d = np.load(npz)
+    assert d["free"].shape == d["top"].shape and d["free"].any() and float(d["res"]) == 2.0
+    assert main(["scene", "streets", "paper", "--out", str(png)]) == 2
+    assert "no xml_scene" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_ten_random_cars_in_munich_stay_on_streets_and_see_the_bs_or_a_va(tmp_path):
+    """Acceptance: n_vehicles = 10 on sionna:munich gives 10 cars that never intersect a building over
+    40 steps, each seeing the BS or a VA (mesh ray casting) in most steps; same seed, same routes."""
+    from mmslam.raytrace.mesh_analytic import MeshAnalyticSource
+    from mmslam.slam.measurement import BS, VA
+
+    toml = tmp_path / "m.toml"
+    toml.write_text('name = "munich10"\nseed = 1\nxml_scene = "sionna:munich"\nbs = [8.5, 21.0, 30.0]\n'
+                    'steps = 40\nn_vehicles = 10\n')
+    scn = load_scenario(toml)
+    assert len(scn.vehicles) == 10 and scn.steps == 40
+    assert load_scenario(toml).vehicles == scn.vehicles
+    st = true_trajectories(scn)
+    check_vehicle_poses(scn, st, static_geometry(scn))
+    assert np.all(np.hypot(*np.diff(st[:, :, :2], axis=0).transpose(2, 0, 1)) > 0.5)  # they all drive
+    src = MeshAnalyticSource(scn)
+    seen = np.zeros((40, 10), bool)
+    for k in range(40):
+        o = src.trace_step(k, st[k])
+        m = np.isin(o["type"], [BS, VA])
+        seen[k, np.unique(o["rx"][m].astype(int))] = True
+    assert np.all(seen.mean(axis=0) > 0.5), seen.mean(axis=0)
