@@ -64,9 +64,13 @@ def register(app: typer.Typer) -> None:
         chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk."),
         force: bool = typer.Option(False, "--force", help="Delete an existing cache and trace anew."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+        executor: str = typer.Option("local", "--executor", help="local, or dask: chunks of steps traced on a "
+                                     "Dask cluster (a LocalCluster of --workers processes, or --scheduler)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Dask LocalCluster workers (default: CPU cores)."),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler."),
     ) -> None:
         """Trace a scenario into a resumable path cache; prints the cache directory."""
-        from mmslam.raytrace.trace import SOURCES, make_source, trace_scenario
+        from mmslam.raytrace.trace import SOURCES, DaskExecutor, make_source, trace_scenario
         from mmslam.scenes.scenario import resolve_scenario
 
         if source not in SOURCES:
@@ -79,10 +83,20 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--samples {samples}: expected a positive number of rays per source")
         if chunk_steps < 1:
             raise ConfigError(f"--chunk-steps {chunk_steps}: expected >= 1")
+        if executor not in ("local", "dask"):
+            raise ConfigError(f"--executor '{executor}': expected local or dask")
+        if executor != "dask" and (workers is not None or scheduler):
+            raise ConfigError("--workers / --scheduler are only used with --executor dask")
+        if workers is not None and workers < 1:
+            raise ConfigError(f"--workers {workers}: expected >= 1")
         scn = resolve_scenario(scenario)
         src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+        ex = None
+        if executor == "dask":
+            ex = DaskExecutor({"name": source, "max_depth": max_depth, "samples": samples, "seed": seed},
+                              scheduler=scheduler, workers=workers)
         d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
-                           progress=not quiet)
+                           progress=not quiet, executor=ex)
         typer.echo(str(d))
 
     @app.command("paths")

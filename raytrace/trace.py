@@ -15,6 +15,7 @@ import importlib.metadata
 import os
 import shutil
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -129,7 +130,8 @@ def _check_step_output(tables: dict[str, dict[str, np.ndarray]], step: int, sour
 
 
 def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int | None = None,
-                   chunk_steps: int = 5, force: bool = False, progress: bool = True) -> Path:
+                   chunk_steps: int = 5, force: bool = False, progress: bool = True,
+                   executor: "DaskExecutor | None" = None) -> Path:
     """Trace ``steps`` steps of ``scn`` with ``source`` into a cache under ``out_root``.
 
     Args:
@@ -140,6 +142,9 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         chunk_steps: steps per Parquet chunk (chunks are aligned to multiples of it).
         force: delete an existing cache for this config first.
         progress: show a progress bar (steps, rays/s, ETA) on stderr.
+        executor: trace the chunks on a Dask cluster (:class:`DaskExecutor`); ``None`` traces them here.
+            Either way this process alone writes the cache, chunk by chunk in step order, so the
+            tables are the same and an interrupted run resumes after the last written chunk.
 
     Returns:
         The cache directory.
@@ -157,7 +162,7 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
             shutil.rmtree(cache_dir)
         cache_dir.mkdir(parents=True, exist_ok=True)
         remove_temp_files(cache_dir)
-        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress)
+        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor)
     finally:
         _release_lock(lock)
 
@@ -208,7 +213,7 @@ def _release_lock(lock: Path) -> None:
 
 
 def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk_steps: int,
-                progress: bool) -> Path:
+                progress: bool, executor: "DaskExecutor | None" = None) -> Path:
     """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
     if (cache_dir / MANIFEST).is_file():
@@ -244,18 +249,28 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
         bar.start()
     versions = _versions(source)
     t0, n_rows = time.perf_counter(), 0
-    try:
-        start = done
-        while start < n_steps:
-            stop = min((start // chunk_steps + 1) * chunk_steps, n_steps)
+    bounds, start = [], done
+    while start < n_steps:
+        stop = min((start // chunk_steps + 1) * chunk_steps, n_steps)
+        bounds.append((start, stop))
+        start = stop
+
+    def local_chunks():
+        for start, stop in bounds:
             parts = []
             for k in range(start, stop):
                 parts.append(_check_step_output(source.trace_tables(k, states[k]), k, source))
-                n_rows += len(parts[-1]["rays"]["rx"])
                 if bar is not None:
-                    bar.update(task, advance=1, rate=n_rows / max(time.perf_counter() - t0, 1e-9))
-            paths = sort_paths({c: np.concatenate([p["paths"][c] for p in parts]) for c in PATH_COLUMNS})
-            rays = sort_rays({c: np.concatenate([p["rays"][c] for p in parts]) for c in RAY_COLUMNS})
+                    bar.update(task, advance=1, rate=(n_rows + sum(len(p["rays"]["rx"]) for p in parts))
+                               / max(time.perf_counter() - t0, 1e-9))
+            yield start, stop, _chunk_tables(parts)
+
+    chunks = local_chunks() if executor is None else executor.chunks(scn, source, states, bounds)
+    try:
+        for start, stop, (paths, rays) in chunks:
+            n_rows += len(rays["rx"])
+            if bar is not None and executor is not None:
+                bar.update(task, advance=stop - start, rate=n_rows / max(time.perf_counter() - t0, 1e-9))
             check_paths_finite(paths, f"source '{source.name}' output",
                                hint="nothing was written for these steps; fix the source")
             tables = {"vehicles": vehicle_columns(states[start:stop], start, scn.dt), "rays": rays, "paths": paths}
@@ -264,8 +279,93 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
             m["chunks"].append(entry)
             m["steps_completed"] = stop
             write_manifest(cache_dir, m)
-            start = stop
     finally:
         if bar is not None:
             bar.stop()
     return cache_dir
+
+
+# ====================================================================== Dask
+_WORKER_SOURCES: dict[tuple, Any] = {}
+_WORKER_LOCK = threading.Lock()
+
+
+def _trace_chunk(spec: dict, scn: Scenario, states: np.ndarray, start: int) -> tuple[dict, dict]:
+    """On a worker: the sorted ``(paths, rays)`` columns of steps ``start .. start + len(states) - 1``.
+
+    The worker builds the source from ``spec`` (:func:`make_source` arguments) once per process
+    and reuses it for later chunks; chunks run one at a time per process (use process workers,
+    one per GPU or core, for parallel Sionna traces).
+    """
+    key = (scn.geometry_hash(), tuple(sorted(spec.items())))
+    with _WORKER_LOCK:  # Sionna / Dr.Jit: one trace at a time per process (threads of one worker wait)
+        src = _WORKER_SOURCES.get(key)
+        if src is None:
+            src = _WORKER_SOURCES[key] = make_source(spec["name"], scn, max_depth=spec["max_depth"],
+                                                     samples=spec["samples"], seed=spec["seed"])
+        parts = [_check_step_output(src.trace_tables(start + i, states[i]), start + i, src) for i in range(len(states))]
+    return _chunk_tables(parts)
+
+
+def _chunk_tables(parts: list[dict[str, dict[str, np.ndarray]]]) -> tuple[dict, dict]:
+    """Per-step checked outputs -> one chunk's sorted ``(paths, rays)`` columns."""
+    paths = sort_paths({c: np.concatenate([p["paths"][c] for p in parts]) for c in PATH_COLUMNS})
+    rays = sort_rays({c: np.concatenate([p["rays"][c] for p in parts]) for c in RAY_COLUMNS})
+    return paths, rays
+
+
+class DaskExecutor:
+    """Trace chunks of steps on a Dask cluster (one worker per GPU or CPU core).
+
+    Args:
+        spec: how a worker builds the source: ``{"name", "max_depth", "samples", "seed"}``
+            (:func:`make_source` arguments; the source itself is not sent).
+        client: a ``distributed.Client``; else one is made for ``scheduler`` (an address) or
+            for a ``LocalCluster`` of ``workers`` processes with one thread each, closed at the end.
+
+    Chunks are submitted at once and written by the caller in step order as they finish, so
+    at most the chunks in flight are lost when the run is interrupted.
+    """
+
+    def __init__(self, spec: dict, client: Any = None, scheduler: str | None = None,
+                 workers: int | None = None) -> None:
+        self.spec = {k: spec[k] for k in ("name", "max_depth", "samples", "seed")}
+        self.client, self.scheduler, self.workers = client, scheduler, workers
+
+    def _client(self):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise ConfigError("--executor dask needs dask.distributed; install it with "
+                              "`pip install 'mmslam[dask]'` or use --executor local") from None
+        import logging
+
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        if self.scheduler:
+            try:
+                return Client(self.scheduler, timeout="10s", set_as_default=False), None
+            except Exception as e:
+                raise ConfigError(f"--scheduler {self.scheduler}: cannot reach the dask scheduler "
+                                  f"({' '.join(str(e).split())[:150]}); start it or drop --scheduler") from None
+        n = int(self.workers or os.cpu_count() or 1)
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR)
+        return Client(cluster, set_as_default=False), cluster
+
+    def chunks(self, scn: Scenario, source: Any, states: np.ndarray, bounds: list[tuple[int, int]]):
+        """Yield ``(start, stop, (paths, rays))`` for every chunk in ``bounds``, in order."""
+        if not bounds:
+            return
+        client, cluster = (self.client, None) if self.client is not None else self._client()
+        try:
+            futs = [client.submit(_trace_chunk, self.spec, scn, states[a:b], a, pure=False) for a, b in bounds]
+            try:
+                for (a, b), f in zip(bounds, futs):
+                    yield a, b, f.result()
+            finally:
+                for f in futs:
+                    f.cancel()
+        finally:
+            if cluster is not None:
+                client.close()
+                cluster.close()

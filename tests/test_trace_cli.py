@@ -95,3 +95,14 @@ def test_trace_a_toml_file(tmp_path, capsys):
     c = load_cache(capsys.readouterr().out.strip().splitlines()[-1])
     assert c.steps == 3 and c.paths["type"].tolist() == [0, 0, 0]  # LOS only: no walls, no others
     np.testing.assert_allclose(c.paths["toa_m"], np.hypot(10.0, 20.0 + np.arange(3) * 0.5))
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--executor", "spark"], "--executor 'spark': expected local or dask"),
+    (["--workers", "2"], "only used with --executor dask"),
+    (["--executor", "dask", "--workers", "0"], "--workers 0: expected >= 1"),
+])
+def test_trace_executor_options_are_checked(tmp_path, capsys, extra, needle):
+    assert main(["trace", "paper", "--source", "analytic", "--out", str(tmp_path), "--quiet", *extra]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and err.strip().count("\n") == 0
