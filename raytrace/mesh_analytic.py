@@ -14,16 +14,20 @@ radians):
   (range gate for SP / VS), kept only if their legs are unblocked (an SP's own mesh excepted).
 
 Blockers are the static triangles (XML shapes and scenario boxes, scatterers, ground) and the car
-bodies at this step (the receiving car's own too: it hides ground reflections close to it). Each landmark is one row (``n_paths = 1``), power is Friis over the path length.
+bodies at this step (the receiving car's own too: it hides ground reflections close to it).
+Each landmark is one row (``n_paths = 1``) and one ray; box / SP / VS rows keep the gains and
+Doppler of :class:`~mmslam.raytrace.analytic.AnalyticSource`; XML-plane VAs get the Friis gain
+over the unfolded length (the XML materials' reflection loss is not modelled) and the
+receiver's Doppler. In the ``rays`` table only the magnitude of the coefficient is kept.
 Higher orders, diffuse paths on the XML geometry and diffraction are not modelled.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from mmslam.raytrace.analytic import AnalyticSource, free_space_power_db
+from mmslam.raytrace.analytic import SPEED_OF_LIGHT, AnalyticSource
 from mmslam.raytrace.labels import plane_table
-from mmslam.raytrace.schema import PATH_COLUMNS, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
 from mmslam.scenes.geometry import StaticGeometry, static_geometry
 from mmslam.scenes.meshes import car_mesh
 from mmslam.scenes.scenario import Scenario
@@ -55,8 +59,8 @@ class MeshAnalyticSource(AnalyticSource):
                          "static triangles block, cars do not", "model_version": 1}
 
     # ------------------------------------------------------------------
-    def _xml_vas(self, u: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        """(plane, incidence point) of every XML-plane VA path to receiver ``u`` before blockage."""
+    def _xml_vas(self, u: np.ndarray) -> list[tuple[int, np.ndarray, int]]:
+        """(plane, incidence point, triangle) of every XML-plane VA path to receiver ``u`` before blockage."""
         tri = self._tri
         if not len(tri):
             return []
@@ -81,7 +85,7 @@ class MeshAnalyticSource(AnalyticSource):
             if pl in seen:  # a point on an edge shared by two triangles of one plane
                 continue
             seen.add(pl)
-            out.append((pl, v[t] + s[t] * d[t]))
+            out.append((pl, v[t] + s[t] * d[t], int(t)))
         return out
 
     def _cars(self, states: np.ndarray) -> StaticGeometry:
@@ -92,9 +96,13 @@ class MeshAnalyticSource(AnalyticSource):
         return StaticGeometry(np.concatenate(tris), obj, tuple(self.scn.vehicle_names), ("car",) * len(tris))
 
     def trace_step(self, step: int, states: np.ndarray) -> dict[str, np.ndarray]:
-        """Paths of all receivers at one step (``paths`` columns, sorted); see the module docstring."""
+        """The ``paths`` table of :meth:`trace_tables`."""
+        return self.trace_tables(step, states)["paths"]
+
+    def trace_tables(self, step: int, states: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+        """``rays`` and ``paths`` of all receivers at one step (one ray per path row); see the module doc."""
         states = np.asarray(states, float)
-        base = super().trace_step(step, states)
+        base = super().trace_tables(step, states)["paths"]
         u_all = states[:, :3]
         b = self.bs
         # ---- rows of the box / SP / VS model, filtered by blockage
@@ -111,40 +119,59 @@ class MeshAnalyticSource(AnalyticSource):
             lut = dict(zip(self.sp_ids, self._sp_obj))
             ex[sp_rows] = [lut[str(i)] for i in base["landmark_id"][sp_rows]]
         cars = self._cars(states)
-        leg1 = self.geom.segments_blocked(np.repeat(b[None], n0, 0), mid, exclude_obj=ex) | \
-            cars.segments_blocked(np.repeat(b[None], n0, 0), mid)
+        b0 = np.repeat(b[None], n0, 0)
+        leg1 = self.geom.segments_blocked(b0, mid, exclude_obj=ex) | cars.segments_blocked(b0, mid)
         leg2 = np.where(is_bs, False, self.geom.segments_blocked(mid, u0, exclude_obj=ex) | cars.segments_blocked(mid, u0))
         keep = ~(leg1 | leg2)
-        rows = [{k: np.asarray(v)[keep] for k, v in base.items()}]
-        # ---- XML-plane VAs
-        ri, pl, pp = [], [], []
+        cols = {k: np.asarray(v)[keep] for k, v in base.items()}
+        objects = [("" if t == BS else str(i).split(":")[0]) for t, i in zip(cols["type"], cols["landmark_id"])]
+        # ---- XML-plane VAs (Friis gain: the reflection loss of the XML's materials is not modelled)
+        ri, pl, pp, tr = [], [], [], []
         for r, u in enumerate(u_all):
-            for plane, p in self._xml_vas(u):
-                ri.append(r), pl.append(plane), pp.append(p)
+            for plane, p, t in self._xml_vas(u):
+                ri.append(r), pl.append(plane), pp.append(p), tr.append(t)
         if ri:
-            ri_a, pl_a, p_a = np.asarray(ri), np.asarray(pl), np.asarray(pp)
+            ri_a, pl_a, p_a, tr_a = np.asarray(ri), np.asarray(pl), np.asarray(pp), np.asarray(tr)
             u = u_all[ri_a]
-            b_rep = np.repeat(b[None], len(ri_a), 0)
-            ok = ~(self.geom.segments_blocked(b_rep, p_a) | self.geom.segments_blocked(p_a, u)
-                   | cars.segments_blocked(b_rep, p_a) | cars.segments_blocked(p_a, u))
-            ri_a, pl_a, p_a, u = ri_a[ok], pl_a[ok], p_a[ok], u[ok]
+            bb = np.repeat(b[None], len(ri_a), 0)
+            ok = ~(self.geom.segments_blocked(bb, p_a) | self.geom.segments_blocked(p_a, u)
+                   | cars.segments_blocked(bb, p_a) | cars.segments_blocked(p_a, u))
+            ri_a, pl_a, p_a, tr_a, u = ri_a[ok], pl_a[ok], p_a[ok], tr_a[ok], u[ok]
             img = self._plane_image[pl_a]
             toa = np.linalg.norm(img - u, axis=1)
             aod_az, aod_el = direction_angles(p_a - b)
             aoa_az, aoa_el = direction_angles(img - u)
+            lam = SPEED_OF_LIGHT / self.scn.frequency_hz
+            h = states[ri_a, 3]
+            vel = np.stack([states[ri_a, 4] * np.cos(h), states[ri_a, 4] * np.sin(h), np.zeros(len(h))], axis=1)
+            d_arr = (img - u) / np.maximum(toa, 1e-12)[:, None]
             n = len(ri_a)
-            cols = {
+            a = (lam / (4.0 * np.pi * toa)).astype(complex)
+            new = {
                 "step": np.full(n, step, np.int32), "rx": ri_a.astype(np.int16), "type": np.full(n, VA, np.int8),
                 "landmark_id": np.array([self.planes.ids[i] for i in pl_a], dtype=object),
                 "bounces": np.ones(n, np.int8), "diffuse": np.zeros(n, bool), "toa_m": toa,
                 "aod_az": aod_az, "aod_el": aod_el, "aoa_az": aoa_az, "aoa_el": aoa_el,
-                "power_db": free_space_power_db(toa, self.scn.frequency_hz),
+                "power_db": 20.0 * np.log10(np.abs(a)),
                 "bounce_x": p_a[:, 0], "bounce_y": p_a[:, 1], "bounce_z": p_a[:, 2],
                 "lm_x": img[:, 0], "lm_y": img[:, 1], "lm_z": img[:, 2],
                 "n_paths": np.ones(n, np.int32), "delay_spread_m": np.zeros(n),
+                "doppler_hz": np.sum(vel * d_arr, axis=1) / lam, "ray": np.zeros(n, np.int32),
             }
-            rows.append({k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t))
-                         for k, t in PATH_COLUMNS.items()})
-        out = {k: np.concatenate([r[k] for r in rows]) for k in PATH_COLUMNS}
-        return sort_paths(out)
-
+            cols = {k: np.concatenate([cols[k], np.asarray(new[k], dtype=cols[k].dtype)]) for k in PATH_COLUMNS}
+            objects += [self.geom.names[self.geom.obj[self._tri_global[t]]] for t in tr_a]
+        # ---- one ray per path row, numbered by delay within each receiver
+        n = len(cols["rx"])
+        a_all = 10.0 ** (cols["power_db"] / 20.0) + 0j  # |a| of the rows (the phase is not modelled here)
+        order_key = np.arange(n)
+        cols["ray"] = ray_numbers(cols["rx"], cols["toa_m"] / SPEED_OF_LIGHT, tiebreak=order_key)
+        typ = cols["type"]
+        verts = np.stack([cols["bounce_x"], cols["bounce_y"], cols["bounce_z"]], axis=1)
+        angles = np.stack([cols[c] for c in ("aod_az", "aod_el", "aoa_az", "aoa_el")], axis=1)
+        rays = rays_columns(step=step, rx=cols["rx"], typ=typ, landmark_id=cols["landmark_id"], a=a_all,
+                            delay_s=cols["toa_m"] / SPEED_OF_LIGHT, angles=angles, doppler_hz=cols["doppler_hz"],
+                            itype=np.where(typ == BS, 0, np.where(typ == SP, 2, 1))[:, None],
+                            objects=np.asarray(objects, dtype=object)[:, None], verts=verts[:, None, :],
+                            ray=cols["ray"])
+        cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t)) for k, t in PATH_COLUMNS.items()}
+        return {"rays": rays, "paths": sort_paths(cols)}

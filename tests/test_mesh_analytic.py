@@ -96,3 +96,26 @@ def test_munich_analytic_equals_sionna_on_bs_and_va_rows():
             assert a["toa_m"][ka[key]] == pytest.approx(s["toa_m"][ks[key]], abs=1e-2)
         n += len(ka)
     assert n >= 10
+
+
+def test_trace_cli_analytic_on_an_xml_scene_writes_rays_and_paths(tmp_path, capsys):
+    """`mmslam trace canyon --source analytic` uses the meshes: one ray per path row, LOS rows only where
+    the line BS -> antenna is free (checked against the scene's triangles)."""
+    from mmslam.cli import main
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.scenes.geometry import static_geometry
+
+    assert main(["trace", "canyon", "--source", "analytic", "--out", str(tmp_path), "--steps", "4", "--quiet"]) == 0
+    import pyarrow.parquet as pq
+
+    d = capsys.readouterr().out.strip().splitlines()[-1]
+    c = load_cache(d)
+    assert pq.read_table(f"{d}/rays").num_rows == len(c.paths["rx"]) > 0
+    scn = load_preset("canyon")
+    g = static_geometry(scn)
+    st = true_trajectories(scn, 4)
+    free = ~g.segments_blocked(np.repeat(scn.bs_array[None], 12, 0), st[:, :, :3].reshape(-1, 3)).reshape(4, 3)
+    los = np.zeros((4, 3), bool)
+    sel = c.paths["type"] == BS
+    los[c.paths["step"][sel], c.paths["rx"][sel].astype(int)] = True
+    np.testing.assert_array_equal(los, free)  # car bodies never stand between a roof antenna and the BS here
