@@ -18,7 +18,7 @@ bodies at this step (the receiving car's own too: it hides ground reflections cl
 Each landmark is one row (``n_paths = 1``) and one ray; box / SP / VS rows keep the gains and
 Doppler of :class:`~mmslam.raytrace.analytic.AnalyticSource`; XML-plane VAs get the Friis gain
 over the unfolded length (the XML materials' reflection loss is not modelled) and the
-receiver's Doppler. In the ``rays`` table only the magnitude of the coefficient is kept.
+receiver's Doppler.
 Higher orders, diffuse paths on the XML geometry and diffraction are not modelled.
 """
 from __future__ import annotations
@@ -102,7 +102,11 @@ class MeshAnalyticSource(AnalyticSource):
     def trace_tables(self, step: int, states: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
         """``rays`` and ``paths`` of all receivers at one step (one ray per path row); see the module doc."""
         states = np.asarray(states, float)
-        base = super().trace_tables(step, states)["paths"]
+        tables = super().trace_tables(step, states)
+        base, br = tables["paths"], tables["rays"]
+        # the parent's complex coefficient of each of its path rows (one ray per row, linked by (rx, ray))
+        a_of = {(int(r), int(k)): complex(x, y) for r, k, x, y in zip(br["rx"], br["ray"], br["a_re"], br["a_im"])}
+        base_a = np.array([a_of[(int(r), int(k))] for r, k in zip(base["rx"], base["ray"])], complex)
         u_all = states[:, :3]
         b = self.bs
         # ---- rows of the box / SP / VS model, filtered by blockage
@@ -124,6 +128,7 @@ class MeshAnalyticSource(AnalyticSource):
         leg2 = np.where(is_bs, False, self.geom.segments_blocked(mid, u0, exclude_obj=ex) | cars.segments_blocked(mid, u0))
         keep = ~(leg1 | leg2)
         cols = {k: np.asarray(v)[keep] for k, v in base.items()}
+        a_rows = [base_a[keep]]
         objects = [("" if t == BS else str(i).split(":")[0]) for t, i in zip(cols["type"], cols["landmark_id"])]
         # ---- XML-plane VAs (Friis gain: the reflection loss of the XML's materials is not modelled)
         ri, pl, pp, tr = [], [], [], []
@@ -160,9 +165,10 @@ class MeshAnalyticSource(AnalyticSource):
             }
             cols = {k: np.concatenate([cols[k], np.asarray(new[k], dtype=cols[k].dtype)]) for k in PATH_COLUMNS}
             objects += [self.geom.names[self.geom.obj[self._tri_global[t]]] for t in tr_a]
+            a_rows.append(a)
         # ---- one ray per path row, numbered by delay within each receiver
         n = len(cols["rx"])
-        a_all = 10.0 ** (cols["power_db"] / 20.0) + 0j  # |a| of the rows (the phase is not modelled here)
+        a_all = np.concatenate(a_rows)
         order_key = np.arange(n)
         cols["ray"] = ray_numbers(cols["rx"], cols["toa_m"] / SPEED_OF_LIGHT, tiebreak=order_key)
         typ = cols["type"]
