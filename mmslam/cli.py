@@ -13,10 +13,26 @@ from pathlib import Path
 import typer
 
 from mmslam import __version__
-from mmslam.errors import MmslamError
+from mmslam.errors import Interrupted, MmslamError
+
+EXIT_CODES = ("Exit codes: 0 success; 2 a user error (one line naming the thing and the fix); "
+              "130 interrupted (one line: what was kept, how to resume); 1 a bug (one line with the path "
+              "of a log file holding the traceback).")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Ray-traced mmWave multipath datasets and cooperative MM-PHD-SLAM.")
+                  help="Ray-traced mmWave multipath datasets and cooperative MM-PHD-SLAM.\n\n" + EXIT_CODES)
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(f"mmslam {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """Ray-traced mmWave multipath datasets and cooperative MM-PHD-SLAM."""
 
 
 def _register_all() -> None:
@@ -46,10 +62,28 @@ def _log_traceback(exc: BaseException) -> Path:
     return Path(name)
 
 
-def _interrupted() -> int:
-    print("interrupted: finished work is kept (atomic writes); re-run the same command to resume",
-          file=sys.stderr)
+def _interrupted(e: BaseException | None = None) -> int:
+    msg = str(e) if isinstance(e, Interrupted) else Interrupted.DEFAULT
+    print(f"interrupted: {' '.join(msg.split())}", file=sys.stderr)
     return 130
+
+
+def _raise_interrupted(signum: int, frame: object) -> None:
+    raise Interrupted()
+
+
+def _install_sigint() -> object:
+    """Ctrl-C raises :class:`Interrupted` (click would print a blank line for KeyboardInterrupt)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    old = signal.getsignal(signal.SIGINT)
+    if old is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _raise_interrupted)
+        return old
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,8 +92,13 @@ def main(argv: list[str] | None = None) -> int:
     0 success; 2 a user error (one line ``error: ...``, no traceback); 130 interrupted (one line);
     1 a bug (one line with the path of a log file holding the traceback).
     """
+    import signal
+
+    old = _install_sigint()
     try:
-        rc = app(args=argv, standalone_mode=False)
+        rc = app(args=argv, standalone_mode=False, prog_name="mmslam")
+    except Interrupted as e:
+        return _interrupted(e)
     except MmslamError as e:
         print(f"error: {e}", file=sys.stderr)
         return e.exit_code
@@ -85,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: internal error ({type(e).__name__}: {' '.join(str(e).split())[:200]}); this is a bug, "
               f"the traceback is in {log}", file=sys.stderr)
         return 1
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)  # type: ignore[arg-type]
     if rc == 130:  # click turns Ctrl-C into exit code 130 when not standalone
         return _interrupted()
     return int(rc or 0) if isinstance(rc, int) else 0

@@ -27,3 +27,17 @@ class CacheError(MmslamError):
 
 class BackendError(MmslamError):
     """No usable ray-tracing backend (e.g. no LLVM >= 16 for Dr.Jit on the CPU)."""
+
+
+class Interrupted(BaseException):
+    """Ctrl-C (SIGINT): the CLI prints ``interrupted: <message>`` and exits 130.
+
+    The message says what was kept and how to resume. A :class:`BaseException` like
+    :class:`KeyboardInterrupt`, so ``except Exception`` clean-up code never swallows it.
+    """
+
+    exit_code: int = 130
+    DEFAULT = "finished work is kept (atomic writes); re-run the same command to resume"
+
+    def __init__(self, message: str = "") -> None:
+        super().__init__(message or self.DEFAULT)

@@ -154,6 +154,9 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         raise ConfigError(f"--steps {steps}: expected a positive number of steps")
     if chunk_steps < 1:
         raise ConfigError(f"chunk_steps {chunk_steps}: expected >= 1")
+    from mmslam.scenes.trajectory import check_bs_clearance
+
+    check_bs_clearance(scn, true_trajectories(scn, n_steps))  # before anything is written
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)
     lock = _acquire_lock(cache_dir)

@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import ConfigError
-from mmslam.scenes.params import check_value, iter_params, param, param_rows, parse_override
+from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
+from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
 
 MATERIALS = ("concrete", "metal", "brick", "wood", "glass", "marble", "plasterboard", "ceiling_board",
              "floorboard", "chipboard", "very_dry_ground")
@@ -138,7 +139,7 @@ class SensorParams:
 class FilterParams:
     """MM-PHD-SLAM parameters (TWC2020 values for ``paper``)."""
 
-    particles: int = param(300, "particles per vehicle", "", lo=1, hi=100_000)
+    particles: int = param(300, "particles per vehicle", "", lo=1, hi=MAX_PARTICLES)
     r_scale: float = param(9.0, "the filter's measurement covariance is r_scale x the true R (tuning)", "",
                            lo=0.0, lo_open=True, hi=1e6)
     prior_std: tuple[float, ...] = param(
@@ -287,6 +288,63 @@ class Scenario:
 
 
 # ====================================================================== loading
+def _spec(doc: str, unit: str = "", lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+          integer: bool = False, choices: tuple[str, ...] | None = None) -> ParamSpec:
+    return ParamSpec(doc, unit, lo, hi, lo_open, False, choices, integer)
+
+
+_C = COORD_MAX
+GEOMETRY: dict[str, tuple[str, ParamSpec]] = {
+    "name": ("required", _spec("scenario name (letters, digits, '_' or '-'); names the cache directory")),
+    "bs": ("required", _spec("BS antenna position [x, y, z]", "m", -_C, _C)),
+    "dt": ("0.5", _spec("time step", "s", 0.0, 3600.0, lo_open=True)),
+    "steps": ("40", _spec("number of time steps", "steps", 1, MAX_STEPS, integer=True)),
+    "frequency_hz": ("2.8e+10", _spec("carrier frequency", "Hz", 1e8, 3e11)),
+    "seed": ("0", _spec("seed of the scenario's own random draws (scatterer heights from z_range, the true "
+                        "process noise)", "", 0, MAX_SEED, integer=True)),
+    "xml_scene": ("none", _spec("an extra Mitsuba XML scene (path, or a Sionna scene name) traced together with "
+                                "the scenario's objects")),
+    "buildings[].name": ("required", _spec("unique object name")),
+    "buildings[].min": ("required", _spec("box corner [x, y, z] with the smallest coordinates", "m", -_C, _C)),
+    "buildings[].max": ("required", _spec("opposite box corner (max > min on every axis)", "m", -_C, _C)),
+    "buildings[].material": ('"concrete"', _spec("ITU material", choices=MATERIALS)),
+    "scatterers[].name": ("required", _spec("unique object name")),
+    "scatterers[].position": ("required", _spec("centre [x, y, z], or [x, y] with z_range", "m", -_C, _C)),
+    "scatterers[].z_range": ("none", _spec("[lo, hi]: z drawn uniformly with the scenario seed", "m", -_C, _C)),
+    "scatterers[].size": ("1", _spec("cube edge, or cylinder diameter and height", "m", 0.0, 10.0, lo_open=True)),
+    "scatterers[].shape": ('"box"', _spec("shape", choices=("box", "cylinder"))),
+    "scatterers[].material": ('"metal"', _spec("ITU material", choices=MATERIALS)),
+    "scatterers[].scattering_coefficient": ("0.7", _spec("share of diffusely scattered energy", "", 0.0, 1.0,
+                                                         lo_open=True)),
+    "ground.z": ("0", _spec("ground plane height", "m", -1e4, 1e4)),
+    "ground.extent": ("400", _spec("side of the square ground plane around the origin", "m", 1.0, 1e5)),
+    "ground.material": ('"concrete"', _spec("ITU material", choices=MATERIALS)),
+    "vehicles[].name": ("required", _spec("unique object name")),
+    "vehicles[].initial_state[0:3]": ("required", _spec("antenna position x, y, z", "m", -_C, _C)),
+    "vehicles[].initial_state[3]": ("required", _spec("heading, counter-clockwise from +x", "rad", -100.0, 100.0)),
+    "vehicles[].initial_state[4]": ("required", _spec("speed (> 0 for motion = waypoints)", "m/s", 0.0, 100.0)),
+    "vehicles[].initial_state[5]": ("required", _spec("turn rate", "rad/s", -10.0, 10.0)),
+    "vehicles[].initial_state[6]": ("required", _spec("initial clock bias (x c)", "m", -_C, _C)),
+    "vehicles[].motion": ('"ct"', _spec("ct (coordinated turn from the initial state) or waypoints",
+                                        choices=("ct", "waypoints"))),
+    "vehicles[].waypoints": ("none", _spec("[[x, y], ...] or [[x, y, z], ...] polyline for motion = waypoints (first = start)",
+                                           "m", -_C, _C)),
+    "vehicles[].length": ("4.5", _spec("car body length", "m", 0.5, 20.0)),
+    "vehicles[].width": ("1.8", _spec("car body width", "m", 0.5, 5.0)),
+    "vehicles[].height": ("1.5", _spec("car body height", "m", 0.5, 5.0)),
+    "vehicles[].roof_gap": ("0.05", _spec("antenna height above the roof", "m", 0.01, 1.0)),
+    "vehicles[].material": ('"metal"', _spec("ITU material", choices=MATERIALS)),
+    "vehicles[].scattering_coefficient": ("0.5", _spec("share of diffusely scattered energy", "", 0.0, 1.0)),
+}
+"""Every geometry / time key of a scenario file: (default, spec with doc, unit and bounds)."""
+
+
+def _b(key: str) -> dict[str, Any]:
+    """``_num`` / ``_vec`` bounds of :data:`GEOMETRY` ``key``."""
+    s = GEOMETRY[key][1]
+    return {"lo": s.lo, "hi": s.hi, "lo_open": s.lo_open, **({"integer": True} if s.integer else {})}
+
+
 _TOP_KEYS = {"name", "bs", "vehicles", "buildings", "scatterers", "ground", "dt", "steps",
              "frequency_hz", "seed", "xml_scene", "sensor", "filter", "fusion", "evaluation", "n_vehicles"}
 _ROUTE_KEYS = {"name", "route", "speed", "clock_bias", "antenna_height", "length", "width", "height", "roof_gap",
@@ -311,18 +369,18 @@ def _num(src: str, key: str, v: Any, *, lo: float | None = None, hi: float | Non
         raise _err(src, key, f"expected an integer, got {v!r}")
     if not math.isfinite(float(v)):
         raise _err(src, key, f"expected a finite number, got {v!r}")
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise _err(src, key, f"expected a value {'>' if lo_open else '>='} {lo}, got {v!r}")
-    if hi is not None and v > hi:
-        raise _err(src, key, f"expected a value <= {hi}, got {v!r}")
+    if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
+        rng = ParamSpec("", lo=lo, hi=hi, lo_open=lo_open).bounds_text()
+        raise _err(src, key, f"expected a value in {rng}, got {v!r}")
     return int(v) if integer else float(v)
 
 
-def _vec(src: str, key: str, v: Any, n: int | tuple[int, ...]) -> tuple[float, ...]:
+def _vec(src: str, key: str, v: Any, n: int | tuple[int, ...], lo: float | None = None,
+         hi: float | None = None, lo_open: bool = False) -> tuple[float, ...]:
     lens = (n,) if isinstance(n, int) else n
     if not isinstance(v, list) or len(v) not in lens:
         raise _err(src, key, f"expected a list of {' or '.join(map(str, lens))} numbers, got {v!r}")
-    return tuple(_num(src, f"{key}[{i}]", x) for i, x in enumerate(v))
+    return tuple(_num(src, f"{key}[{i}]", x, lo=lo, hi=hi, lo_open=lo_open) for i, x in enumerate(v))
 
 
 def _str(src: str, key: str, v: Any, choices: tuple[str, ...] | None = None) -> str:
@@ -378,14 +436,14 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
     if "vehicles" not in data and "n_vehicles" not in data:
         raise _err(src, "vehicles", "required key is missing (or give n_vehicles = N with an xml_scene)")
     name = _name(src, "name", data["name"])
-    seed = _num(src, "seed", data.get("seed", 0), lo=0, integer=True)
+    seed = _num(src, "seed", data.get("seed", 0), **_b("seed"))
     if seed_override is not None:
         seed = seed_override
     rng = np.random.default_rng(seed)
-    bs = _vec(src, "bs", data["bs"], 3)
-    dt = _num(src, "dt", data.get("dt", 0.5), lo=0.0, lo_open=True)
-    steps = _num(src, "steps", data.get("steps", 40), lo=1, integer=True)
-    freq = _num(src, "frequency_hz", data.get("frequency_hz", 28e9), lo=1e8, hi=3e11)
+    bs = _vec(src, "bs", data["bs"], 3, **_b("bs"))
+    dt = _num(src, "dt", data.get("dt", 0.5), **_b("dt"))
+    steps = _num(src, "steps", data.get("steps", 40), **_b("steps"))
+    freq = _num(src, "frequency_hz", data.get("frequency_hz", 28e9), **_b("frequency_hz"))
     xml_scene = data.get("xml_scene")
     if xml_scene is not None:
         xml_scene = _str(src, "xml_scene", xml_scene)
@@ -402,8 +460,8 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
         for req in ("name", "min", "max"):
             if req not in b:
                 raise _err(src, w + req, "required key is missing")
-        lo = _vec(src, w + "min", b["min"], 3)
-        hi = _vec(src, w + "max", b["max"], 3)
+        lo = _vec(src, w + "min", b["min"], 3, **_b("buildings[].min"))
+        hi = _vec(src, w + "max", b["max"], 3, **_b("buildings[].max"))
         if any(h <= l for l, h in zip(lo, hi)):
             raise _err(src, w + "max", f"expected max > min on every axis, got min={list(lo)} max={list(hi)}")
         buildings.append(Building(_name(src, w + "name", b["name"]), lo, hi,
@@ -423,20 +481,20 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
             if req not in s:
                 raise _err(src, w + req, "required key is missing")
         if "z_range" in s:
-            xy = _vec(src, w + "position", s["position"], 2)
-            zr = _vec(src, w + "z_range", s["z_range"], 2)
+            xy = _vec(src, w + "position", s["position"], 2, **_b("scatterers[].position"))
+            zr = _vec(src, w + "z_range", s["z_range"], 2, **_b("scatterers[].z_range"))
             if zr[1] < zr[0]:
                 raise _err(src, w + "z_range", f"expected [lo, hi] with lo <= hi, got {list(zr)}")
             pos = (xy[0], xy[1], float(rng.uniform(zr[0], zr[1])))
         else:
-            pos = _vec(src, w + "position", s["position"], 3)
+            pos = _vec(src, w + "position", s["position"], 3, **_b("scatterers[].position"))
         scatterers.append(Scatterer(
             _name(src, w + "name", s["name"]), pos,
-            _num(src, w + "size", s.get("size", 1.0), lo=0.0, lo_open=True, hi=10.0),
+            _num(src, w + "size", s.get("size", 1.0), **_b("scatterers[].size")),
             _str(src, w + "shape", s.get("shape", "box"), ("box", "cylinder")),
             _material(src, w + "material", s.get("material", "metal")),
-            _num(src, w + "scattering_coefficient", s.get("scattering_coefficient", 0.7), lo=0.0,
-                 lo_open=True, hi=1.0)))
+            _num(src, w + "scattering_coefficient", s.get("scattering_coefficient", 0.7),
+                 **_b("scatterers[].scattering_coefficient"))))
 
     ground = None
     if "ground" in data:
@@ -444,8 +502,8 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
         if not isinstance(g, dict):
             raise _err(src, "ground", "expected a table")
         _check_keys(src, "ground.", g, {"z", "extent", "material"})
-        ground = Ground(_num(src, "ground.z", g.get("z", 0.0)),
-                        _num(src, "ground.extent", g.get("extent", 400.0), lo=1.0),
+        ground = Ground(_num(src, "ground.z", g.get("z", 0.0), **_b("ground.z")),
+                        _num(src, "ground.extent", g.get("extent", 400.0), **_b("ground.extent")),
                         _material(src, "ground.material", g.get("material", "concrete")))
 
     vehicles = []
@@ -466,15 +524,15 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
             if req not in v:
                 raise _err(src, w + req, "required key is missing")
         st = _vec(src, w + "initial_state", v["initial_state"], 7)
-        if st[4] < 0:
-            raise _err(src, w + "initial_state[4]", f"expected speed >= 0, got {st[4]}")
+        for j, k in ((0, "0:3"), (1, "0:3"), (2, "0:3"), (3, "3"), (4, "4"), (5, "5"), (6, "6")):
+            _num(src, f"{w}initial_state[{j}]", st[j], **_b(f"vehicles[].initial_state[{k}]"))
         motion = _str(src, w + "motion", v.get("motion", "ct"), ("ct", "waypoints"))
         wps: tuple[tuple[float, float], ...] = ()
         if motion == "waypoints":
             raw_w = v.get("waypoints")
             if not isinstance(raw_w, list) or len(raw_w) < 2:
                 raise _err(src, w + "waypoints", "expected at least two [x, y] points for motion = 'waypoints'")
-            wps = tuple(_vec(src, f"{w}waypoints[{j}]", p, (2, 3)) for j, p in enumerate(raw_w))  # type: ignore[misc]
+            wps = tuple(_vec(src, f"{w}waypoints[{j}]", p, (2, 3), **_b("vehicles[].waypoints")) for j, p in enumerate(raw_w))  # type: ignore[misc]
             if len({len(p) for p in wps}) != 1:
                 raise _err(src, w + "waypoints", "expected all [x, y] or all [x, y, z] points, not a mix")
             if st[4] <= 0:
@@ -486,12 +544,13 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
             raise _err(src, w + "waypoints", "only allowed with motion = 'waypoints'")
         veh = Vehicle(
             _name(src, w + "name", v["name"]), st, motion, wps,
-            _num(src, w + "length", v.get("length", 4.5), lo=0.5, hi=20.0),
-            _num(src, w + "width", v.get("width", 1.8), lo=0.5, hi=5.0),
-            _num(src, w + "height", v.get("height", 1.5), lo=0.5, hi=5.0),
-            _num(src, w + "roof_gap", v.get("roof_gap", 0.05), lo=0.01, hi=1.0),
+            _num(src, w + "length", v.get("length", 4.5), **_b("vehicles[].length")),
+            _num(src, w + "width", v.get("width", 1.8), **_b("vehicles[].width")),
+            _num(src, w + "height", v.get("height", 1.5), **_b("vehicles[].height")),
+            _num(src, w + "roof_gap", v.get("roof_gap", 0.05), **_b("vehicles[].roof_gap")),
             _material(src, w + "material", v.get("material", "metal")),
-            _num(src, w + "scattering_coefficient", v.get("scattering_coefficient", 0.5), lo=0.0, hi=1.0))
+            _num(src, w + "scattering_coefficient", v.get("scattering_coefficient", 0.5),
+                 **_b("vehicles[].scattering_coefficient")))
         start = wps[0] if wps else st[:2]
         for b in buildings:
             if b.min[0] < start[0] < b.max[0] and b.min[1] < start[1] < b.max[1] and b.min[2] < st[2] < b.max[2] + 1e-9:
@@ -643,7 +702,10 @@ def load_scenario(path: str | Path, seed_override: int | None = None) -> Scenari
         raise ConfigError(f"{p}: scenario file not found; give a preset name ({', '.join(list_presets())}) "
                           "or an existing .toml file")
     try:
-        data = tomllib.loads(p.read_text())
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not UTF-8 text (byte {e.start}: {e.object[e.start:e.start + 1]!r}); a scenario "
+                          "file is TOML, saved as UTF-8") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML ({e}); fix the syntax") from None
     return scenario_from_dict(data, str(p), seed_override)

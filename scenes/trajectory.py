@@ -104,3 +104,20 @@ def true_trajectories(scn: Scenario, steps: int | None = None) -> np.ndarray:
     """
     rng = np.random.default_rng([scn.seed, 0x7472616A]) if scn.sensor.true_process_noise else None
     return vehicle_trajectories(scn, steps, rng=rng)
+
+
+BS_CLEARANCE_M = 0.1
+"""A vehicle antenna closer than this to the BS (m) has no defined path geometry (zero TOA)."""
+
+
+def check_bs_clearance(scn: Scenario, states: np.ndarray) -> None:
+    """One-line :class:`~mmslam.errors.ConfigError` naming the vehicle and the BS if a vehicle antenna
+    comes within :data:`BS_CLEARANCE_M` of the BS. ``states``: ``(steps, n_veh, >=3)``, m."""
+    from mmslam.errors import ConfigError
+
+    d = np.linalg.norm(np.asarray(states)[:, :, :3] - scn.bs_array, axis=2)
+    if d.size and d.min() < BS_CLEARANCE_M:
+        k, i = np.unravel_index(int(np.argmin(d)), d.shape)
+        raise ConfigError(f"{scn.source_file}: vehicle '{scn.vehicles[i].name}' is {d[k, i]:.3g} m from the BS "
+                          f"{list(scn.bs)} at step {k} (at least {BS_CLEARANCE_M} m needed); move the BS or the "
+                          "vehicle's trajectory")
