@@ -19,7 +19,7 @@ EXIT_CODES = ("Exit codes: 0 success; 2 a user error (one line naming the thing 
               "130 interrupted (one line: what was kept, how to resume); 1 a bug (one line with the path "
               "of a log file holding the traceback).")
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   help="Ray-traced mmWave multipath datasets and cooperative MM-PHD-SLAM.\n\n" + EXIT_CODES)
 
 

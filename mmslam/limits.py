@@ -22,3 +22,16 @@ MAX_CHUNK_STEPS = 10_000
 """Steps per Parquet chunk of a path cache."""
 COORD_MAX = 1e6
 """Largest absolute coordinate in a scenario (m)."""
+
+
+def check_int(option: str, value: int | None, lo: int, hi: int, what: str = "") -> None:
+    """One-line :class:`~mmslam.errors.ConfigError` unless ``value`` (if given) is in ``lo..hi``."""
+    from mmslam.errors import ConfigError
+
+    if value is not None and not lo <= int(value) <= hi:
+        raise ConfigError(f"{option} {value}: expected {what + ' ' if what else ''}in {lo}..{hi}")
+
+
+def span(lo: int, hi: int) -> str:
+    """`` [lo..hi]`` for an option's help text."""
+    return f" [{lo}..{hi}]"

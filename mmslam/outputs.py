@@ -35,7 +35,8 @@ def write_marker(path: Path, kind: str) -> None:
 
 
 def check_target(path: str | Path, kind: str, force: bool = False, *, protect: tuple[Path, ...] = (),
-                 option: str = "--out", accept: "Callable[[Path], bool] | None" = None) -> Path:
+                 option: str = "--out", accept: "Callable[[Path], bool] | None" = None,
+                 force_does: str = "replace it") -> Path:
     """Raise a one-line :class:`MmslamError` unless ``path`` may be (re)written as a ``kind`` output.
 
     Allowed: a missing path, an empty directory, or a directory whose marker says ``kind``.
@@ -60,7 +61,7 @@ def check_target(path: str | Path, kind: str, force: bool = False, *, protect: t
         f"an mmslam {output_kind(out)} output" if output_kind(out) else "a directory that is not an mmslam "
         f"{kind} output")
     raise MmslamError(f"{option} {out}: exists and is {what}; choose another path, or pass --force to "
-                      "replace it")
+                      f"{force_does}")
 
 
 def replace_dir(tmp: Path, out: Path, kind: str, force: bool = False) -> None:
@@ -212,7 +213,7 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def acquire_lock(path: str | Path, what: str = "mmslam command") -> Path:
+def acquire_lock(path: str | Path, what: str = "mmslam command", exc: type[MmslamError] = MmslamError) -> Path:
     """Take the writer lock of directory ``path`` (an ``O_EXCL`` file holding our pid).
 
     A lock whose process is gone (killed) is taken over; a live one raises a one-line
@@ -232,7 +233,7 @@ def acquire_lock(path: str | Path, what: str = "mmslam command") -> Path:
             except (OSError, ValueError):
                 pid = 0
             if pid == os.getpid() or (pid > 0 and _pid_alive(pid)):
-                raise MmslamError(f"{path}: another {what} (pid {pid}) is writing here; wait for it to finish, "
+                raise exc(f"{path}: another {what} (pid {pid}) is writing here; wait for it to finish, "
                                   f"or delete {lock} if that process is gone") from None
             if pid == 0:  # being written right now, or garbage: give its writer a moment
                 import time
@@ -250,7 +251,7 @@ def acquire_lock(path: str | Path, what: str = "mmslam command") -> Path:
             f.write(f"{os.getpid()}\n")
         _HELD[lock] = 1
         return lock
-    raise MmslamError(f"{lock}: could not take the writer lock; delete it if no mmslam command is running, "
+    raise exc(f"{lock}: could not take the writer lock; delete it if no mmslam command is running, "
                       "and re-run")
 
 

@@ -28,6 +28,7 @@ Library use (e.g. from a notebook)::
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -39,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from mmslam.errors import CacheError, ConfigError, MmslamError
+from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError
+from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS, MAX_WORKERS
 
 FILTER_VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
 """Filter variants (DESIGN.md section 6)."""
@@ -183,20 +185,22 @@ def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
 def check_run_args(mc: int, particles: int, steps: int | None, executor: str,
                    scheduler: str | None, workers: int | None, seed0: int = 0) -> None:
     """Reject bad numbers / executor settings with a one-line :class:`ConfigError`."""
-    if int(mc) < 1:
-        raise ConfigError(f"--mc {mc}: expected at least 1 Monte Carlo run")
-    if not 0 <= int(seed0) <= 2**31:
-        raise ConfigError(f"--seed0 {seed0}: expected a seed in 0..2147483648")
-    if int(particles) < 1:
-        raise ConfigError(f"--particles {particles}: expected at least 1 particle")
-    if steps is not None and int(steps) < 1:
-        raise ConfigError(f"--steps {steps}: expected a positive number of time steps")
+    if not 1 <= int(mc) <= MAX_MC:
+        raise ConfigError(f"--mc {mc}: expected 1..{MAX_MC} Monte Carlo runs")
+    if not 0 <= int(seed0) <= MAX_SEED - int(mc) + 1:
+        raise ConfigError(f"--seed0 {seed0}: expected a seed in 0..{MAX_SEED - int(mc) + 1} (seeds seed0..seed0+mc-1)")
+    if not 1 <= int(particles) <= MAX_PARTICLES:
+        raise ConfigError(f"--particles {particles}: expected 1..{MAX_PARTICLES} particles")
+    if steps is not None and not 1 <= int(steps) <= MAX_STEPS:
+        raise ConfigError(f"--steps {steps}: expected 1..{MAX_STEPS} time steps")
     if executor not in EXECUTORS:
         raise ConfigError(f"--executor {executor}: expected one of {', '.join(EXECUTORS)}")
     if scheduler and executor != "dask":
         raise ConfigError("--scheduler is only used with --executor dask; add --executor dask or drop it")
-    if workers is not None and int(workers) < 1:
-        raise ConfigError(f"--workers {workers}: expected at least 1 worker")
+    if scheduler:
+        check_dask_address(scheduler)
+    if workers is not None and not 1 <= int(workers) <= MAX_WORKERS:
+        raise ConfigError(f"--workers {workers}: expected 1..{MAX_WORKERS} workers")
 
 
 def plan_jobs(variants: Sequence[str], mc: int, seed0: int = 0,
@@ -279,10 +283,12 @@ def _worker_init(parent_pid: int) -> None:
     A ``kill -9`` of the parent would otherwise leave the spawned workers blocked forever on
     their task queue (they hold its write end too, so they never see EOF).
     """
+    import signal
     import threading
 
     for k in _THREAD_VARS:
         os.environ[k] = "1"
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it saves, then stops us
 
     def watch() -> None:
         while True:
@@ -319,6 +325,8 @@ def _local_pool(workers: int | None, n_jobs: int) -> Iterator[_Pool]:
                         lambda fs: [f.cancel() for f in fs], n, f"local pool, {n} processes")
         except BaseException:
             ex.shutdown(wait=False, cancel_futures=True)
+            for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                proc.terminate()  # in-flight jobs: cancelled now, re-run on resume
             raise
         else:
             ex.shutdown(wait=True)
@@ -329,8 +337,27 @@ def _one_line(e: BaseException) -> str:
     return msg if len(msg) <= 200 else msg[:197] + "..."
 
 
+DASK_SCHEMES: tuple[str, ...] = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def check_dask_address(scheduler: str) -> str:
+    """``scheduler`` if it reads ``[scheme://]host:port`` (port 1..65535); one-line :class:`ConfigError` otherwise.
+
+    Checked before a ``Client`` is made: a malformed address would otherwise hang for the
+    connect timeout and print a ``Client.__del__`` traceback.
+    """
+    import re
+
+    m = re.fullmatch(r"(?:([a-z]+)://)?(\[[0-9a-fA-F:]+\]|[A-Za-z0-9._-]+):(\d{1,5})", scheduler.strip())
+    if m is None or (m.group(1) is not None and m.group(1) not in DASK_SCHEMES) or not 1 <= int(m.group(3)) <= 65535:
+        raise ConfigError(f"--scheduler {scheduler!r}: expected an address like tcp://host:8786 (scheme one of "
+                          f"{', '.join(DASK_SCHEMES)}, port 1..65535)")
+    return scheduler.strip()
+
+
 def connect_dask(scheduler: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
     """A ``dask.distributed.Client`` for ``scheduler``; one-line :class:`MmslamError` if unreachable."""
+    check_dask_address(scheduler)
     try:
         from distributed import Client
     except ImportError:
@@ -466,8 +493,11 @@ def _jsonable(o: Any) -> Any:
 
 
 def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
-    for key, flag in (("config_hash", "the trace (scenario / source)"), ("particles", "--particles"),
-                      ("steps", "--steps"), ("sets", "--set")):
+    for key, flag in (("config_hash", "the trace (scenario / source)"), ("scenario_name", "the scenario"),
+                      ("source", "--source"), ("particles", "--particles"), ("steps", "--steps"),
+                      ("sets", "--set")):
+        if key not in new:
+            continue
         if old.get(key, [] if key == "sets" else None) != new.get(key):
             raise ConfigError(f"{out_dir} holds an ablation with {key}={old.get(key)} but this run asks "
                               f"{key}={new.get(key)} ({flag}); use another --out or delete "
@@ -492,6 +522,59 @@ def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrid
                          "that directory and re-run")
 
 
+ABLATION_KIND = "ablation"
+"""Output-marker kind of an ablation directory (:mod:`mmslam.outputs`)."""
+
+
+def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
+    """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
+
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``); ``force`` also
+    allows another directory (files are added, none deleted). Raises a one-line error otherwise.
+    """
+    from mmslam.outputs import check_target, output_kind, write_marker
+
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file(),
+                       force_does="write into it (nothing in it is deleted)")
+    out.mkdir(parents=True, exist_ok=True)
+    if output_kind(out) != ABLATION_KIND:
+        write_marker(out, ABLATION_KIND)
+    return out
+
+
+def precheck_ablation(out_dir: str | Path, scenario_name: str, source: str, steps: int | None, particles: int,
+                      sets: Sequence[str]) -> None:
+    """Refuse, before the trace, a run that :func:`run_ablation` would refuse after it.
+
+    An existing ablation in ``out_dir`` asked for other steps, particles, ``--set`` values, scenario
+    or source: nothing is traced (the cache is not extended) and nothing is written.
+    """
+    out = Path(out_dir)
+    if not (out / ABLATION_FILE).is_file():
+        return
+    new: dict[str, Any] = {"scenario_name": scenario_name, "source": source, "particles": int(particles),
+                           "sets": list(parse_sets(sets))}
+    if steps is not None:
+        new["steps"] = int(steps)
+    _check_compatible(out, read_ablation(out), new)
+
+
+def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Run ``fn(first, out_dir, ...)`` holding the writer lock of ``out_dir`` (one writer per directory)."""
+
+    @functools.wraps(fn)
+    def wrapper(first: Any, out_dir: str | Path, *args: Any, **kwargs: Any) -> Any:
+        from mmslam.outputs import locked
+
+        with locked(out_dir, "ablation"):
+            return fn(first, out_dir, *args, **kwargs)
+
+    return wrapper
+
+
+@_holding_out_lock
 def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[str] | str = VARIANTS,
                  mc: int = 10, particles: int = 300, steps: int | None = None,
                  executor: str = "local", scheduler: str | None = None, workers: int | None = None,
@@ -536,7 +619,10 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     out = Path(out_dir)
     info = _cache_info(Path(cache_dir))
     check_overrides(info, sets, arms)
+    old = read_ablation(out) if (out / ABLATION_FILE).is_file() else None
     n_steps = info["cache_steps"] if steps is None else int(steps)
+    if steps is None and old is not None and 0 < int(old.get("steps") or 0) <= n_steps:
+        n_steps = int(old["steps"])  # resume what was asked, even if the cache has grown since
     if n_steps > info["cache_steps"]:
         raise ConfigError(f"--steps {n_steps}: the cache {info['cache_dir']} holds only "
                           f"{info['cache_steps']} steps; trace more steps first")
@@ -547,9 +633,9 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
                                                   info["source"], out, steps, seed0=seed0, sets=sets,
                                                   grid=grid)}
-    if (out / ABLATION_FILE).is_file():
-        _check_compatible(out, read_ablation(out), spec)
-    out.mkdir(parents=True, exist_ok=True)
+    if old is not None:
+        _check_compatible(out, old, spec)
+    start_ablation_dir(out, force=True)
     (out / JOBS_DIR).mkdir(exist_ok=True)
     _write_json(out / ABLATION_FILE, spec)
 
@@ -591,16 +677,31 @@ def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles
                        console=Console(stderr=True))
         task = bar.add_task("jobs", total=n_total, completed=n_done, last=pool.describe)
         bar.start()
+    def save(fut: Any, job: Job) -> None:
+        result = fut.result()
+        result.meta.setdefault("variant", job.variant)
+        result.meta.setdefault("seed", job.seed)
+        result.save(job_dir(out, job))
+        ran.append(job)
+
     try:
         for fut in pool.as_completed(list(futs)):
             job = futs[fut]
-            result = fut.result()
-            result.meta.setdefault("variant", job.variant)
-            result.meta.setdefault("seed", job.seed)
-            result.save(job_dir(out, job))
-            ran.append(job)
+            save(fut, job)
             if bar is not None:
                 bar.update(task, advance=1, last=f"{job.name} done")
+    except (KeyboardInterrupt, Interrupted):
+        pool.cancel(list(futs))
+        for fut, job in futs.items():  # finished but not yet collected: keep them
+            if job not in ran and fut.done() and not fut.cancelled() and fut.exception() is None:
+                save(fut, job)
+        if bar is not None:
+            bar.stop()
+            bar = None
+        left = len(pending) - len(ran)
+        raise Interrupted(f"{n_done + len(ran)} of {n_total} jobs are kept in {out / JOBS_DIR} "
+                          f"({len(ran)} finished in this run); {left} unfinished jobs were cancelled; re-run "
+                          "the same command to resume") from None
     except BaseException:
         pool.cancel(list(futs))
         raise

@@ -11,6 +11,7 @@ from typing import Optional
 import typer
 
 from mmslam.errors import ConfigError
+from mmslam.limits import (MAX_MC, MAX_PARTICLES, MAX_SAMPLES, MAX_SEED, MAX_STEPS, MAX_WORKERS, check_int, span)
 
 SOURCES = ("sionna", "analytic")
 
@@ -39,11 +40,14 @@ def register(app: typer.Typer) -> None:
     @app.command("demo")
     def demo_cmd(
         source: str = typer.Option("sionna", "--source", help="Path source: sionna (ray traced) or analytic."),
-        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)."),
-        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
-        out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory (cache, jobs, report)."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
-        quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
+        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)." + span(1, MAX_MC)),
+        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter." + span(1, MAX_PARTICLES)),
+        out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory (cache, jobs, report); an "
+                                 "existing one must be empty or a previous demo / ablation."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)." + span(1, MAX_WORKERS)),
+        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
+                                   "previous ablation (nothing in it is deleted)."),
+        quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bars."),
     ) -> None:
         """The main job: paper preset, baseline / cm1 / proposed x MC runs, summary and HTML report."""
         from mmslam.pipelines.ablate import check_run_args
@@ -51,7 +55,8 @@ def register(app: typer.Typer) -> None:
 
         _check_source(source)
         check_run_args(mc, particles, None, "local", None, workers)
-        res = run_demo(source=source, mc=mc, particles=particles, out=out, workers=workers, progress=not quiet)
+        res = run_demo(source=source, mc=mc, particles=particles, out=out, workers=workers, progress=not quiet,
+                       force=force)
         run = res.ablation
         _print_summary(run.summary, f"paper ({source}), {mc} runs, P = {particles}", [
             f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); ablation wall time "
@@ -64,48 +69,61 @@ def register(app: typer.Typer) -> None:
         variants: str = typer.Option("odometry,baseline,cm1,proposed", "--variants",
                                      help="Comma-separated filter variants (baseline, cm1, proposed) and the "
                                           "reference odometry (dead reckoning, empty maps)."),
-        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)."),
-        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter."),
+        mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)." + span(1, MAX_MC)),
+        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter." + span(1, MAX_PARTICLES)),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
-        out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary)."),
-        steps: Optional[int] = typer.Option(None, "--steps", help="Time steps (default: the scenario's)."),
+        out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary); an existing one "
+                                 "must be empty or a previous ablation. One writer at a time (lock file)."),
+        steps: Optional[int] = typer.Option(None, "--steps", help="Time steps (default: the scenario's)." + span(1, MAX_STEPS)),
         executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
         scheduler: Optional[str] = typer.Option(None, "--scheduler",
                                                 help="Dask scheduler address, e.g. tcp://host:8786 "
                                                      "(default: start a local cluster)."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)."),
-        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path (1..3)."),
-        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source."),
-        report: bool = typer.Option(False, "--report", help="Also write figures and the HTML report."),
-        quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
-        seed0: int = typer.Option(0, "--seed0", help="First seed: runs use seeds seed0 .. seed0+mc-1."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)." + span(1, MAX_WORKERS)),
+        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path." + span(1, 3)),
+        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source." + span(1, MAX_SAMPLES)),
+        report: bool = typer.Option(False, "--report/--no-report", help="Also write figures and the HTML report."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
+                                   "previous ablation (nothing in it is deleted)."),
+        quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bars."),
+        seed0: int = typer.Option(0, "--seed0", help="First seed: runs use seeds seed0 .. seed0+mc-1." + span(0, MAX_SEED)),
         sets: list[str] = typer.Option([], "--set", help="section.key=value parameter override for every "
                                        "run (repeatable), e.g. --set fusion.vs_reduction=gate; see docs/scenario.md."),
         grid: list[str] = typer.Option([], "--grid", help="section.key=v1,v2: run every variant once per value "
                                        "(repeatable: all combinations), e.g. --grid filter.vs_dither_scope=newborn,all."),
     ) -> None:
         """Run the (variant x grid arm x seed) jobs; finished jobs are kept and skipped on re-runs."""
-        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_grid, parse_sets,
-                                             parse_variants, prepare_cache, run_ablation)
+        from mmslam.outputs import locked
+        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_grid,
+                                             parse_sets, parse_variants, precheck_ablation, prepare_cache,
+                                             run_ablation, start_ablation_dir)
+        from mmslam.scenes.scenario import resolve_scenario
 
         vs = parse_variants(variants)
         _check_source(source)
         check_run_args(mc, particles, steps, executor, scheduler, workers, seed0)
+        if not 1 <= max_depth <= 3:
+            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+        check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
         sets_c, _ = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
-        cache = prepare_cache(scenario, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
-                              samples=samples)
-        cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
-                              sets=sets_c, grid=grid)
-        run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
-                           scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
-                           seed0=seed0, sets=sets_c, grid=grid)
-        extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
-                 f"{run.wall_time_s:.1f} s",
-                 f"summary: {Path(out) / 'summary.parquet'}"]
-        if report:
-            from mmslam.pipelines.report import write_report
+        scn = resolve_scenario(scenario)
+        with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
+            precheck_ablation(out, scn.name, source, steps, particles, sets_c)
+            start_ablation_dir(out, force)
+            cache = prepare_cache(scn, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
+                                  samples=samples)
+            cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
+                                  sets=sets_c, grid=grid)
+            run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
+                               scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
+                               seed0=seed0, sets=sets_c, grid=grid)
+            extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
+                     f"{run.wall_time_s:.1f} s",
+                     f"summary: {Path(out) / 'summary.parquet'}"]
+            if report:
+                from mmslam.pipelines.report import write_report
 
-            extra.append(f"report: {write_report(out)}")
+                extra.append(f"report: {write_report(out)}")
         _print_summary(run.summary, f"{scenario} ({source}), {mc} runs, P = {particles}", extra)
 
     @app.command("report")

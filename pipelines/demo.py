@@ -34,7 +34,8 @@ def demo_command(source: str, mc: int, particles: int, out: str | Path) -> str:
 
 
 def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: str | Path = "out/demo",
-             executor: str = "local", workers: int | None = None, progress: bool = True) -> DemoResult:
+             executor: str = "local", workers: int | None = None, progress: bool = True,
+             force: bool = False) -> DemoResult:
     """Trace (or reuse) the ``paper`` preset, run odometry and the three variants ``mc`` times, write the report.
 
     Args:
@@ -44,12 +45,19 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: st
         out: output directory (cache, jobs, summary, figures, report).
         executor, workers: as in :func:`mmslam.pipelines.ablate.run_ablation`.
         progress: progress bars on stderr.
+        force: write into ``out`` even if it is not a previous ablation (nothing is deleted).
     """
     from mmslam.pipelines.report import write_report
 
     check_run_args(mc, particles, None, executor, None, workers)
+    from mmslam.outputs import locked
+    from mmslam.pipelines.ablate import precheck_ablation, start_ablation_dir
+
     out = Path(out)
-    cache = prepare_cache(DEMO_SCENARIO, source, out, progress=progress)
-    run = run_ablation(cache, out, VARIANTS, mc=mc, particles=particles, executor=executor, workers=workers,
-                       progress=progress, command=demo_command(source, mc, particles, out))
-    return DemoResult(out, cache, run, write_report(out))
+    with locked(out, "ablation"):
+        precheck_ablation(out, DEMO_SCENARIO, source, None, particles, ())
+        start_ablation_dir(out, force)  # checked before the trace
+        cache = prepare_cache(DEMO_SCENARIO, source, out, progress=progress)
+        run = run_ablation(cache, out, VARIANTS, mc=mc, particles=particles, executor=executor, workers=workers,
+                           progress=progress, command=demo_command(source, mc, particles, out))
+        return DemoResult(out, cache, run, write_report(out))

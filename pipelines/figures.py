@@ -1,7 +1,7 @@
 """Figures of an ablation (matplotlib, Agg, no pyplot state): one function per figure.
 
 Each function returns a :class:`matplotlib.figure.Figure` so callers (tests, notebooks) can
-inspect the plotted lines; :func:`save_figure` writes a PNG atomically. Data lines carry the
+inspect the plotted lines; :func:`save_figure` writes it atomically (PNG, PDF or SVG by suffix). Data lines carry the
 variant name as their label; the fusion-start marker is a vertical line labelled
 ``"fusion start"`` with ``gid == "fusion_start"``.
 
@@ -16,7 +16,6 @@ marker, so the plots read in greyscale too.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -208,10 +207,9 @@ def fig_map(result: Any, scenario: Any, title: str | None = None) -> Any:
 
 
 def save_figure(fig: Any, path: str | Path, dpi: int = 120) -> Path:
-    """Write ``fig`` as PNG to ``path`` atomically (temp file + rename)."""
+    """Write ``fig`` atomically in the format of ``path``'s suffix (png, pdf, svg)."""
+    from mmslam.outputs import save_figure as _save
+
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=dpi, format="png")
-    os.replace(tmp, p)
-    return p
+    return _save(fig, p, dpi=dpi)

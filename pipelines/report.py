@@ -20,7 +20,6 @@ import html
 import importlib.metadata
 import json
 import math
-import os
 import platform
 from pathlib import Path
 from typing import Any
@@ -269,15 +268,15 @@ def write_report(out_dir: str | Path) -> Path:
     Raises:
         CacheError: ``out_dir`` is missing, holds no ablation or no finished job.
     """
+    from mmslam.outputs import atomic_write_bytes, locked
+
     out = Path(out_dir)
-    summary = aggregate(out)
-    figures = make_figures(out, summary)
-    text = render_html(out, summary, figures)
-    path = out / REPORT_FILE
-    tmp = path.with_name(f".{REPORT_FILE}.{os.getpid()}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    read_ablation(out)  # a one-line error, before the lock file is made next to a wrong path
+    with locked(out, "mmslam command"):
+        summary = aggregate(out)
+        figures = make_figures(out, summary)
+        text = render_html(out, summary, figures)
+        return atomic_write_bytes(out / REPORT_FILE, text.encode("utf-8"), fsync=False)
 
 
 _CONSOLE_HEADERS = {"gospa_VA": "VA", "gospa_SP": "SP", "gospa_VS": "VS", "pos_rmse": "pos RMSE",

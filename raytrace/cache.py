@@ -29,8 +29,6 @@ import dataclasses
 import hashlib
 import io
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +38,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from mmslam.errors import CacheError, MmslamError
+from mmslam.outputs import atomic_write_bytes
 from mmslam.raytrace.schema import (
     INTERACTION_LABELS, PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, TABLE_SPECS, TX_LABELS, TYPE_LABELS,
     VEHICLE_COLUMNS, Col, sort_paths, sort_rays,
@@ -88,24 +87,6 @@ def sha256_file(path: Path) -> str:
 
 
 # ====================================================================== atomic writes
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same directory + fsync + ``os.replace``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 def write_manifest(cache_dir: Path, manifest: dict) -> None:
     """Atomically (re)write ``manifest.json``."""
     atomic_write_bytes(Path(cache_dir) / MANIFEST,
@@ -249,18 +230,37 @@ class PathCache:
         return self._rays
 
 
-def find_cache_dir(path: str | Path) -> Path:
-    """``path`` itself if it holds a manifest, else its only sub-directory that does."""
+def list_caches(root: str | Path) -> list[Path]:
+    """The cache directories directly under ``root`` (sorted; ``[]`` if none)."""
+    p = Path(root)
+    return sorted(d for d in p.iterdir() if (d / MANIFEST).is_file()) if p.is_dir() else []
+
+
+def _cache_source(d: Path) -> str | None:
+    try:
+        return str(json.loads((d / MANIFEST).read_text()).get("source"))
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def find_cache_dir(path: str | Path, source: str | None = None) -> Path:
+    """``path`` itself if it holds a manifest, else its only sub-directory that does.
+
+    With ``source`` (``sionna`` / ``analytic``), the only sub-directory traced by that source.
+    """
     p = Path(path)
     if not p.is_dir():
         raise CacheError(f"{p}: no such cache directory; run `mmslam trace <scenario> --out {p}` first")
     if (p / MANIFEST).is_file():
         return p
-    cands = sorted(d for d in p.iterdir() if (d / MANIFEST).is_file())
+    cands = list_caches(p)
+    if source is not None:
+        cands = [c for c in cands if _cache_source(c) == source]
     if len(cands) == 1:
         return cands[0]
     if not cands:
-        raise CacheError(f"{p}: no {MANIFEST} here or in its sub-directories; run `mmslam trace` to create a cache")
+        what = f"a cache traced by '{source}'" if source is not None else MANIFEST
+        raise CacheError(f"{p}: no {what} here or in its sub-directories; run `mmslam trace` to create a cache")
     raise CacheError(f"{p}: holds {len(cands)} caches ({', '.join(c.name for c in cands)}); give one of them")
 
 

@@ -1,7 +1,6 @@
 """CLI commands of this subpackage: ``mmslam trace``, ``mmslam paths`` and ``mmslam export``."""
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Optional
 
@@ -9,6 +8,7 @@ import numpy as np
 import typer
 
 from mmslam.errors import ConfigError
+from mmslam.limits import MAX_CHUNK_STEPS, MAX_SAMPLES, MAX_SEED, MAX_STEPS, check_int, span
 
 _TYPE_LABELS = ("BS", "VA", "SP", "VS", "OTHER")
 _TYPE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:gray")
@@ -21,13 +21,15 @@ def path_counts(paths: dict[str, np.ndarray], steps: int, n_rx: int) -> np.ndarr
 
 
 def plot_toa(cache, out: Path) -> None:
-    """PNG of TOA (m, no clock bias) vs step, one colour per landmark type, one marker per receiver."""
+    """Figure of TOA (m, no clock bias) vs step, one colour per landmark type, one marker per receiver.
+
+    The format follows ``out``'s suffix (png, pdf, svg)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mmslam.raytrace.cache import atomic_write_bytes
+    from mmslam.outputs import save_figure
 
     p = cache.paths
     markers = "o^sDvP*X"
@@ -43,10 +45,10 @@ def plot_toa(cache, out: Path) -> None:
     ax.set_title(f"{cache.manifest['scenario']} - {cache.manifest['source']} paths")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    atomic_write_bytes(out, buf.getvalue())
+    try:
+        save_figure(fig, out, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
 
 
 def register(app: typer.Typer) -> None:
@@ -56,39 +58,40 @@ def register(app: typer.Typer) -> None:
     def trace_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
-        out: Path = typer.Option(Path("cache"), "--out", help="Cache root directory."),
-        steps: Optional[int] = typer.Option(None, "--steps", help="Steps to trace (default: the scenario's)."),
-        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path (1..3)."),
-        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source."),
-        seed: int = typer.Option(0, "--seed", help="Sionna ray-sampling seed."),
-        chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk."),
-        force: bool = typer.Option(False, "--force", help="Delete an existing cache and trace anew."),
-        quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+        out: Path = typer.Option(Path("out/cache"), "--out", help="Cache root directory (the cache goes to "
+                                 "OUT/<scenario>-<source>-<hash>); an existing one must be empty or hold caches."),
+        steps: Optional[int] = typer.Option(None, "--steps", help="Steps to trace (default: the scenario's)." + span(1, MAX_STEPS)),
+        max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path." + span(1, 3)),
+        samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source." + span(1, MAX_SAMPLES)),
+        seed: int = typer.Option(0, "--seed", help="Sionna ray-sampling seed." + span(0, MAX_SEED)),
+        chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk." + span(1, MAX_CHUNK_STEPS)),
+        force: bool = typer.Option(False, "--force/--no-force", help="Delete an existing cache of this "
+                                   "configuration and trace anew; also allow an --out that is not a cache root."),
+        quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bar."),
         executor: str = typer.Option("local", "--executor", help="local, or dask: chunks of steps traced on a "
                                      "Dask cluster (a LocalCluster of --workers processes, or --scheduler)."),
         workers: Optional[int] = typer.Option(None, "--workers", help="Dask LocalCluster workers (default: CPU cores)."),
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler."),
     ) -> None:
         """Trace a scenario into a resumable path cache; prints the cache directory."""
-        from mmslam.raytrace.trace import SOURCES, DaskExecutor, make_source, trace_scenario
+        from mmslam.raytrace.trace import SOURCES, DaskExecutor, check_cache_root, make_source, trace_scenario
         from mmslam.scenes.scenario import resolve_scenario
 
         if source not in SOURCES:
             raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
         if not 1 <= max_depth <= 3:
             raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
-        if steps is not None and steps < 1:
-            raise ConfigError(f"--steps {steps}: expected a positive number of steps")
-        if samples < 1:
-            raise ConfigError(f"--samples {samples}: expected a positive number of rays per source")
-        if chunk_steps < 1:
-            raise ConfigError(f"--chunk-steps {chunk_steps}: expected >= 1")
+        check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
+        check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
+        check_int("--seed", seed, 0, MAX_SEED, "a seed")
+        check_int("--chunk-steps", chunk_steps, 1, MAX_CHUNK_STEPS)
         if executor not in ("local", "dask"):
             raise ConfigError(f"--executor '{executor}': expected local or dask")
         if executor != "dask" and (workers is not None or scheduler):
             raise ConfigError("--workers / --scheduler are only used with --executor dask")
         if workers is not None and workers < 1:
             raise ConfigError(f"--workers {workers}: expected >= 1")
+        check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
         src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
         ex = None
@@ -101,16 +104,38 @@ def register(app: typer.Typer) -> None:
 
     @app.command("paths")
     def paths_cmd(
-        cache_dir: Path = typer.Argument(..., help="A cache directory (or a root holding one cache)."),
-        plot: Optional[Path] = typer.Option(None, "--plot", help="Write a PNG of TOA vs step to this file."),
+        cache_dir: Path = typer.Argument(..., help="A cache directory, or a root holding caches (several: "
+                                         "they are listed; pick one with --source)."),
+        source: Optional[str] = typer.Option(None, "--source", help="In a root with several caches: the one "
+                                             "traced by this source (sionna or analytic)."),
+        plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of TOA vs step to this file; "
+                                            "the format follows the suffix (.png, .pdf, .svg)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --plot even if it is not a "
+                                   "figure mmslam wrote."),
     ) -> None:
         """Print the number of paths per type, step and receiver of a path cache."""
         from rich.console import Console
         from rich.table import Table
 
-        from mmslam.raytrace.cache import load_cache
+        from mmslam.outputs import check_figure_target
+        from mmslam.raytrace.cache import MANIFEST, find_cache_dir, list_caches, load_cache
+        from mmslam.raytrace.trace import SOURCES
 
-        c = load_cache(cache_dir)
+        if source is not None and source not in SOURCES:
+            raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
+        if plot is not None:
+            check_figure_target(plot, force, option="--plot")  # before the cache is read
+        many = list_caches(cache_dir) if not (Path(cache_dir) / MANIFEST).is_file() else []
+        if source is None and len(many) > 1:
+            if plot is not None:
+                raise ConfigError(f"{cache_dir}: holds {len(many)} caches ({', '.join(d.name for d in many)}); "
+                                  "give one of them, or --source sionna|analytic")
+            for d in many:
+                c = load_cache(d)
+                typer.echo(f"{d}: source {c.manifest['source']}, {c.steps} steps, {len(c.paths['rx'])} paths")
+            typer.echo(f"{len(many)} caches; give one of them, or --source sionna|analytic, for the table")
+            return
+        c = load_cache(find_cache_dir(cache_dir, source))
         names = c.vehicle_names
         counts = path_counts(c.paths, c.steps, len(names))
         n_rays = sum(int(ch["rows"]["rays"]) for ch in c.manifest["chunks"])

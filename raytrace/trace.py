@@ -12,7 +12,6 @@ the lock of a killed writer is taken over.
 from __future__ import annotations
 
 import importlib.metadata
-import os
 import shutil
 import sys
 import threading
@@ -22,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from mmslam.errors import BackendError, CacheError, ConfigError
+from mmslam.errors import BackendError, CacheError, ConfigError, Interrupted
+from mmslam.outputs import acquire_lock, lock_path, release_lock  # noqa: F401  (lock_path: public)
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
     FORCE_HINT, MANIFEST, TABLES, cache_dir_for, check_paths_finite, checked_chunks, config_hash, file_metadata,
@@ -129,6 +129,29 @@ def _check_step_output(tables: dict[str, dict[str, np.ndarray]], step: int, sour
     return out
 
 
+CACHE_ROOT_KIND = "cache"
+"""Output-marker kind of a cache root (a folder of caches, :mod:`mmslam.outputs`)."""
+
+
+def _holds_only_caches(root: Path) -> bool:
+    """A cache root written before output markers existed: only caches, locks and temp files."""
+    return all((p / MANIFEST).is_file() or p.name.endswith((".lock", ".tmp")) for p in root.iterdir())
+
+
+def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
+    """Raise a one-line error unless ``out_root`` may hold caches (missing, empty, or a cache root).
+
+    ``force`` also allows another directory: a cache is only ever added to it as a sub-directory.
+    """
+    from mmslam.outputs import check_target
+
+    p = Path(out_root)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"--out {p}: is a file, not a folder; choose a writable path for the cache root")
+    return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches,
+                        force_does="add the cache to it (nothing in it is deleted)")
+
+
 def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int | None = None,
                    chunk_steps: int = 5, force: bool = False, progress: bool = True,
                    executor: "DaskExecutor | None" = None) -> Path:
@@ -140,7 +163,9 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         out_root: root directory; the cache goes to :func:`cache_dir_for` ``(out_root, scn, source)``.
         steps: number of steps (default ``scn.steps``).
         chunk_steps: steps per Parquet chunk (chunks are aligned to multiples of it).
-        force: delete an existing cache for this config first.
+        force: delete an existing cache for this config first; also allow an ``out_root`` that is
+            not a cache root (a user's folder: the cache is added as a sub-directory, nothing else
+            is touched). Without it such an ``out_root`` is refused before any work.
         progress: show a progress bar (steps, rays/s, ETA) on stderr.
         executor: trace the chunks on a Dask cluster (:class:`DaskExecutor`); ``None`` traces them here.
             Either way this process alone writes the cache, chunk by chunk in step order, so the
@@ -156,10 +181,15 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         raise ConfigError(f"chunk_steps {chunk_steps}: expected >= 1")
     from mmslam.scenes.trajectory import check_bs_clearance
 
+    from mmslam.outputs import output_kind, write_marker
+
     check_bs_clearance(scn, true_trajectories(scn, n_steps))  # before anything is written
+    check_cache_root(out_root, force)
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)
-    lock = _acquire_lock(cache_dir)
+    if output_kind(cache_dir.parent) != CACHE_ROOT_KIND:
+        write_marker(cache_dir.parent, CACHE_ROOT_KIND)
+    lock = acquire_lock(cache_dir, "trace", CacheError)
     try:
         if force and cache_dir.exists():
             shutil.rmtree(cache_dir)
@@ -167,52 +197,7 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         remove_temp_files(cache_dir)
         return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor)
     finally:
-        _release_lock(lock)
-
-
-def lock_path(cache_dir: Path) -> Path:
-    """The writer lock of a cache: ``.<dirname>.lock`` next to the cache directory."""
-    return cache_dir.parent / f".{cache_dir.name}.lock"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _acquire_lock(cache_dir: Path) -> Path:
-    """Create the writer lock (holding our pid); a lock of a dead process is taken over."""
-    lock = lock_path(cache_dir)
-    for _ in range(2):
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            try:
-                pid = int(lock.read_text().strip() or "0")
-            except (OSError, ValueError):
-                pid = 0
-            if pid > 0 and _pid_alive(pid):
-                raise CacheError(f"{cache_dir}: another trace (pid {pid}) is writing this cache; wait for it, "
-                                 f"or delete {lock} if that process is gone") from None
-            lock.unlink(missing_ok=True)  # stale: its writer was killed
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(f"{os.getpid()}\n")
-        return lock
-    raise CacheError(f"{lock}: could not take the writer lock; delete it and re-run")
-
-
-def _release_lock(lock: Path) -> None:
-    try:
-        if lock.read_text().strip() == str(os.getpid()):
-            lock.unlink()
-    except FileNotFoundError:
-        pass
+        release_lock(lock)
 
 
 def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk_steps: int,
@@ -282,6 +267,9 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
             m["chunks"].append(entry)
             m["steps_completed"] = stop
             write_manifest(cache_dir, m)
+    except (KeyboardInterrupt, Interrupted):
+        raise Interrupted(f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir} (the chunk in "
+                          "progress was dropped); re-run the same command to resume") from None
     finally:
         if bar is not None:
             bar.stop()

@@ -9,7 +9,8 @@ import typer
 
 def register(app: typer.Typer) -> None:
     """Add the ``scene`` command group to ``app``."""
-    scene = typer.Typer(no_args_is_help=True, help="Scenario presets, scene meshes (PLY + Mitsuba XML), plan plots.")
+    scene = typer.Typer(no_args_is_help=True, rich_markup_mode=None,
+                        help="Scenario presets, scene meshes (PLY + Mitsuba XML), plan plots.")
     app.add_typer(scene, name="scene")
 
     @scene.command("list")
@@ -27,26 +28,39 @@ def register(app: typer.Typer) -> None:
     @scene.command("build")
     def build_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
-        out: Path = typer.Option(..., "--out", help="Output folder for meshes/*.ply and <scenario>.xml."),
+        out: Path = typer.Option(..., "--out", help="Output folder for meshes/*.ply and <scenario>.xml; an "
+                                 "existing one must be empty or a previous scene build."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
+                                   "previous scene build (files of the same names are replaced)."),
     ) -> None:
         """Write one PLY per object and a Mitsuba XML that Sionna RT loads (merge_shapes=False)."""
-        from mmslam.scenes.meshes import build_scene
+        from mmslam.outputs import check_target, locked, output_kind, write_marker
+        from mmslam.scenes.meshes import SCENE_KIND, build_scene
         from mmslam.scenes.scenario import resolve_scenario
 
         scn = resolve_scenario(scenario)
-        xml = build_scene(scn, out)
+        with locked(out, "scene build"):
+            check_target(out, SCENE_KIND, force, force_does="write into it")  # before the meshes are made
+            xml = build_scene(scn, out)
+            if output_kind(out) != SCENE_KIND:
+                write_marker(out, SCENE_KIND)
         n = len(scn.buildings) + len(scn.scatterers) + len(scn.vehicles) + (scn.ground is not None)
         typer.echo(f"wrote {xml} ({n} scenario objects, meshes in {xml.parent / 'meshes'})")
 
     @scene.command("show")
     def show_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
-        out: Path = typer.Option(Path("plan.png"), "--out", help="PNG file for the top-down plan."),
+        out: Path = typer.Option(Path("plan.png"), "--out", help="Figure file for the top-down plan; the "
+                                 "format follows the suffix (.png, .pdf, .svg)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
+                                   "mmslam wrote."),
     ) -> None:
         """Plot a top-down plan: BS, buildings, SPs, VAs, trajectories and FOV circles."""
+        from mmslam.outputs import check_figure_target
         from mmslam.scenes.meshes import plot_plan
         from mmslam.scenes.scenario import resolve_scenario
 
+        check_figure_target(out, force)
         scn = resolve_scenario(scenario)
         typer.echo(f"wrote {plot_plan(scn, out)}")
 

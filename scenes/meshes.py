@@ -29,7 +29,6 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
-import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -43,18 +42,11 @@ MATERIAL_THICKNESS_M = 0.1
 """Thickness given to every radio material (m); irrelevant with refraction off."""
 
 
-# ====================================================================== atomic writes
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    from mmslam.outputs import atomic_write_bytes
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, data, fsync=False)
 
 
 # ====================================================================== meshes
@@ -213,6 +205,10 @@ def scene_objects(scn: Scenario) -> dict[str, tuple[trimesh.Trimesh, str, float]
     return out
 
 
+SCENE_KIND = "scene"
+"""Output-marker kind of a ``mmslam scene build`` folder (:mod:`mmslam.outputs`)."""
+
+
 def build_scene(scn: Scenario, out_dir: str | Path) -> Path:
     """Write ``<out_dir>/meshes/<name>.ply`` per object and ``<out_dir>/<scenario>.xml``.
 
@@ -304,7 +300,7 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
     Trajectories start at the open circle; the arrow head marks the last step's direction.
 
     FOV circles (radius ``sensor.fov_range``) are drawn around ``fov_points`` evenly spaced
-    trajectory points of each vehicle. Written atomically as PNG; returns the path.
+    trajectory points of each vehicle. Written atomically in the format of the file's suffix (png, pdf, svg); returns the path.
     """
     import matplotlib
 
@@ -353,15 +349,12 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
     ax.autoscale_view()
     ax.grid(True, lw=0.3)
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    from mmslam.outputs import save_figure
+
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".png", dir=out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight")
-        os.replace(tmp, out)
+        save_figure(fig, out, dpi=120, bbox_inches="tight")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out

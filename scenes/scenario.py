@@ -369,9 +369,10 @@ def _num(src: str, key: str, v: Any, *, lo: float | None = None, hi: float | Non
         raise _err(src, key, f"expected an integer, got {v!r}")
     if not math.isfinite(float(v)):
         raise _err(src, key, f"expected a finite number, got {v!r}")
-    if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
-        rng = ParamSpec("", lo=lo, hi=hi, lo_open=lo_open).bounds_text()
-        raise _err(src, key, f"expected a value in {rng}, got {v!r}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise _err(src, key, f"expected a value {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise _err(src, key, f"expected a value <= {hi}, got {v!r}")
     return int(v) if integer else float(v)
 
 

@@ -7,6 +7,7 @@ from typing import Optional
 import typer
 
 from mmslam.errors import MmslamError
+from mmslam.limits import MAX_PARTICLES, MAX_SEED, MAX_STEPS, check_int, span
 
 
 def summarize(res) -> list[tuple[str, str, float]]:
@@ -38,12 +39,13 @@ def register(app: typer.Typer) -> None:
         cache: Path = typer.Argument(..., help="Path cache directory (from `mmslam trace`)."),
         variant: str = typer.Option("baseline", help="Filter variant: baseline | cm1 | proposed, or the "
                                     "reference odometry (dead reckoning, no map)."),
-        particles: int = typer.Option(300, help="Particles per vehicle."),
-        seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)."),
+        particles: int = typer.Option(300, help="Particles per vehicle." + span(1, MAX_PARTICLES)),
+        seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),
         out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
                                  "directory is replaced only if it is empty or a previous result."),
-        force: bool = typer.Option(False, "--force", help="Replace --out even if it is not a previous result."),
-        steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a previous "
+                                   "result (never the input cache)."),
+        steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
     ) -> None:
         """Run cooperative MM-PHD-SLAM on a path cache and write the Result (vehicles, metrics, landmarks)."""
         import numpy as np
@@ -54,16 +56,18 @@ def register(app: typer.Typer) -> None:
 
         if variant not in VARIANTS + REFERENCES:
             raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(VARIANTS + REFERENCES)}")
-        if particles < 1:
-            raise MmslamError(f"--particles {particles}: expected at least 1")
-        if steps is not None and steps < 1:
-            raise MmslamError(f"--steps {steps}: expected a positive number of steps")
+        check_int("--particles", particles, 1, MAX_PARTICLES, "a number of particles")
+        check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
+        check_int("--seed", seed, 0, MAX_SEED, "a seed")
         from mmslam.outputs import check_target
         from mmslam.slam.result import RESULT_KIND
 
-        check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
-        res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
-        path = res.save(out, force=force)
+        from mmslam.outputs import locked
+
+        with locked(out, "slam"):
+            check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
+            res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
+            path = res.save(out, force=force)
         con = Console()
         tab = Table(title=f"mmslam slam: {variant}, P={particles}, seed={seed}, "
                           f"{res.meta['steps']} steps (GOSPA means from step {res.meta.get('fusion_start', 0)})")

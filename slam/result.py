@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import CacheError
-from mmslam.outputs import check_target, replace_dir, write_marker
+from mmslam.outputs import check_target, make_temp_dir, replace_dir, write_marker
 
 TABLES = ("vehicles", "metrics", "landmarks")
 RESULT_KIND = "result"
@@ -64,7 +63,7 @@ class Result:
         out = Path(out_dir)
         check_target(out, RESULT_KIND, force)
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        tmp = make_temp_dir(out.parent, out.name)
         try:
             for name in TABLES:
                 cols = getattr(self, name)
