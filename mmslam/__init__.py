@@ -10,3 +10,4 @@ Subpackages (folders at the repository top level):
 Importing :mod:`mmslam.slam` never imports Sionna, Mitsuba or Dr.Jit.
 """
 __version__ = "0.1.0"
+"""The package version: the only place it is written (pyproject.toml reads it, ``mmslam --version`` prints it)."""

@@ -324,9 +324,10 @@ def _local_pool(workers: int | None, n_jobs: int) -> Iterator[_Pool]:
             yield _Pool(lambda fn, *a: ex.submit(fn, *a), lambda fs: cf.as_completed(fs),
                         lambda fs: [f.cancel() for f in fs], n, f"local pool, {n} processes")
         except BaseException:
+            procs = list((getattr(ex, "_processes", None) or {}).values())  # shutdown() forgets them
             ex.shutdown(wait=False, cancel_futures=True)
-            for proc in list((getattr(ex, "_processes", None) or {}).values()):
-                proc.terminate()  # in-flight jobs: cancelled now, re-run on resume
+            for proc in procs:
+                proc.terminate()  # in-flight jobs: cancelled now (they re-run on resume), not awaited
             raise
         else:
             ex.shutdown(wait=True)

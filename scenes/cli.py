@@ -25,6 +25,13 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"{name}: {len(s.vehicles)} vehicles, {len(s.buildings)} buildings, "
                        f"{len(s.scatterers)} scatterers{ground}, {s.steps} steps of {s.dt:g} s{extra}")
 
+    @scene.command("reference")
+    def reference_cmd() -> None:
+        """Print the scenario-file reference (Markdown): every key, default, unit, bounds (docs/scenario.md)."""
+        from mmslam.scenes.scenario import scenario_reference
+
+        typer.echo(scenario_reference(), nl=False)
+
     @scene.command("build")
     def build_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),

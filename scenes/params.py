@@ -39,11 +39,16 @@ class ParamSpec:
     def bounds_text(self) -> str:
         if self.choices is not None:
             return " | ".join(self.choices)
-        lo = "" if self.lo is None else f"{'(' if self.lo_open else '['}{self.lo:g}"
-        hi = "" if self.hi is None else f"{self.hi:g}{')' if self.hi_open else ']'}"
+        lo = "" if self.lo is None else f"{'(' if self.lo_open else '['}{_num_text(self.lo)}"
+        hi = "" if self.hi is None else f"{_num_text(self.hi)}{')' if self.hi_open else ']'}"
         if not lo and not hi:
             return "any"
         return f"{lo or '(-inf'}, {hi or 'inf)'}"
+
+
+def _num_text(x: float) -> str:
+    """A bound as text: exact for integers below 1e12 (2**32 - 1, not 4.29497e+09), else ``:g``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e12 and (abs(x) < 1e5 or x % 1000 != 0) else f"{x:g}"
 
 
 def param(default: Any, doc: str, unit: str = "", *, lo: float | None = None, hi: float | None = None,
