@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from mmslam.errors import MmslamError
+from mmslam.errors import Interrupted, MmslamError
 from mmslam.limits import MAX_PARTICLES, MAX_SEED, MAX_STEPS, check_int, span
 
 
@@ -66,7 +66,11 @@ def register(app: typer.Typer) -> None:
 
         with locked(out, "slam"):
             check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
-            res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
+            try:
+                res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
+            except (KeyboardInterrupt, Interrupted):
+                raise Interrupted(f"nothing was written to {out} (a single run does not resume); re-run the same "
+                                  "command") from None
             path = res.save(out, force=force)
         con = Console()
         tab = Table(title=f"mmslam slam: {variant}, P={particles}, seed={seed}, "

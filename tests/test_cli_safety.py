@@ -448,7 +448,7 @@ def test_license_and_readme_promises():
     assert "Apache License" in lic and "Version 2.0, January 2004" in lic and "END OF TERMS AND CONDITIONS" in lic
     assert 'license = { text = "Apache-2.0" }' in (ROOT / "pyproject.toml").read_text()
     readme = (ROOT / "README.md").read_text()
-    assert "mmslam[dask]" in readme
+    assert "'.[dask]'" in readme and "--executor dask" in readme
     for ref in set(re.findall(r"`(docs/[\w./-]+)`", readme)):
         assert (ROOT / ref).is_file(), ref
     for doc in ("docs/cache-schema.md", "docs/equations.md", "docs/scenario.md"):
