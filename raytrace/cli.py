@@ -8,6 +8,11 @@ import numpy as np
 import typer
 
 from mmslam.errors import ConfigError
+
+MAX_SUBCARRIERS = 1 << 20
+MAX_TIME_STEPS = 10_000
+MAX_EXPORT_BYTES = 8 << 30
+"""Largest ``mmslam export`` response (bytes): a typo in --subcarriers must not exhaust memory."""
 from mmslam.limits import MAX_CHUNK_STEPS, MAX_SAMPLES, MAX_SEED, MAX_STEPS, check_int, span
 
 _TYPE_LABELS = ("BS", "VA", "SP", "VS", "OTHER")
@@ -164,13 +169,15 @@ def register(app: typer.Typer) -> None:
         cfr: bool = typer.Option(False, "--cfr", help="Channel frequency response at the subcarriers."),
         bandwidth: float = typer.Option(400e6, "--bandwidth", help="Bandwidth W in Hz."),
         subcarriers: int = typer.Option(1024, "--subcarriers",
-                                        help="Subcarriers (CFR; spacing W / N) or taps l_min..N-1 (CIR)."),
+                                        help="Subcarriers (CFR; spacing W / N) or taps l_min..N-1 (CIR)."
+                                        + span(1, MAX_SUBCARRIERS)),
         l_min: int = typer.Option(0, "--l-min", help="First CIR tap index (negative: sinc leakage before 0)."),
-        time_steps: int = typer.Option(1, "--time-steps", help="Doppler evolution: samples at t = n / W per step."),
+        time_steps: int = typer.Option(1, "--time-steps", help="Doppler evolution: samples at t = n / W per step."
+                                       + span(1, MAX_TIME_STEPS)),
         no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
                                                  help="Keep absolute delays (default: first ray of a link at 0)."),
         out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta)."),
-        force: bool = typer.Option(False, "--force", help="Replace an existing --out file."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace an existing --out file."),
     ) -> None:
         """Export the CIR or CFR of every step and receiver of a cache (from its rays table) to an .npz file."""
         from mmslam.outputs import check_target
@@ -181,8 +188,15 @@ def register(app: typer.Typer) -> None:
             raise ConfigError("mmslam export: give exactly one of --cir or --cfr")
         if out.suffix != ".npz":
             raise ConfigError(f"--out {out}: expected a file name ending in .npz")
+        check_int("--subcarriers", subcarriers, 1, MAX_SUBCARRIERS)
+        check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
         c = load_cache(cache_dir)
         check_target(out, "channel", force, protect=(c.path,))
+        size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
+        if size > MAX_EXPORT_BYTES:
+            raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
+                              f"--time-steps x --subcarriers); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
+                              "--subcarriers or --time-steps")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
                                       n_subcarriers=subcarriers, l_min=l_min, num_time_steps=time_steps,
                                       normalize_delays=not no_normalize_delays)

@@ -451,7 +451,7 @@ def test_license_and_readme_promises():
     assert "'.[dask]'" in readme and "--executor dask" in readme
     for ref in set(re.findall(r"`(docs/[\w./-]+)`", readme)):
         assert (ROOT / ref).is_file(), ref
-    for doc in ("docs/cache-schema.md", "docs/equations.md", "docs/scenario.md"):
+    for doc in ("docs/dataset.md", "docs/equations.md", "docs/scenario.md"):
         assert f"`{doc}`" in readme and (ROOT / doc).is_file(), doc
 
 
@@ -469,12 +469,3 @@ def test_scenario_reference_in_docs_is_up_to_date():
         for f in dataclasses.fields(cls):
             assert f"`{section}.{f.name}`" in text
     assert "| `dt` | 0.5 | s | (0, 3600] |" in text
-
-
-def test_cache_schema_doc_lists_every_column():
-    from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS
-
-    doc = (ROOT / "docs" / "cache-schema.md").read_text()
-    for col, dtype in {**VEHICLE_COLUMNS, **PATH_COLUMNS}.items():
-        assert re.search(rf"`{col}`\s*\|\s*{dtype}", doc), col
-    assert f"schema_version` | {SCHEMA_VERSION}" in doc or f"`schema_version` ({SCHEMA_VERSION})" in doc

@@ -110,9 +110,12 @@ def test_old_schema_cache_is_a_one_line_error(tmp_path, capsys):
 
 
 def _two_ray_scenario():
-    """BS [0, 0, 10], one wall x = 20; a receiver at [5, 0, 10] moving -x: LOS (5 m) + VA (35 m)."""
+    """BS [0, 0, 10], one wall x = 20; a receiver at [5, 0, 10] moving -x: LOS (5 m) + VA (35 m).
+
+    dt = 0.25 s: at step 1 the receiver is 2.5 m from the BS (with 0.5 s it would sit on the BS,
+    a degenerate link that the trace refuses)."""
     return scenario_from_dict({
-        "name": "tworay", "bs": [0.0, 0.0, 10.0], "dt": 0.5, "steps": 2,
+        "name": "tworay", "bs": [0.0, 0.0, 10.0], "dt": 0.25, "steps": 2,
         "buildings": [{"name": "w", "min": [20.0, -5.0, 0.0], "max": [25.0, 5.0, 20.0]}],
         "vehicles": [{"name": "car0", "initial_state": [5.0, 0.0, 10.0, np.pi, 10.0, 0.0, 0.0]}],
         "sensor": {"fov_range": 1.0},
