@@ -13,7 +13,7 @@ from pathlib import Path
 import typer
 
 from mmslam import __version__
-from mmslam.errors import Interrupted, MmslamError
+from mmslam.errors import Interrupted, MmslamError, note_interrupt, was_interrupted
 
 EXIT_CODES = ("Exit codes: 0 success; 2 a user error (one line naming the thing and the fix); "
               "130 interrupted (one line: what was kept, how to resume); 1 a bug (one line with the path "
@@ -69,7 +69,11 @@ def _interrupted(e: BaseException | None = None) -> int:
 
 
 def _raise_interrupted(signum: int, frame: object) -> None:
+    note_interrupt()
     raise Interrupted()
+
+
+_raise_interrupted.mmslam_raises = True  # type: ignore[attr-defined]  (see errors.deferred_sigint)
 
 
 def _install_sigint() -> object:
@@ -94,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     import signal
 
+    note_interrupt(False)
     old = _install_sigint()
     try:
         rc = app(args=argv, standalone_mode=False, prog_name="mmslam")
@@ -120,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {cmd}: {msg} (see '{cmd} --help')", file=sys.stderr)
         return 2
     except Exception as e:  # a bug: one line, the traceback in a log file
+        if was_interrupted(e):  # Ctrl-C re-raised as another type by a library (e.g. Dr.Jit)
+            return _interrupted()
         log = _log_traceback(e)
         print(f"error: internal error ({type(e).__name__}: {' '.join(str(e).split())[:200]}); this is a bug, "
               f"the traceback is in {log}", file=sys.stderr)

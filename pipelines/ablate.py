@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError
+from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError, deferred_sigint, was_interrupted
 from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS, MAX_WORKERS
 
 FILTER_VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
@@ -238,7 +238,8 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
     from mmslam.scenes.scenario import resolve_scenario
 
     scn = resolve_scenario(scenario)
-    src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+    with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
+        src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
     return Path(trace_scenario(scn, src, Path(out_dir) / "cache", steps=steps, progress=progress))
 
 
@@ -691,7 +692,10 @@ def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles
             save(fut, job)
             if bar is not None:
                 bar.update(task, advance=1, last=f"{job.name} done")
-    except (KeyboardInterrupt, Interrupted):
+    except BaseException as e:
+        if not was_interrupted(e):
+            pool.cancel(list(futs))
+            raise
         pool.cancel(list(futs))
         for fut, job in futs.items():  # finished but not yet collected: keep them
             if job not in ran and fut.done() and not fut.cancelled() and fut.exception() is None:
@@ -703,9 +707,6 @@ def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles
         raise Interrupted(f"{n_done + len(ran)} of {n_total} jobs are kept in {out / JOBS_DIR} "
                           f"({len(ran)} finished in this run); {left} unfinished jobs were cancelled; re-run "
                           "the same command to resume") from None
-    except BaseException:
-        pool.cancel(list(futs))
-        raise
     finally:
         if bar is not None:
             bar.stop()

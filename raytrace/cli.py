@@ -7,7 +7,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from mmslam.errors import ConfigError
+from mmslam.errors import ConfigError, deferred_sigint
 
 MAX_SUBCARRIERS = 1 << 20
 MAX_TIME_STEPS = 10_000
@@ -98,7 +98,8 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--workers {workers}: expected >= 1")
         check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
-        src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+        with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
+            src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
         ex = None
         if executor == "dask":
             ex = DaskExecutor({"name": source, "max_depth": max_depth, "samples": samples, "seed": seed},

@@ -12,6 +12,7 @@ the lock of a killed writer is taken over.
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import shutil
 import sys
 import threading
@@ -21,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from mmslam.errors import BackendError, CacheError, ConfigError, Interrupted
+from mmslam.errors import (BackendError, CacheError, ConfigError, Interrupted, check_interrupt, deferred_sigint,
+                           was_interrupted)
 from mmslam.outputs import acquire_lock, lock_path, release_lock  # noqa: F401  (lock_path: public)
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
@@ -247,7 +249,10 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
         for start, stop in bounds:
             parts = []
             for k in range(start, stop):
-                parts.append(_check_step_output(source.trace_tables(k, states[k]), k, source))
+                check_interrupt()  # a Ctrl-C swallowed by library code still stops here
+                with deferred_sigint():  # Sionna / Dr.Jit cannot unwind a Python exception from a handler
+                    tables = source.trace_tables(k, states[k])
+                parts.append(_check_step_output(tables, k, source))
                 if bar is not None:
                     bar.update(task, advance=1, rate=(n_rows + sum(len(p["rays"]["rx"]) for p in parts))
                                / max(time.perf_counter() - t0, 1e-9))
@@ -267,7 +272,9 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
             m["chunks"].append(entry)
             m["steps_completed"] = stop
             write_manifest(cache_dir, m)
-    except (KeyboardInterrupt, Interrupted):
+    except BaseException as e:
+        if not was_interrupted(e):
+            raise
         raise Interrupted(f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir} (the chunk in "
                           "progress was dropped); re-run the same command to resume") from None
     finally:

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from mmslam.errors import Interrupted, MmslamError
+from mmslam.errors import Interrupted, MmslamError, was_interrupted
 from mmslam.limits import MAX_PARTICLES, MAX_SEED, MAX_STEPS, check_int, span
 
 
@@ -68,7 +68,9 @@ def register(app: typer.Typer) -> None:
             check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
-            except (KeyboardInterrupt, Interrupted):
+            except BaseException as e:
+                if not was_interrupted(e):
+                    raise
                 raise Interrupted(f"nothing was written to {out} (a single run does not resume); re-run the same "
                                   "command") from None
             path = res.save(out, force=force)

@@ -469,3 +469,29 @@ def test_scenario_reference_in_docs_is_up_to_date():
         for f in dataclasses.fields(cls):
             assert f"`{section}.{f.name}`" in text
     assert "| `dt` | 0.5 | s | (0, 3600] |" in text
+
+
+def test_ctrl_c_rewrapped_by_a_library_still_exits_130(monkeypatch, capsys):
+    # seen on a Sionna trace: Dr.Jit's while_loop turns the KeyboardInterrupt raised inside its
+    # callback into RuntimeError("dr.while_loop(): encountered an exception"), reported as a bug (exit 1)
+    from mmslam.errors import Interrupted, was_interrupted
+
+    def rewrapped():
+        try:
+            raise Interrupted()
+        except BaseException as e:
+            raise RuntimeError("dr.while_loop(): encountered an exception (see above).") from e
+
+    with pytest.raises(RuntimeError) as info:
+        rewrapped()
+    assert was_interrupted(info.value) and not was_interrupted(RuntimeError("a real bug"))
+
+    import mmslam.scenes.scenario as scenario_mod
+
+    def load(*a, **k):
+        rewrapped()
+
+    monkeypatch.setattr(scenario_mod, "load_preset", load)
+    assert main(["scene", "show", "paper", "--out", "never.png"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("interrupted: ")
