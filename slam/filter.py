@@ -427,6 +427,13 @@ def truth_keys(paths: dict[str, np.ndarray]) -> np.ndarray:
     return out.astype(str)
 
 
+def _truth_rows(paths: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """``step, type, rx (n,)``, evaluation keys ``(n,)`` (:func:`truth_keys`) and landmark positions ``(n, 3)``."""
+    xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
+                    np.asarray(paths["lm_z"], float)], -1)
+    return np.asarray(paths["step"]), np.asarray(paths["type"]), np.asarray(paths["rx"]), truth_keys(paths), xyz
+
+
 def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
                 sensor: Any) -> dict[int, list[dict[str, tuple[int, np.ndarray]]]]:
     """type -> per vehicle: landmark id -> (first step it could be detected by that vehicle, position).
@@ -440,12 +447,7 @@ def _first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions:
 
     out: dict[int, list[dict[str, tuple[int, np.ndarray]]]] = {VA: [{} for _ in range(n_veh)],
                                                                SP: [{} for _ in range(n_veh)]}
-    step = np.asarray(paths["step"])
-    typ = np.asarray(paths["type"])
-    rx = np.asarray(paths["rx"])
-    ids = truth_keys(paths)
-    xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
-                    np.asarray(paths["lm_z"], float)], -1)
+    step, typ, rx, ids, xyz = _truth_rows(paths)
     sel = np.nonzero(((typ == VA) | (typ == SP)) & (step < steps))[0]
     if sel.size:
         u = positions[step[sel], rx[sel]]
@@ -467,12 +469,7 @@ def _visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positi
     sighting on) from never seeing."""
     from .sensor import fov_detect_prob
 
-    step = np.asarray(paths["step"])
-    typ = np.asarray(paths["type"])
-    rx = np.asarray(paths["rx"])
-    ids = truth_keys(paths)
-    xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
-                    np.asarray(paths["lm_z"], float)], -1)
+    step, typ, rx, ids, xyz = _truth_rows(paths)
     out = {}
     for t in EVAL_TYPES:
         sel = np.nonzero((typ == t) & (step < steps))[0]
