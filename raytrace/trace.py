@@ -267,11 +267,14 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
             check_paths_finite(paths, f"source '{source.name}' output",
                                hint="nothing was written for these steps; fix the source")
             tables = {"vehicles": vehicle_columns(states[start:stop], start, scn.dt), "rays": rays, "paths": paths}
-            entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, file_metadata(m))
-            entry["versions"] = versions  # a resumed trace may run under other library versions
-            m["chunks"].append(entry)
-            m["steps_completed"] = stop
-            write_manifest(cache_dir, m)
+            # a chunk is kept only once the manifest on disk names it; Ctrl-C waits for that write,
+            # so the "kept" count of the message is the one on disk
+            with deferred_sigint():
+                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, file_metadata(m))
+                entry["versions"] = versions  # a resumed trace may run under other library versions
+                new = {**m, "chunks": m["chunks"] + [entry], "steps_completed": stop}
+                write_manifest(cache_dir, new)
+                m = new
     except BaseException as e:
         if not was_interrupted(e):
             raise
