@@ -584,11 +584,12 @@ def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
         r[..., c] = wrap_angle(r[..., c])
     R = np.asarray(R, float)
     Rj = np.broadcast_to(R, (Z.shape[0], MEAS_DIM, MEAS_DIM)) if R.ndim == 2 else R
-    ll = np.empty(r.shape[:2])
-    for j in range(Z.shape[0]):
-        L = safe_cholesky(Rj[j], "BS likelihood")
-        y = np.linalg.solve(L, r[:, j].T).T  # (P, 5)
-        ll[:, j] = -0.5 * np.einsum("pa,pa->p", y, y) - np.log(np.diag(L)).sum() - 0.5 * MEAS_DIM * _LOG_2PI
+    L = np.array([safe_cholesky(Rj[j], "BS likelihood") for j in range(Z.shape[0])]).reshape(-1, MEAS_DIM, MEAS_DIM)
+    if L.shape[0] == 0:  # no measurements
+        return np.zeros((states.shape[0], 0))
+    y = np.linalg.solve(L[None], r[..., None])[..., 0]  # (P, J, 5): whitened residuals, one batched solve
+    half_logdet = np.log(np.diagonal(L, axis1=1, axis2=2)).sum(-1)  # (J,)
+    ll = -0.5 * np.einsum("pja,pja->pj", y, y) - half_logdet[None] - 0.5 * MEAS_DIM * _LOG_2PI
     with np.errstate(divide="ignore"):
         return np.log(p_d)[:, None] + ll
 
