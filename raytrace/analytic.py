@@ -49,7 +49,7 @@ import numpy as np
 from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
 from mmslam.scenes.landmarks import reflecting_faces
 from mmslam.scenes.scenario import Scenario
-from mmslam.slam.measurement import BS, SP, VA, VS, direction_angles, mirror_point
+from mmslam.model import BS, SP, VA, VS, direction_angles, mirror_point
 
 SPEED_OF_LIGHT = 299_792_458.0
 """Speed of light in vacuum, m/s."""

@@ -44,7 +44,7 @@ from mmslam.raytrace.schema import (
     VEHICLE_COLUMNS, Col, sort_paths, sort_rays,
 )
 from mmslam.scenes.scenario import Scenario, scenario_from_resolved
-from mmslam.slam.measurement import BS, OTHER
+from mmslam.model import BS, OTHER
 
 MANIFEST = "manifest.json"
 FORCE_HINT = "re-run `mmslam trace ... --force` to rebuild it"

@@ -38,7 +38,7 @@ import numpy as np
 from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, ray_numbers, sort_paths
 from mmslam.scenes.landmarks import FACES
 from mmslam.scenes.scenario import Scenario
-from mmslam.slam.measurement import BS, OTHER, SP, VA, VS, mirror_point
+from mmslam.model import BS, OTHER, SP, VA, VS, mirror_point
 
 # interaction codes (Sionna's InteractionType bit values)
 NONE, SPECULAR, DIFFUSE = 0, 1, 2

@@ -31,7 +31,7 @@ from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort
 from mmslam.scenes.geometry import StaticGeometry, static_geometry
 from mmslam.scenes.meshes import car_mesh
 from mmslam.scenes.scenario import Scenario
-from mmslam.slam.measurement import BS, SP, VA, direction_angles, mirror_point
+from mmslam.model import BS, SP, VA, direction_angles, mirror_point
 
 _EPS = 1e-9
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmslam.scenes.scenario import Building, Scenario
-from mmslam.slam.measurement import mirror_point
+from mmslam.model import mirror_point
 
 FACES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0), "+z": (2, 1.0), "-z": (2, -1.0)}
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmslam.model import wrap_angle  # noqa: F401  (re-exported: the filter's angle convention)
+
 # Below this |xi * dt| the turn-rate formulas switch to their series expansion (no 0/0).
 _SMALL = 1e-9
 
@@ -115,10 +117,3 @@ def vs_ct_jacobian(t: np.ndarray, dt: float) -> np.ndarray:
     J[..., 5, 5] = 1.0
     J[..., 6, 6] = 1.0
     return J
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Wrap angles (rad) to ``(-pi, pi]``."""
-    a = np.asarray(a, dtype=float)
-    w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
-    return np.where(w == -np.pi, np.pi, w)

@@ -11,31 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .dynamics import wrap_angle
-
-BS, VA, SP, VS, OTHER = 0, 1, 2, 3, 4
-TYPE_NAMES: dict[int, str] = {BS: "BS", VA: "VA", SP: "SP", VS: "VS", OTHER: "OTHER"}
-TYPE_CODES: dict[str, int] = {v: k for k, v in TYPE_NAMES.items()}
-MEAS_DIM = 5
-ANGLE_COMPONENTS = (1, 2, 3, 4)
-AZIMUTH_COMPONENTS = (1, 3)
-
-
-def direction_angles(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuth ``atan2(dy, dx)`` and elevation ``asin(dz / |d|)`` of vectors ``d`` ``(..., 3)``."""
-    d = np.asarray(d, dtype=float)
-    r = np.linalg.norm(d, axis=-1)
-    az = np.arctan2(d[..., 1], d[..., 0])
-    el = np.arcsin(np.clip(d[..., 2] / np.where(r > 0, r, 1.0), -1.0, 1.0))
-    return az, el
-
-
-def mirror_point(p: np.ndarray, plane_point: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Mirror points ``p (..., 3)`` in the plane through ``plane_point`` with normal ``normal``."""
-    n = np.asarray(normal, dtype=float)
-    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-    d = np.sum((np.asarray(p, float) - plane_point) * n, axis=-1, keepdims=True)
-    return p - 2.0 * d * n
+from mmslam.model import (ANGLE_COMPONENTS, AZIMUTH_COMPONENTS, BS, MEAS_DIM, OTHER, SP, TYPE_CODES,  # noqa: F401
+                          TYPE_NAMES, VA, VS, direction_angles, mirror_point, wrap_angle)
 
 
 def channel_params(u: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) -> np.ndarray:

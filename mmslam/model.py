@@ -1,0 +1,80 @@
+"""The model vocabulary shared by the ray tracer, the scenes and the filter (neutral: imports NumPy only).
+
+Landmark types are the integer codes stored in path caches (``paths.type``) and used by the
+filter: ``BS=0, VA=1, SP=2, VS=3, OTHER=4``. A path's geometry (:class:`Bounce`) says how its
+channel parameters follow from a landmark point: the line of sight (``DIRECT``), a specular
+reflection whose landmark is the image source of the BS in the wall (``MIRROR``), or a single
+bounce at the landmark point itself (``SCATTER``).
+
+A measurement is ``z = [TOA (m, incl. clock bias), AOD az, AOD el, AOA az (body frame), AOA el]``
+(rad): :data:`MEAS_DIM` components, the azimuths (:data:`AZIMUTH_COMPONENTS`) live on the circle.
+
+Global frame: x east, y north, z up, metres; angles in radians.
+"""
+from __future__ import annotations
+
+from enum import IntEnum
+
+import numpy as np
+
+
+class LandmarkType(IntEnum):
+    """Path / landmark type codes (as stored in caches)."""
+
+    BS = 0
+    """the line-of-sight path from the base station (a known landmark)"""
+    VA = 1
+    """virtual anchor: a specular wall bounce, landmark = image source of the BS in the wall"""
+    SP = 2
+    """static scatter point (a single diffuse bounce on a small object)"""
+    VS = 3
+    """vehicle scatterer: a single bounce on another (moving) vehicle"""
+    OTHER = 4
+    """anything else (multi-bounce, diffraction, ...): clutter for the filter"""
+
+
+BS, VA, SP, VS, OTHER = (int(t) for t in LandmarkType)
+TYPE_NAMES: dict[int, str] = {int(t): t.name for t in LandmarkType}
+TYPE_CODES: dict[str, int] = {v: k for k, v in TYPE_NAMES.items()}
+
+
+class Bounce(IntEnum):
+    """Geometry of a single-interaction path (how ``h(s, x)`` maps a landmark point to ``z``)."""
+
+    DIRECT = 0
+    """line of sight BS -> vehicle (the landmark point is the BS)"""
+    MIRROR = 1
+    """specular reflection: the landmark point is the image source ``v`` of the BS"""
+    SCATTER = 2
+    """single bounce at the landmark point ``x`` (BS -> x -> vehicle)"""
+
+
+MEAS_DIM = 5
+"""components of a measurement ``[TOA, AOD az, AOD el, AOA az, AOA el]``"""
+ANGLE_COMPONENTS = (1, 2, 3, 4)
+AZIMUTH_COMPONENTS = (1, 3)
+"""measurement components that are azimuths (wrapped to ``(-pi, pi]``)"""
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Wrap angles (rad) to ``(-pi, pi]``."""
+    a = np.asarray(a, dtype=float)
+    w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def direction_angles(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuth ``atan2(dy, dx)`` and elevation ``asin(dz / |d|)`` (rad) of vectors ``d (..., 3)``."""
+    d = np.asarray(d, dtype=float)
+    r = np.linalg.norm(d, axis=-1)
+    az = np.arctan2(d[..., 1], d[..., 0])
+    el = np.arcsin(np.clip(d[..., 2] / np.where(r > 0, r, 1.0), -1.0, 1.0))
+    return az, el
+
+
+def mirror_point(p: np.ndarray, plane_point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Mirror points ``p (..., 3)`` (m) in the plane through ``plane_point (3,)`` with normal ``normal (3,)``."""
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    d = np.sum((np.asarray(p, float) - plane_point) * n, axis=-1, keepdims=True)
+    return p - 2.0 * d * n
