@@ -36,7 +36,8 @@ from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario, SensorParams
 
 from .dynamics import wrap_angle
-from .measurement import BS, MEAS_DIM, OTHER, SP, VA, VS
+from .landmarks import is_range_gated, known_codes
+from .measurement import MEAS_DIM, OTHER
 
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
 BOLTZMANN_DBM_HZ = -173.975  # 10 log10(k T0 / 1 mW) at T0 = 290 K, dBm/Hz
@@ -218,13 +219,14 @@ def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | 
     # NumPy's slow inner loops over the length-3 axis
     dx, dy, dz = x[..., 0] - u[..., 0], x[..., 1] - u[..., 1], x[..., 2] - u[..., 2]
     d = np.sqrt(dx * dx + dy * dy + dz * dz)
-    t = np.asarray(lm_type)
-    gated = (t == SP) | (t == VS)
+    gated = is_range_gated(lm_type)  # the type specs' FOV rule (SP, VS: range-gated)
     inside = ~gated | (d <= params.fov_range)
     return np.where(inside, params.p_detect, 0.0)
 
 
-def _used_types(scn: Scenario, include_types: Sequence[int]) -> np.ndarray:
+def _used_types(scn: Scenario, include_types: Sequence[int] | None) -> np.ndarray:
+    if include_types is None:
+        include_types = known_codes()
     types = {int(t) for t in include_types if int(t) != OTHER}
     if scn.sensor.emit_other:
         types.add(OTHER)
@@ -233,7 +235,7 @@ def _used_types(scn: Scenario, include_types: Sequence[int]) -> np.ndarray:
 
 def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                           rng: np.random.Generator,
-                          include_types: Sequence[int] = (BS, VA, SP, VS),
+                          include_types: Sequence[int] | None = None,
                           link: LinkBudget | None = None) -> Measurements:
     """Draw one Monte Carlo run of measurement sets from noise-free paths.
 
@@ -246,7 +248,8 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
             type, landmark_id, toa_m, aod_az, aod_el, aoa_az, aoa_el, lm_x, lm_y, lm_z`` (global
             frame). Rows with ``step >= steps`` or ``rx >= n_veh`` are ignored.
         rng: the only source of randomness.
-        include_types: landmark types whose paths become measurements. ``OTHER`` (4) paths are
+        include_types: landmark type codes whose paths become measurements (None: every registered
+            type, :mod:`mmslam.slam.landmarks`). ``OTHER`` (4) paths are
             used if and only if ``scn.sensor.emit_other`` is set, whatever this argument says.
         link: a :class:`LinkBudget` for the power-aware model (needs ``power_db`` on every used
             row); ``None``: the scenario's ``sensor.model`` decides (``constant``: ``p_detect``,
@@ -303,7 +306,7 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
             i = int(np.argmax(bad))
             raise MmslamError(f"paths column '{c}' is NaN/inf at step {step[i]} (rx {rx[i]}, "
                               f"landmark '{ids[i]}'); re-trace or repair the cache")
-    point = (typ == SP) | (typ == VS)
+    point = np.asarray(is_range_gated(typ), bool)  # point scatterers: range-gated, need their position
     for k, c in enumerate(_LM_COLUMNS):
         bad = point & ~np.isfinite(lm[:, k])
         if bad.any():

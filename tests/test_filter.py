@@ -241,7 +241,7 @@ def test_sp_truth_only_counts_scatterers_inside_the_fov():
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.scenes.scenario import load_preset
     from mmslam.scenes.trajectory import vehicle_trajectories
-    from mmslam.slam.filter import _first_seen
+    from mmslam.slam.evaluation import first_seen as _first_seen
 
     scn = load_preset("paper")
     states = vehicle_trajectories(scn, 12)
@@ -364,7 +364,7 @@ def test_visible_counts_separate_forgetting_from_never_seeing(paper):
 def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
     """Two wall segments of different buildings on the plane y = 10 mirror the BS to the same
     image source: one VA for the evaluation (the filter cannot tell them apart, nor should it)."""
-    from mmslam.slam.filter import _first_seen, truth_keys
+    from mmslam.slam.evaluation import first_seen as _first_seen, truth_keys
     from mmslam.slam.measurement import VA
 
     scn = load_preset("paper")

@@ -12,8 +12,9 @@ import pytest
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories
-from mmslam.slam import filter as filter_mod
+from mmslam.slam import local_filter as filter_mod  # LocalFilter.correct calls check_phd_mass
 from mmslam.slam import gmphd
+from mmslam.slam.filter import run_filter
 from mmslam.slam.gm import GM
 from mmslam.slam.measurement import VA, VS
 
@@ -80,7 +81,7 @@ def test_invariant_is_checked_and_silent_on_a_normal_run(paper8, particles, monk
         real(pred, corr, J, t, k)
 
     monkeypatch.setattr(filter_mod, "check_phd_mass", spy)
-    res = filter_mod.run_filter(scn, states, paths, variant="proposed", particles=particles, seed=3, steps=STEPS)
+    res = run_filter(scn, states, paths, variant="proposed", particles=particles, seed=3, steps=STEPS)
     n_veh = len(scn.vehicles)
     assert len(calls) == n_veh * STEPS * 3  # every vehicle, step and type (VA, SP, VS) was checked
     assert {k for _, k, _ in calls} == set(range(STEPS)) and all(J > 0 for _, _, J in calls)
@@ -95,7 +96,7 @@ def test_invariant_fires_on_the_old_logsumexp_slots(paper8, monkeypatch):
     with pytest.raises(FloatingPointError, match=r"PHD mass invariant violated in the (VA|SP|VS) correction at "
                                                  r"step \d+, particle 0: corrected mass .* > predicted mass .* \+ \d+ "
                                                  r"measurements"):
-        filter_mod.run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
+        run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
 
 
 def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monkeypatch):
@@ -111,5 +112,5 @@ def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monk
         excess.append(float((c - p - J).max()))
 
     monkeypatch.setattr(filter_mod, "check_phd_mass", record)
-    filter_mod.run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
+    run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
     assert max(excess) > 1.0

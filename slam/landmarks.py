@@ -1,0 +1,364 @@
+"""Landmark types of the filter: one :class:`LandmarkSpec` per type, defined once, in a registry.
+
+Everything the filter, the sensor model, the fusion centre and the evaluation need to know about
+a landmark type lives in its spec (nothing else in ``slam/`` compares type codes):
+
+============  =====  ==========  =====  =============  ==========  ================================
+type          code   geometry    dim    FOV gate       dynamics    fusion operator
+============  =====  ==========  =====  =============  ==========  ================================
+BS (known)    0      DIRECT      3      none           --          -- (a known landmark, no map)
+VA            1      MIRROR      3      none           static      AA fusion ``F_AA`` (eq. 8)
+SP            2      SCATTER     3      fov_range      static      AA fusion ``F_AA`` (eq. 8)
+VS            3      SCATTER     7      fov_range      CT (eq. 2)  ``F_AA`` (cm1), or ego average
+                                                                   (eq. 11) + VS fusion (eq. 17)
+============  =====  ==========  =====  =============  ==========  ================================
+
+- **geometry** (:class:`~mmslam.model.Bounce`): how a landmark point maps to a measurement
+  (eq. 3) and how a measurement is inverted to a birth point (the MIRROR / SCATTER inversions of
+  :mod:`mmslam.slam.birth`); the kernels take this geometry code.
+- **FOV gate**: a landmark of a range-gated type is detectable only within ``sensor.fov_range``
+  of the vehicle (the sensor model, the filter's ``p_D`` and the accumulated FOV at fusion use
+  :meth:`LandmarkSpec.fov_radius`); the others are always in the FOV (infinite radius).
+- **dynamics**: the local prediction of the type's map (:data:`predict_static_map`: survival
+  ``p_S``; :func:`predict_vs_map`: coordinated turn with dithering), and optionally a prediction
+  at the BS between uploads (:func:`predict_vs_at_bs`, variant flag ``predict_at_bs``).
+- **parameters**: its detection probability ``filter.<p_detect_param>`` and estimate threshold
+  ``filter.<threshold_param>`` (default ``p_detect_<name>`` / ``threshold_<name>``).
+- **evaluation**: ``moving`` types (VS) are scored against the other vehicles' true positions,
+  static ones against the landmarks first seen so far.
+
+Adding a type (docs/extending.md): make a :class:`LandmarkSpec` with its functions and
+:func:`register_landmark_type` it; a :class:`~mmslam.slam.variants.VariantSpec` naming it in
+``map_types`` runs it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Iterable
+
+import numpy as np
+
+from mmslam.errors import MmslamError
+from mmslam.model import OTHER, Bounce, LandmarkType
+
+from .birth import birth_from_moments
+from .gm import GM, concat
+from .gmphd import predict_static
+from .reduction import merge_pairs, prune_merge
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mmslam.scenes.scenario import Scenario, SensorParams
+
+    from .variants import VariantSpec
+
+PdFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+"""``pd_fn(vehicle_pos (..., 3), lm_pos (..., 3), lm_type code) -> (...)`` detection probability."""
+
+
+@dataclass(frozen=True)
+class FusionInput:
+    """What a type's fusion operator gets besides the two maps (one vehicle's upload at the BS).
+
+    ``ego_mean (7,)``, ``ego_cov (7, 7)``: the uploading vehicle's state posterior.
+    """
+
+    scn: "Scenario"
+    variant: "VariantSpec"
+    ego_mean: np.ndarray
+    ego_cov: np.ndarray
+
+
+@dataclass(frozen=True)
+class LandmarkSpec:
+    """One landmark type of the filter (see the module docstring for the built-in ones).
+
+    Attributes:
+        name: short name (``"VA"``); result tables and parameter names use it.
+        code: integer code in path caches (``paths.type``) and measurement origins.
+        geometry: path geometry (:class:`~mmslam.model.Bounce`) of ``h(s, x)`` and of the birth
+            inversion.
+        state_dim: dimension of the map state (position first: ``[x, y, z, ...]``).
+        description: one line for figures and reports.
+        range_gated: detectable only within ``sensor.fov_range`` (m) of the vehicle.
+        mapped: the filter keeps a map of it (False: a known landmark, the BS).
+        moving: scored against the vehicles' true positions (else: static first-seen truth).
+        p_detect_param, threshold_param: ``filter.*`` parameter names of its detection
+            probability inside the FOV and of its estimate threshold ('' = ``p_detect_<name>``,
+            ``threshold_<name>`` in lower case).
+        predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
+            (births are added to the predicted map).
+        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn) -> GM`` with ``moments`` =
+            ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
+        extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
+            landmark state's position (None: a point).
+        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``.
+        reduce_fused: ``reduce_fused(fused, pairs, scn) -> GM``, the reduction after fusion.
+        predict_at_bs: ``predict_at_bs(fused map, scn) -> map`` between uploads (only for variants
+            with ``predict_at_bs``), or None.
+        remove_ego: ``remove_ego(fused map, (mean (7,), cov (7, 7)), scn) -> map`` on the downlink
+            (variants with ``downlink_ego_removal``), or None.
+    """
+
+    name: str
+    code: int
+    geometry: Bounce
+    state_dim: int
+    description: str
+    range_gated: bool
+    mapped: bool = True
+    moving: bool = False
+    p_detect_param: str = ""
+    threshold_param: str = ""
+    predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
+    birth: Callable[..., GM] | None = None
+    extent: Callable[["Scenario"], np.ndarray | None] = field(default=lambda scn: None)
+    fuse: Callable[[GM, GM, np.ndarray, FusionInput], tuple[GM, np.ndarray | None]] | None = None
+    reduce_fused: Callable[[GM, np.ndarray | None, "Scenario"], GM] | None = None
+    predict_at_bs: Callable[[GM, "Scenario"], GM] | None = None
+    remove_ego: Callable[[GM, tuple[np.ndarray, np.ndarray], "Scenario"], GM] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.p_detect_param:
+            object.__setattr__(self, "p_detect_param", f"p_detect_{self.name.lower()}")
+        if not self.threshold_param and self.mapped:
+            object.__setattr__(self, "threshold_param", f"threshold_{self.name.lower()}")
+
+    def fov_radius(self, sensor: "SensorParams") -> float:
+        """Radius (m) of the FOV about the vehicle: ``sensor.fov_range`` if range-gated, else infinite."""
+        return float(sensor.fov_range) if self.range_gated else float("inf")
+
+    def p_detect(self, scn: "Scenario") -> float:
+        """The filter's detection probability inside the FOV (``filter.<p_detect_param>``)."""
+        return float(getattr(scn.filter, self.p_detect_param))
+
+    def threshold(self, scn: "Scenario") -> float:
+        """Estimate threshold on a component's weight (``filter.<threshold_param>``)."""
+        if not self.threshold_param:
+            raise MmslamError(f"landmark type {self.name!r} is not mapped and has no estimate threshold")
+        return float(getattr(scn.filter, self.threshold_param))
+
+
+# ====================================================================== the types' functions
+def predict_static_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
+    """Static landmarks: weights times ``p_S`` (eq. 4), then the births appended."""
+    g = predict_static(g, scn.filter.p_survival)
+    return g if born is None else concat(g, born)
+
+
+def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
+    """VS map: coordinated turn (eq. 2 / 9) with process noise ``filter.vs_process_std``; dithering
+    ``filter.vs_dither`` on every Gaussian (scope ``all``) or on the births only (``newborn``)."""
+    from .vs import predict_vs
+
+    fp = scn.filter
+    q, dither = np.asarray(fp.vs_process_std), np.asarray(fp.vs_dither)
+    old_dither = dither if fp.vs_dither_scope == "all" else None
+    if g.capacity:
+        g = predict_vs(g, scn.dt, fp.p_survival, q, old_dither)
+    if born is not None and born.capacity:
+        g = concat(g, predict_vs(born, scn.dt, fp.p_survival, q, dither))
+    return g
+
+
+def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
+                scn: "Scenario", pd_fn: PdFn) -> GM:
+    """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
+    step's measurements (:func:`mmslam.slam.birth.birth_from_moments`; a 7-D VS birth gets the
+    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``)."""
+    fp = scn.filter
+    return birth_from_moments(states, *moments, spec.code, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
+                              fp.vs_birth_turn_std)
+
+
+def vs_extent(scn: "Scenario") -> np.ndarray | None:
+    """``(3, 3)`` covariance of a VS bounce point about the car's antenna (``filter.vs_extent_std``), None if 0."""
+    h, v = (float(x) for x in scn.filter.vs_extent_std)
+    return np.diag([h * h, h * h, v * v]) if (h or v) else None
+
+
+def fuse_aa(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """AA fusion ``F_AA`` (eq. 8, TWC2020): MSM matching with ``fusion.msm_position``."""
+    from . import fusion as fm
+
+    return fm.fuse_aa(bs_map, upload, inside, ctx.scn.fusion.msm_position, with_pairs=True)
+
+
+def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """VS fusion: the variant's countermeasures, else plain AA fusion.
+
+    ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
+    (eq. 11; the ego Gaussian of :func:`mmslam.slam.fusion_center.ego_gaussian`, widened by
+    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 17-18 (``fuse_vs``).
+    """
+    from . import fusion as fm
+    from .fusion_center import ego_gaussian
+
+    scn, v = ctx.scn, ctx.variant
+    fu = scn.fusion
+    if v.ego_vs_average:
+        em, ec = ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
+        ext = vs_extent(scn)
+        if ext is not None:  # others see this car where its body reflects, not at its antenna
+            ec = ec.copy()
+            ec[0:3, 0:3] += ext
+        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position)
+    if v.vs_fusion:
+        return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov,
+                          with_pairs=True)
+    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
+
+
+def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.merge``)."""
+    fp, fu = scn.filter, scn.fusion
+    if fused.capacity:
+        fused = prune_merge(fused, fu.average_prune, fp.merge, fp.max_gaussians, fp.max_trace, pos_dims=3)
+    return fused
+
+
+def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+    """``fusion.vs_reduction``: merge the matched pairs only (``matched``), or every pair within
+    ``fusion.vs_merge_gate`` (``gate``); then prune / cap."""
+    fp, fu = scn.filter, scn.fusion
+    if fu.vs_reduction == "matched":
+        fused, gate = merge_pairs(fused, pairs), 0.0
+    else:
+        gate = fu.vs_merge_gate
+    if fused.capacity:
+        fused = prune_merge(fused, fu.average_prune, gate, fp.max_gaussians, fp.max_trace, pos_dims=3)
+    return fused
+
+
+def predict_vs_at_bs(g: GM, scn: "Scenario") -> GM:
+    """The fused VS map predicted one step at the BS without birth (eq. 16)."""
+    from .fusion import predict_bs_vs
+
+    fp = scn.filter
+    return predict_bs_vs(g, scn.dt, fp.p_survival, np.asarray(fp.vs_process_std), 1)
+
+
+def remove_ego_vs(g: GM, ego: tuple[np.ndarray, np.ndarray], scn: "Scenario") -> GM:
+    """Drop the fused VS components matched to the receiving vehicle itself (``fusion.downlink_ego``
+    = ``remove``; the vehicle is no scatterer of its own map)."""
+    from .fusion import remove_ego
+
+    if scn.fusion.downlink_ego != "remove":
+        return g
+    return remove_ego(g, ego[0], ego[1], scn.fusion.msm_position)
+
+
+# ====================================================================== registry
+_REGISTRY: dict[str, LandmarkSpec] = {}
+_CODES: dict[int, LandmarkSpec] = {}
+"""code -> spec, kept in step with the registry."""
+
+
+def register_landmark_type(spec: LandmarkSpec, *, replace: bool = False) -> LandmarkSpec:
+    """Add ``spec`` to the registry (by name; its code must be new too). Returns it.
+
+    Raises:
+        MmslamError: the name or code is taken (unless ``replace``), the code is ``OTHER``, or a
+            mapped type lacks its functions.
+    """
+    if not replace and spec.name in _REGISTRY:
+        raise MmslamError(f"landmark type {spec.name!r} is already registered; pick another name")
+    taken = {c: s.name for c, s in _CODES.items() if s.name != spec.name}
+    if spec.code in taken or spec.code == OTHER or spec.code < 0:
+        raise MmslamError(f"landmark type {spec.name!r}: code {spec.code} is taken "
+                          f"({taken.get(spec.code, 'OTHER')}); pick an unused code >= 0")
+    if spec.mapped and None in (spec.predict, spec.birth, spec.fuse, spec.reduce_fused):
+        raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs predict, birth, fuse and reduce_fused")
+    _REGISTRY[spec.name] = spec
+    _CODES.clear()
+    _CODES.update({s.code: s for s in _REGISTRY.values()})
+    return spec
+
+
+def unregister_landmark_type(name: str) -> None:
+    """Remove a registered type (tests; the built-in types stay)."""
+    if name in BUILTIN_TYPES:
+        raise MmslamError(f"landmark type {name!r} is built in and cannot be removed")
+    _REGISTRY.pop(name, None)
+    _CODES.clear()
+    _CODES.update({s.code: s for s in _REGISTRY.values()})
+
+
+def landmark_types() -> tuple[LandmarkSpec, ...]:
+    """All registered types, in registration order (BS, VA, SP, VS, then any added ones)."""
+    return tuple(_REGISTRY.values())
+
+
+def landmark_type(name_or_code: str | int) -> LandmarkSpec:
+    """The spec of a type by name (``"VS"``) or code (``3``).
+
+    Raises:
+        MmslamError: no such type.
+    """
+    if isinstance(name_or_code, str):
+        spec = _REGISTRY.get(name_or_code)
+    else:
+        spec = _CODES.get(int(name_or_code))
+    if spec is None:
+        known = ", ".join(f"{s.name}={s.code}" for s in _REGISTRY.values())
+        raise MmslamError(f"unknown landmark type {name_or_code!r}; expected one of {known}")
+    return spec
+
+
+def type_name(code: int) -> str:
+    """Name of a type code (``OTHER`` included, unknown codes as ``'type <code>'``)."""
+    spec = _CODES.get(int(code))
+    if spec is not None:
+        return spec.name
+    return LandmarkType(code).name if code in LandmarkType._value2member_map_ else f"type {code}"
+
+
+def mapped_types() -> tuple[LandmarkSpec, ...]:
+    """Registered types the filter maps (all but the known BS)."""
+    return tuple(s for s in _REGISTRY.values() if s.mapped)
+
+
+def range_gated_codes() -> np.ndarray:
+    """``(n,)`` codes of the range-gated types (SP, VS, ...)."""
+    return np.array([s.code for s in _REGISTRY.values() if s.range_gated], dtype=int)
+
+
+def is_range_gated(codes: int | np.ndarray) -> np.bool_ | np.ndarray:
+    """Whether landmarks of these type codes are gated by ``sensor.fov_range`` (unknown codes: no);
+    a NumPy bool (``~`` negates it) or a bool array of the shape of ``codes``."""
+    if np.ndim(codes) == 0:
+        spec = _CODES.get(int(codes))
+        return np.bool_(spec is not None and spec.range_gated)
+    return np.isin(np.asarray(codes), range_gated_codes())
+
+
+def known_codes() -> tuple[int, ...]:
+    """Codes a path may carry: the registered types and ``OTHER``."""
+    return tuple(sorted({s.code for s in _REGISTRY.values()} | {OTHER}))
+
+
+def codes_of(specs: Iterable[LandmarkSpec]) -> tuple[int, ...]:
+    """Their codes, in order."""
+    return tuple(s.code for s in specs)
+
+
+BS_SPEC = LandmarkSpec(
+    name="BS", code=int(LandmarkType.BS), geometry=Bounce.DIRECT, state_dim=3, mapped=False, range_gated=False,
+    description="base station (line of sight, a known landmark)")
+"""The BS: a known landmark (no map, no estimates); its detection probability is ``filter.p_detect_bs``."""
+VA_SPEC = LandmarkSpec(
+    name="VA", code=int(LandmarkType.VA), geometry=Bounce.MIRROR, state_dim=3, range_gated=False,
+    description="virtual anchor (VA)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
+    reduce_fused=reduce_fused_static)
+SP_SPEC = LandmarkSpec(
+    name="SP", code=int(LandmarkType.SP), geometry=Bounce.SCATTER, state_dim=3, range_gated=True,
+    description="scattering point (SP)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
+    reduce_fused=reduce_fused_static)
+VS_SPEC = LandmarkSpec(
+    name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
+    description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,
+    fuse=fuse_vs_map, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs, remove_ego=remove_ego_vs)
+
+for _s in (BS_SPEC, VA_SPEC, SP_SPEC, VS_SPEC):
+    register_landmark_type(_s)
+BUILTIN_TYPES: tuple[str, ...] = tuple(_REGISTRY)
+"""Names of the built-in types (``BS, VA, SP, VS``)."""
