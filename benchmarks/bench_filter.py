@@ -1,6 +1,7 @@
 """Benchmark: one vehicle-step of the MM-PHD-SLAM filter on the analytic ``paper`` data.
 
-Runs the cooperative filter loop (both vehicles, map fusion at the BS as in ``run_filter``) and
+Runs the cooperative filter loop (both vehicles, map fusion at the BS: the stages of
+:class:`mmslam.slam.run.CooperativeRun`, as ``run_filter``, without the evaluation) and
 times every :meth:`LocalFilter.step` call (predict + correct + reduce + estimate + resample) of
 vehicle 1 from step ``--warmup`` on, on one core (OMP / OpenBLAS / MKL threads set to 1 before
 NumPy is imported). Reports the median and quartiles per variant and particle count.
@@ -26,8 +27,7 @@ import numpy as np  # noqa: E402
 from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
 from mmslam.scenes.scenario import load_preset  # noqa: E402
 from mmslam.scenes.trajectory import vehicle_trajectories  # noqa: E402
-from mmslam.slam.filter import FusionCenter, LocalFilter, _schedule, ego_gaussian  # noqa: E402
-from mmslam.slam.sensor import fov_detect_prob, simulate_measurements  # noqa: E402
+from mmslam.slam.run import CooperativeRun  # noqa: E402
 
 
 def paper_data(steps: int):
@@ -46,36 +46,18 @@ def time_steps(scn, states, paths, variant: str, particles: int, steps: int, war
     ``clock``: ``time.perf_counter`` (wall time) or ``time.thread_time`` (CPU time of this
     thread: less sensitive to other processes on a busy machine).
     """
-    meas = simulate_measurements(scn, states[:steps], paths, np.random.default_rng(seed))
-    true = meas.true_states
-    R = scn.filter.r_scale * meas.R
-
-    def pd_fn(u, x, t):
-        return fov_detect_prob(u, x, t, scn.sensor)
-
-    n_veh = states.shape[1]
-    filters = [LocalFilter(scn, variant, particles, true[0, n], R, meas.clutter_intensity, pd_fn,
-                           np.random.default_rng(seed + 2 + n)) for n in range(n_veh)]
-    center = FusionCenter(scn, variant)
-    sched = _schedule(scn, n_veh, steps)
-    fov = [[] for _ in range(n_veh)]
+    run = CooperativeRun(scn, states, paths, variant, particles, seed, steps, evaluate=False)
     times = []
     for k in range(steps):
-        if k:
-            center.predict()
-        for n, f in enumerate(filters):
-            Z = meas.set(k, n)
-            args = (true[k - 1, n, 4], true[k - 1, n, 5]) if k else (None, None)
+        run.predict_at_bs(k)
+        for n in range(run.n_veh):
+            Z, spd, tr, R_z = run.local_inputs(k, n)
             t0 = clock()
-            est = f.step(Z, *args)
+            est = run.filters[n].step(Z, spd, tr, R_z)
             dt = clock() - t0
             if n == 0 and k >= warmup:
                 times.append(dt)
-            fov[n].append(est.mean[:3])
-            if k in sched[n]:
-                f.downlink(center.fuse(est.avg_maps, np.array(fov[n]), est.mean, est.cov),
-                           ego_gaussian(est.mean, est.cov, scn.filter.vs_process_std))
-                fov[n] = []
+            run.upload(k, n, est)
     return np.array(times)
 
 

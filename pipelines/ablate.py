@@ -42,16 +42,17 @@ import numpy as np
 
 from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError, deferred_sigint, was_interrupted
 from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS, MAX_WORKERS
+from mmslam.slam.landmarks import mapped_types
+from mmslam.slam.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
+from mmslam.slam.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401
 
-FILTER_VARIANTS: tuple[str, ...] = ("baseline", "cm1", "proposed")
-"""Filter variants (DESIGN.md section 6)."""
-REFERENCES: tuple[str, ...] = ("odometry",)
-"""Reference runs: ``odometry`` = dead reckoning with empty maps (:data:`mmslam.slam.filter.REFERENCES`)."""
-VARIANTS: tuple[str, ...] = REFERENCES + FILTER_VARIANTS
-"""Everything an ablation runs by default, in the order it is plotted."""
+VARIANTS: tuple[str, ...] = BUILTIN_VARIANTS
+"""Everything an ablation runs by default, in the order it is plotted (the built-in variant specs
+of :mod:`mmslam.slam.variants`: the reference ``odometry``, then the filter variants)."""
 
 EXECUTORS: tuple[str, ...] = ("local", "dask")
-TYPES: tuple[str, ...] = ("VA", "SP", "VS")
+TYPES: tuple[str, ...] = tuple(s.name for s in mapped_types())
+"""Map types scored (the built-in mapped landmark types of :mod:`mmslam.slam.landmarks`)."""
 METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card", "n_visible")
 STATE_QUANTITIES: tuple[str, ...] = ("pos_err", "heading_err", "bias_err")
 ALL_VEHICLES = "all"
@@ -171,11 +172,11 @@ def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
     items = [s.strip() for s in spec.split(",")] if isinstance(spec, str) else [str(s).strip() for s in spec]
     items = [s for s in items if s]
     if not items:
-        raise ConfigError(f"--variants: empty; expected a comma-separated subset of {','.join(VARIANTS)}")
+        raise ConfigError(f"--variants: empty; expected a comma-separated subset of {','.join(variant_names())}")
     for v in items:
-        if v not in VARIANTS:
+        if v not in variant_names():
             raise ConfigError(f"--variants: unknown variant '{v}'; expected a comma-separated subset of "
-                              f"{','.join(VARIANTS)}")
+                              f"{','.join(variant_names())}")
     dup = sorted({v for v in items if items.count(v) > 1})
     if dup:
         raise ConfigError(f"--variants: '{dup[0]}' given twice; list each variant once")
@@ -647,7 +648,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         _check_job_meta(out, j, int(particles), n_steps, sets + j.arm)
     # longest first (variants with a VS map cost more than baseline): less idle time at the end;
     # the order never changes a job's result
-    pending = sorted((j for j in jobs if j not in done), key=lambda j: (j.variant == "baseline", j.seed))
+    pending = sorted((j for j in jobs if j not in done), key=lambda j: (j.variant == COMPARED_WITH, j.seed))
     t0 = time.perf_counter()
     ran: list[Job] = []
     desc = "nothing to run"
@@ -772,7 +773,7 @@ class Summary:
     def variants(self) -> list[str]:
         """Variant / arm labels present, in :data:`VARIANTS` order (arms after their variant)."""
         present = list(dict.fromkeys(np.asarray(self.table["variant"]).tolist()))
-        order = {v: i for i, v in enumerate(VARIANTS)}
+        order = {v: i for i, v in enumerate(variant_names())}
         return sorted(present, key=lambda lab: (order.get(parse_label(lab)[0], 99), present.index(lab)))
 
 
@@ -909,7 +910,7 @@ def aggregate(out_dir: str | Path) -> Summary:
 
 def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> list[str]:
     """Job labels: variants in :data:`VARIANTS` order, each followed by its grid arms in ``arms`` order."""
-    order = {v: i for i, v in enumerate(VARIANTS)}
+    order = {v: i for i, v in enumerate(variant_names())}
     arm_pos = {tuple(a): i for i, a in enumerate(arms)}
     ranked = sorted(jobs, key=lambda j: (order.get(j.variant, 99), arm_pos.get(j.arm, len(arm_pos)), j.arm))
     return list(dict.fromkeys(j.label for j in ranked))
@@ -940,16 +941,17 @@ def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[s
     return out
 
 
-SCORED: tuple[str, ...] = ("gospa_VA", "gospa_SP", "gospa_VS", "pos_rmse")
+SCORED: tuple[str, ...] = tuple(f"gospa_{t}" for t in TYPES) + ("pos_rmse",)
 """Headline scores that get a 95% CI over runs and a paired difference to ``baseline``."""
 
 
 def _reference(label: str, labels: Sequence[str]) -> str | None:
-    """The arm a label is compared with: ``baseline`` with the same grid settings, else plain ``baseline``."""
+    """The arm a label is compared with: :data:`~mmslam.slam.variants.COMPARED_WITH` (``baseline``) with the
+    same grid settings, else plain ``baseline``."""
     variant, arm = parse_label(label)
-    if variant == "baseline":
+    if variant == COMPARED_WITH:
         return None
-    for cand in (arm_label("baseline", arm), "baseline"):
+    for cand in (arm_label(COMPARED_WITH, arm), COMPARED_WITH):
         if cand in labels:
             return cand
     return None

@@ -12,6 +12,8 @@ import typer
 
 from mmslam.errors import ConfigError
 from mmslam.limits import (MAX_MC, MAX_PARTICLES, MAX_SAMPLES, MAX_SEED, MAX_STEPS, MAX_WORKERS, check_int, span)
+from mmslam.slam.cli import variant_help
+from mmslam.slam.variants import BUILTIN_VARIANTS
 
 SOURCES = ("sionna", "analytic")
 
@@ -66,9 +68,8 @@ def register(app: typer.Typer) -> None:
     @app.command("ablate")
     def ablate_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
-        variants: str = typer.Option("odometry,baseline,cm1,proposed", "--variants",
-                                     help="Comma-separated filter variants (baseline, cm1, proposed) and the "
-                                          "reference odometry (dead reckoning, empty maps)."),
+        variants: str = typer.Option(",".join(BUILTIN_VARIANTS), "--variants",
+                                     help="Comma-separated variants: " + variant_help()),
         mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)." + span(1, MAX_MC)),
         particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter." + span(1, MAX_PARTICLES)),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),

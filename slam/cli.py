@@ -18,17 +18,27 @@ def summarize(res) -> list[tuple[str, str, float]]:
     """
     import numpy as np
 
+    from mmslam.slam.evaluation import evaluated_types
+
+    type_names = [s.name for s in evaluated_types()]
     m = res.metrics
     start = int(res.meta.get("fusion_start", 0))
     sel = np.asarray(m["step"]) >= start
     maps = list(dict.fromkeys(np.asarray(m["map"])[sel].tolist()))
     out = []
     for mp in maps:
-        for t in ("VA", "SP", "VS"):
+        for t in type_names:
             s = sel & (np.asarray(m["map"]) == mp) & (np.asarray(m["type"]) == t)
             if s.any():
                 out.append((mp, t, float(np.mean(np.asarray(m["gospa"])[s]))))
     return out
+
+
+def variant_help() -> str:
+    """``name (label)`` of every registered variant, for ``--help``."""
+    from mmslam.slam.variants import get_variant, variant_names
+
+    return "; ".join(f"{v} ({get_variant(v).label})" for v in variant_names()) + "."
 
 
 def register(app: typer.Typer) -> None:
@@ -37,9 +47,9 @@ def register(app: typer.Typer) -> None:
     @app.command("slam")
     def slam_cmd(
         cache: Path = typer.Argument(..., help="Path cache directory (from `mmslam trace`)."),
-        variant: str = typer.Option("baseline", help="Filter variant: baseline | cm1 | proposed, or the "
-                                    "reference odometry (dead reckoning, no map)."),
-        particles: int = typer.Option(300, help="Particles per vehicle." + span(1, MAX_PARTICLES)),
+        variant: str = typer.Option("baseline", help="Filter variant: " + variant_help()),
+        particles: Optional[int] = typer.Option(None, help="Particles per vehicle (default: the scenario's "
+                                                "filter.particles)." + span(1, MAX_PARTICLES)),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),
         out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
                                  "directory is replaced only if it is empty or a previous result."),
@@ -52,10 +62,11 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        from mmslam.slam.filter import REFERENCES, VARIANTS, run_slam
+        from mmslam.slam.filter import run_slam
+        from mmslam.slam.variants import variant_names
 
-        if variant not in VARIANTS + REFERENCES:
-            raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(VARIANTS + REFERENCES)}")
+        if variant not in variant_names():
+            raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(variant_names())}")
         check_int("--particles", particles, 1, MAX_PARTICLES, "a number of particles")
         check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
@@ -75,7 +86,7 @@ def register(app: typer.Typer) -> None:
                                   "command") from None
             path = res.save(out, force=force)
         con = Console()
-        tab = Table(title=f"mmslam slam: {variant}, P={particles}, seed={seed}, "
+        tab = Table(title=f"mmslam slam: {variant}, P={res.meta['particles']}, seed={seed}, "
                           f"{res.meta['steps']} steps (GOSPA means from step {res.meta.get('fusion_start', 0)})")
         tab.add_column("map")
         tab.add_column("type")

@@ -104,6 +104,8 @@ for _v in (
                 predict_at_bs=True, vs_fusion=True, downlink_ego_removal=True),
 ):
     register_variant(_v)
+COMPARED_WITH = "baseline"
+"""The variant every other one is compared with (paired differences in the ablation summary and report)."""
 BUILTIN_VARIANTS: tuple[str, ...] = tuple(_VARIANTS)
 """The built-in variants, in plotting order: the reference first."""
 VARIANTS: tuple[str, ...] = variant_names(reference=False)
