@@ -15,10 +15,9 @@ from mmslam.limits import (MAX_MC, MAX_PARTICLES, MAX_SAMPLES, MAX_SEED, MAX_STE
 from mmslam.slam.cli import variant_help
 from mmslam.slam.variants import BUILTIN_VARIANTS
 
-SOURCES = ("sionna", "analytic")
-
-
 def _check_source(source: str) -> None:
+    from mmslam.raytrace.trace import SOURCES
+
     if source not in SOURCES:
         raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
 

@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, KeysView
 
 import numpy as np
 
@@ -30,41 +30,83 @@ from mmslam.raytrace.cache import (
     FORCE_HINT, MANIFEST, TABLES, cache_dir_for, check_paths_finite, checked_chunks, config_hash, file_metadata,
     read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
-from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, sort_paths, sort_rays
+from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
 from mmslam.scenes.geometry import check_vehicle_poses
 from mmslam.scenes.scenario import Scenario
 from mmslam.scenes.trajectory import true_trajectories
 
-SOURCES = ("sionna", "analytic")
+SourceFactory = Callable[..., PathSource]
+"""``factory(scn, max_depth=1, samples=1_000_000, seed=0) -> PathSource``; raises ConfigError /
+BackendError for bad settings or a missing backend."""
+
+_SOURCES: dict[str, SourceFactory] = {}
+SOURCES: KeysView[str] = _SOURCES.keys()
+"""Names of the registered path sources (a live view of the registry: ``sionna``, ``analytic``, ...)."""
+
+
+def register_source(name: str, factory: SourceFactory, *, replace: bool = False) -> SourceFactory:
+    """Register a path source factory under ``name`` (``--source name``); returns the factory.
+
+    Raises:
+        ConfigError: ``name`` is taken (unless ``replace``) or not a plain identifier.
+    """
+    if not name.isidentifier():
+        raise ConfigError(f"source name {name!r}: expected a plain identifier")
+    if name in _SOURCES and not replace:
+        raise ConfigError(f"source {name!r} is already registered; pick another name")
+    _SOURCES[name] = factory
+    return factory
+
+
+def unregister_source(name: str) -> None:
+    """Remove a registered source (tests)."""
+    _SOURCES.pop(name, None)
 
 
 def make_source(name: str, scn: Scenario, max_depth: int = 1, samples: int = 1_000_000,
-                seed: int = 0) -> Any:
-    """A path source by name: ``analytic`` (closed form) or ``sionna`` (Sionna RT, lazily imported).
+                seed: int = 0) -> PathSource:
+    """A path source by name from the registry (:func:`register_source`): ``analytic`` (closed
+    form) or ``sionna`` (Sionna RT, lazily imported).
 
     ``max_depth`` (1..3), ``samples`` (rays per source) and ``seed`` only affect ``sionna``.
+
+    Raises:
+        ConfigError: unknown name or bad settings; BackendError: the backend is not installed.
     """
-    if name == "analytic":
-        if scn.xml_scene:  # the external scene's triangles: blockage and first-order reflections
-            from mmslam.raytrace.mesh_analytic import MeshAnalyticSource
-
-            return MeshAnalyticSource(scn)
-        return AnalyticSource(scn)
-    if name == "sionna":
-        if not 1 <= int(max_depth) <= 3:
-            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
-        if int(samples) < 1:
-            raise ConfigError(f"--samples {samples}: expected a positive number of rays per source")
-        try:
-            from mmslam.raytrace.sionna_adapter import SionnaSource
-        except ImportError as e:
-            raise BackendError(f"the sionna source is unavailable ({e}); install sionna-rt or use "
-                               "--source analytic") from None
-        return SionnaSource(scn, max_depth=int(max_depth), samples_per_src=int(samples), seed=int(seed))
-    raise ConfigError(f"unknown source '{name}'; expected one of {', '.join(SOURCES)}")
+    factory = _SOURCES.get(name)
+    if factory is None:
+        raise ConfigError(f"unknown source '{name}'; expected one of {', '.join(SOURCES)}")
+    return factory(scn, max_depth=max_depth, samples=samples, seed=seed)
 
 
-def _versions(source: Any) -> dict[str, str]:
+def _analytic_source(scn: Scenario, **_ignored: Any) -> PathSource:
+    """Closed-form paths; with an external XML scene, its triangles (blockage, first-order reflections)."""
+    if scn.xml_scene:
+        from mmslam.raytrace.mesh_analytic import MeshAnalyticSource
+
+        return MeshAnalyticSource(scn)
+    return AnalyticSource(scn)
+
+
+def _sionna_source(scn: Scenario, max_depth: int = 1, samples: int = 1_000_000, seed: int = 0) -> PathSource:
+    """Sionna RT PathSolver (imported lazily; BackendError if it is not installed)."""
+    if not 1 <= int(max_depth) <= 3:
+        raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+    if int(samples) < 1:
+        raise ConfigError(f"--samples {samples}: expected a positive number of rays per source")
+    try:
+        from mmslam.raytrace.sionna_adapter import SionnaSource
+    except ImportError as e:
+        raise BackendError(f"the sionna source is unavailable ({e}); install sionna-rt or use "
+                           "--source analytic") from None
+    return SionnaSource(scn, max_depth=int(max_depth), samples_per_src=int(samples), seed=int(seed))
+
+
+register_source("sionna", _sionna_source)
+register_source("analytic", _analytic_source)
+
+
+def _versions(source: PathSource) -> dict[str, str]:
     out = {}
     for pkg in ("mmslam", "numpy", "pyarrow"):
         try:
@@ -76,7 +118,7 @@ def _versions(source: Any) -> dict[str, str]:
     return out
 
 
-def _new_manifest(scn: Scenario, source: Any, steps: int) -> dict:
+def _new_manifest(scn: Scenario, source: PathSource, steps: int) -> dict:
     return {
         "schema_version": SCHEMA_VERSION,
         "scenario": scn.name,
@@ -95,7 +137,7 @@ def _new_manifest(scn: Scenario, source: Any, steps: int) -> dict:
     }
 
 
-def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: Any) -> None:
+def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: PathSource) -> None:
     """Verify a resumed cache belongs to this config and that its chunks are intact."""
     mp = cache_dir / MANIFEST
     want = config_hash(scn, source.name, source.settings())
@@ -111,7 +153,7 @@ def _check_existing(cache_dir: Path, m: dict, scn: Scenario, source: Any) -> Non
                 raise CacheError(f"{f}: sha256 mismatch (truncated or modified); {FORCE_HINT}")
 
 
-def _check_step_output(tables: dict[str, dict[str, np.ndarray]], step: int, source: Any
+def _check_step_output(tables: dict[str, dict[str, np.ndarray]], step: int, source: PathSource
                        ) -> dict[str, dict[str, np.ndarray]]:
     """A source's ``{"rays", "paths"}`` output at one step, checked (all columns, equal lengths)."""
     out = {}
@@ -154,7 +196,7 @@ def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
                         force_does="add the cache to it (nothing in it is deleted)")
 
 
-def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int | None = None,
+def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, steps: int | None = None,
                    chunk_steps: int = 5, force: bool = False, progress: bool = True,
                    executor: "DaskExecutor | None" = None) -> Path:
     """Trace ``steps`` steps of ``scn`` with ``source`` into a cache under ``out_root``.
@@ -202,7 +244,7 @@ def trace_scenario(scn: Scenario, source: Any, out_root: str | Path, steps: int 
         release_lock(lock)
 
 
-def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk_steps: int,
+def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int, chunk_steps: int,
                 progress: bool, executor: "DaskExecutor | None" = None) -> Path:
     """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
@@ -287,7 +329,7 @@ def _trace_into(scn: Scenario, source: Any, cache_dir: Path, n_steps: int, chunk
 
 
 # ====================================================================== Dask
-_WORKER_SOURCES: dict[tuple, Any] = {}
+_WORKER_SOURCES: dict[tuple, PathSource] = {}
 _WORKER_LOCK = threading.Lock()
 
 
@@ -353,7 +395,7 @@ class DaskExecutor:
                                silence_logs=logging.ERROR)
         return Client(cluster, set_as_default=False), cluster
 
-    def chunks(self, scn: Scenario, source: Any, states: np.ndarray, bounds: list[tuple[int, int]]):
+    def chunks(self, scn: Scenario, source: PathSource, states: np.ndarray, bounds: list[tuple[int, int]]):
         """Yield ``(start, stop, (paths, rays))`` for every chunk in ``bounds``, in order."""
         if not bounds:
             return
