@@ -183,14 +183,15 @@ def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(items)
 
 
-def check_run_args(mc: int, particles: int, steps: int | None, executor: str,
+def check_run_args(mc: int, particles: int | None, steps: int | None, executor: str,
                    scheduler: str | None, workers: int | None, seed0: int = 0) -> None:
-    """Reject bad numbers / executor settings with a one-line :class:`ConfigError`."""
+    """Reject bad numbers / executor settings with a one-line :class:`ConfigError`
+    (``particles`` None: the scenario's ``filter.particles``, checked by the scenario)."""
     if not 1 <= int(mc) <= MAX_MC:
         raise ConfigError(f"--mc {mc}: expected 1..{MAX_MC} Monte Carlo runs")
     if not 0 <= int(seed0) <= MAX_SEED - int(mc) + 1:
         raise ConfigError(f"--seed0 {seed0}: expected a seed in 0..{MAX_SEED - int(mc) + 1} (seeds seed0..seed0+mc-1)")
-    if not 1 <= int(particles) <= MAX_PARTICLES:
+    if particles is not None and not 1 <= int(particles) <= MAX_PARTICLES:
         raise ConfigError(f"--particles {particles}: expected 1..{MAX_PARTICLES} particles")
     if steps is not None and not 1 <= int(steps) <= MAX_STEPS:
         raise ConfigError(f"--steps {steps}: expected 1..{MAX_STEPS} time steps")
@@ -450,6 +451,18 @@ def _cache_info(cache_dir: Path) -> dict[str, Any]:
             "vehicle_names": list(c.vehicle_names)}
 
 
+def particles_for(scenario: dict[str, Any] | Any, sets: Sequence[str], particles: int | None) -> int:
+    """``particles``, or the ``filter.particles`` of ``scenario`` (a Scenario or its resolved dict) with
+    the ``--set`` overrides applied: the one default of the particle count."""
+    from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
+    from mmslam.slam.run import resolve_particles
+
+    if particles is not None:
+        return int(particles)
+    scn = scenario if isinstance(scenario, Scenario) else scenario_from_resolved(scenario)
+    return resolve_particles(with_overrides(scn, list(sets)), None)
+
+
 def check_overrides(info: dict[str, Any], sets: Sequence[str], arms: Sequence[tuple[str, ...]]) -> None:
     """Validate ``sets`` + every arm on the cached scenario (bounds, names) before anything is written."""
     from mmslam.scenes.scenario import scenario_from_resolved, with_overrides
@@ -551,8 +564,9 @@ def precheck_ablation(out_dir: str | Path, scenario_name: str, source: str, step
                       sets: Sequence[str]) -> None:
     """Refuse, before the trace, a run that :func:`run_ablation` would refuse after it.
 
-    An existing ablation in ``out_dir`` asked for other steps, particles, ``--set`` values, scenario
-    or source: nothing is traced (the cache is not extended) and nothing is written.
+    An existing ablation in ``out_dir`` asked for other steps, particles (resolved: see
+    :func:`particles_for`), ``--set`` values, scenario or source: nothing is traced (the cache is
+    not extended) and nothing is written.
     """
     out = Path(out_dir)
     if not (out / ABLATION_FILE).is_file():
@@ -579,7 +593,7 @@ def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 @_holding_out_lock
 def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[str] | str = VARIANTS,
-                 mc: int = 10, particles: int = 300, steps: int | None = None,
+                 mc: int = 10, particles: int | None = None, steps: int | None = None,
                  executor: str = "local", scheduler: str | None = None, workers: int | None = None,
                  progress: bool = True, command: str | None = None, seed0: int = 0,
                  sets: Sequence[str] = (), grid: Sequence[str] = ()) -> AblationRun:
@@ -595,7 +609,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         out_dir: the ablation directory.
         variants: subset of :data:`VARIANTS` (a sequence or ``"a,b"``).
         mc: Monte Carlo runs per variant (seeds ``seed0..seed0+mc-1``).
-        particles: particles per vehicle filter.
+        particles: particles per vehicle filter (None: the cached scenario's ``filter.particles``
+            after ``sets``).
         steps: time steps to run (default: all steps in the cache).
         executor: ``local`` (process pool) or ``dask``.
         scheduler: dask scheduler address (``tcp://host:8786``); None starts a LocalCluster.
@@ -622,6 +637,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     out = Path(out_dir)
     info = _cache_info(Path(cache_dir))
     check_overrides(info, sets, arms)
+    particles = particles_for(info["scenario"], sets, particles)
     old = read_ablation(out) if (out / ABLATION_FILE).is_file() else None
     n_steps = info["cache_steps"] if steps is None else int(steps)
     if steps is None and old is not None and 0 < int(old.get("steps") or 0) <= n_steps:

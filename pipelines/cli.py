@@ -42,7 +42,8 @@ def register(app: typer.Typer) -> None:
     def demo_cmd(
         source: str = typer.Option("sionna", "--source", help="Path source: sionna (ray traced) or analytic."),
         mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds 0..mc-1)." + span(1, MAX_MC)),
-        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter." + span(1, MAX_PARTICLES)),
+        particles: Optional[int] = typer.Option(None, "--particles", help="Particles per vehicle filter (default: "
+                                                "the scenario's filter.particles)." + span(1, MAX_PARTICLES)),
         out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory (cache, jobs, report); an "
                                  "existing one must be empty or a previous demo / ablation."),
         workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)." + span(1, MAX_WORKERS)),
@@ -59,7 +60,7 @@ def register(app: typer.Typer) -> None:
         res = run_demo(source=source, mc=mc, particles=particles, out=out, workers=workers, progress=not quiet,
                        force=force)
         run = res.ablation
-        _print_summary(run.summary, f"paper ({source}), {mc} runs, P = {particles}", [
+        _print_summary(run.summary, f"paper ({source}), {mc} runs, P = {res.particles}", [
             f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); ablation wall time "
             f"{run.wall_time_s:.1f} s",
             f"report: {res.report}"])
@@ -70,7 +71,8 @@ def register(app: typer.Typer) -> None:
         variants: str = typer.Option(",".join(BUILTIN_VARIANTS), "--variants",
                                      help="Comma-separated variants: " + variant_help()),
         mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)." + span(1, MAX_MC)),
-        particles: int = typer.Option(300, "--particles", help="Particles per vehicle filter." + span(1, MAX_PARTICLES)),
+        particles: Optional[int] = typer.Option(None, "--particles", help="Particles per vehicle filter (default: "
+                                                "the scenario's filter.particles)." + span(1, MAX_PARTICLES)),
         source: str = typer.Option("sionna", "--source", help="Path source: sionna or analytic."),
         out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary); an existing one "
                                  "must be empty or a previous ablation. One writer at a time (lock file)."),
@@ -95,7 +97,7 @@ def register(app: typer.Typer) -> None:
         """Run the (variant x grid arm x seed) jobs; finished jobs are kept and skipped on re-runs."""
         from mmslam.outputs import locked
         from mmslam.pipelines.ablate import (check_run_args, default_command, parse_grid,
-                                             parse_sets, parse_variants, precheck_ablation, prepare_cache,
+                                             parse_sets, parse_variants, particles_for, precheck_ablation, prepare_cache,
                                              run_ablation, start_ablation_dir)
         from mmslam.scenes.scenario import resolve_scenario
 
@@ -107,6 +109,7 @@ def register(app: typer.Typer) -> None:
         check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
         sets_c, _ = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
         scn = resolve_scenario(scenario)
+        particles = particles_for(scn, sets_c, particles)
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
             precheck_ablation(out, scn.name, source, steps, particles, sets_c)
             start_ablation_dir(out, force)

@@ -11,7 +11,8 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
-from mmslam.pipelines.ablate import VARIANTS, AblationRun, check_run_args, prepare_cache, run_ablation
+from mmslam.pipelines.ablate import (VARIANTS, AblationRun, check_run_args, particles_for, prepare_cache,
+                                     run_ablation)
 
 DEMO_SCENARIO = "paper"
 """The built-in default scenario (DESIGN.md section 5)."""
@@ -25,6 +26,8 @@ class DemoResult:
     cache_dir: Path
     ablation: AblationRun
     report: Path
+    particles: int
+    """the particle count it ran with"""
 
 
 def demo_command(source: str, mc: int, particles: int, out: str | Path) -> str:
@@ -33,7 +36,7 @@ def demo_command(source: str, mc: int, particles: int, out: str | Path) -> str:
                        "--out", str(out)])
 
 
-def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: str | Path = "out/demo",
+def run_demo(source: str = "sionna", mc: int = 10, particles: int | None = None, out: str | Path = "out/demo",
              executor: str = "local", workers: int | None = None, progress: bool = True,
              force: bool = False) -> DemoResult:
     """Trace (or reuse) the ``paper`` preset, run odometry and the three variants ``mc`` times, write the report.
@@ -41,7 +44,7 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: st
     Args:
         source: ``sionna`` (ray traced) or ``analytic`` (closed form).
         mc: Monte Carlo runs per variant (seeds ``0..mc-1``).
-        particles: particles per vehicle filter.
+        particles: particles per vehicle filter (None: the ``paper`` preset's ``filter.particles``).
         out: output directory (cache, jobs, summary, figures, report).
         executor, workers: as in :func:`mmslam.pipelines.ablate.run_ablation`.
         progress: progress bars on stderr.
@@ -50,6 +53,9 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: st
     from mmslam.pipelines.report import write_report
 
     check_run_args(mc, particles, None, executor, None, workers)
+    from mmslam.scenes.scenario import load_preset
+
+    particles = particles_for(load_preset(DEMO_SCENARIO), (), particles)
     from mmslam.outputs import locked
     from mmslam.pipelines.ablate import precheck_ablation, start_ablation_dir
 
@@ -60,4 +66,4 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int = 300, out: st
         cache = prepare_cache(DEMO_SCENARIO, source, out, progress=progress)
         run = run_ablation(cache, out, VARIANTS, mc=mc, particles=particles, executor=executor, workers=workers,
                            progress=progress, command=demo_command(source, mc, particles, out))
-        return DemoResult(out, cache, run, write_report(out))
+        return DemoResult(out, cache, run, write_report(out), particles)

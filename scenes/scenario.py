@@ -139,7 +139,8 @@ class SensorParams:
 class FilterParams:
     """MM-PHD-SLAM parameters (TWC2020 values for ``paper``)."""
 
-    particles: int = param(300, "particles per vehicle", "", lo=1, hi=MAX_PARTICLES)
+    particles: int = param(300, "particles per vehicle: the default of run_filter / run_slam and of "
+                           "--particles (mmslam slam, ablate, demo) when none is given", "", lo=1, hi=MAX_PARTICLES)
     r_scale: float = param(9.0, "the filter's measurement covariance is r_scale x the true R (tuning)", "",
                            lo=0.0, lo_open=True, hi=1e6)
     prior_std: tuple[float, ...] = param(
