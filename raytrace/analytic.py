@@ -46,10 +46,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
+from mmslam.raytrace.schema import INTERACTION_LABELS, PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
 from mmslam.scenes.landmarks import reflecting_faces
 from mmslam.scenes.scenario import Scenario
 from mmslam.model import BS, SP, VA, VS, direction_angles, mirror_point
+
+_NONE, _SPECULAR, _DIFFUSE = (INTERACTION_LABELS.index(x) for x in ("none", "specular", "diffuse"))
+INTERACTION_OF_TYPE: dict[int, int] = {BS: _NONE, VA: _SPECULAR, SP: _DIFFUSE, VS: _SPECULAR}
+"""The analytic model's single interaction per landmark type (:data:`INTERACTION_LABELS` code): none for
+the line of sight, a specular bounce on a wall (VA) or a car body (VS), a diffuse one on a small object (SP)."""
+
+
+def interaction_of(types: np.ndarray) -> np.ndarray:
+    """``(n,)`` int8 interaction code of each path of the analytic model from its type code ``(n,)``."""
+    lut = np.zeros(max(INTERACTION_OF_TYPE) + 1, np.int8)
+    for t, i in INTERACTION_OF_TYPE.items():
+        lut[t] = i
+    return lut[np.asarray(types, int)]
+
 
 SPEED_OF_LIGHT = 299_792_458.0
 """Speed of light in vacuum, m/s."""
@@ -253,13 +267,14 @@ class AnalyticSource:
         ri, li = np.nonzero(valid)
         n = ri.size
         tp = types[li]
+        itype = interaction_of(tp)
         cols: dict[str, np.ndarray] = {
             "step": np.full(n, step, dtype=np.int32),
             "rx": ri.astype(np.int16),
             "type": tp,
             "landmark_id": ids[li],
-            "bounces": np.where(tp == BS, 0, 1).astype(np.int8),
-            "diffuse": tp == SP,
+            "bounces": (itype != _NONE).astype(np.int8),
+            "diffuse": itype == _DIFFUSE,
             "toa_m": toa[ri, li],
             "aod_az": aod_az[ri, li], "aod_el": aod_el[ri, li],
             "aoa_az": aoa_az[ri, li], "aoa_el": aoa_el[ri, li],
@@ -276,11 +291,9 @@ class AnalyticSource:
         angles = np.stack([cols["aod_az"], cols["aod_el"], cols["aoa_az"], cols["aoa_el"]], axis=1)
         ray = ray_numbers(ri, toa[ri, li] / SPEED_OF_LIGHT, tiebreak=li)
         cols["ray"] = ray
-        # rays: interaction 1 = specular (VA, VS) / diffuse (SP) at the bounce point
-        itype = np.where(tp == BS, 0, np.where(tp == SP, 2, 1))[:, None]
         objs = np.array(["", *self.face_object, *self.sp_ids, *self.vehicle_names[:n_rx]], dtype=object)[li]
         rays = rays_columns(step=step, rx=ri, typ=tp, landmark_id=ids[li], a=a, delay_s=toa[ri, li] / SPEED_OF_LIGHT,
-                            angles=angles, doppler_hz=doppler[ri, li], itype=itype, objects=objs[:, None],
+                            angles=angles, doppler_hz=doppler[ri, li], itype=itype[:, None], objects=objs[:, None],
                             verts=bounce[ri, li][:, None, :], ray=ray)
         cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t))
                 for k, t in PATH_COLUMNS.items()}

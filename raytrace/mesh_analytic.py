@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmslam.raytrace.analytic import SPEED_OF_LIGHT, AnalyticSource
+from mmslam.raytrace.analytic import SPEED_OF_LIGHT, AnalyticSource, interaction_of
 from mmslam.raytrace.labels import plane_table
 from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
 from mmslam.scenes.geometry import StaticGeometry, static_geometry
@@ -176,7 +176,7 @@ class MeshAnalyticSource(AnalyticSource):
         angles = np.stack([cols[c] for c in ("aod_az", "aod_el", "aoa_az", "aoa_el")], axis=1)
         rays = rays_columns(step=step, rx=cols["rx"], typ=typ, landmark_id=cols["landmark_id"], a=a_all,
                             delay_s=cols["toa_m"] / SPEED_OF_LIGHT, angles=angles, doppler_hz=cols["doppler_hz"],
-                            itype=np.where(typ == BS, 0, np.where(typ == SP, 2, 1))[:, None],
+                            itype=interaction_of(typ)[:, None],
                             objects=np.asarray(objects, dtype=object)[:, None], verts=verts[:, None, :],
                             ray=cols["ray"])
         cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t)) for k, t in PATH_COLUMNS.items()}
