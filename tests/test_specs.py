@@ -1,0 +1,215 @@
+"""Landmark-type specs, variant specs, the source registry and the run loop's step API."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mmslam.errors import ConfigError, MmslamError
+from mmslam.model import Bounce, LandmarkType
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.scenes.scenario import FilterParams, load_preset, with_overrides
+from mmslam.scenes.trajectory import vehicle_trajectories
+from mmslam.slam import landmarks as L
+from mmslam.slam import variants as V
+from mmslam.slam.measurement import measure
+from mmslam.slam.run import CooperativeRun, run_filter
+from mmslam.slam.sensor import fov_detect_prob
+
+BS_POS = np.array([0.0, 0.0, 40.0])
+
+
+@pytest.fixture(scope="module")
+def paper12():
+    scn = load_preset("paper")
+    states = vehicle_trajectories(scn, 12)
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(12)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    return scn, states, paths
+
+
+# ---------------------------------------------------------------- landmark types
+def test_builtin_types_codes_geometry_and_dimensions():
+    by = {s.name: s for s in L.landmark_types()}
+    assert list(by) == ["BS", "VA", "SP", "VS"]
+    assert {n: s.code for n, s in by.items()} == {t.name: int(t) for t in LandmarkType if t.name != "OTHER"}
+    assert [by[n].geometry for n in ("BS", "VA", "SP", "VS")] == [Bounce.DIRECT, Bounce.MIRROR, Bounce.SCATTER,
+                                                                   Bounce.SCATTER]
+    assert [by[n].state_dim for n in ("VA", "SP", "VS")] == [3, 3, 7]
+    assert [s.name for s in L.mapped_types()] == ["VA", "SP", "VS"]
+    assert [s.name for s in L.landmark_types() if s.moving] == ["VS"]
+
+
+@pytest.mark.parametrize("name", ["VA", "SP", "VS"])
+def test_each_types_geometry_is_its_measurement_model(name):
+    """The geometry code of a spec drives h(s, x): MIRROR = distance from the image source,
+    SCATTER = BS -> point -> vehicle (hand-computed TOA), AOA towards the point in both."""
+    spec = L.landmark_type(name)
+    s = np.array([30.0, -20.0, 1.5, 0.3, 10.0, 0.1, 5.0])
+    x = np.array([120.0, 15.0, 12.0])
+    z = measure(s, x, spec.geometry, BS_POS)
+    u = s[:3]
+    if spec.geometry is Bounce.MIRROR:
+        toa = np.linalg.norm(x - u)
+    else:
+        toa = np.linalg.norm(x - BS_POS) + np.linalg.norm(x - u)
+    assert z[0] == pytest.approx(toa + s[6], rel=1e-12)
+    d = x - u
+    assert z[3] == pytest.approx(np.arctan2(d[1], d[0]) - s[3], abs=1e-12)
+    assert z[4] == pytest.approx(np.arcsin(d[2] / np.linalg.norm(d)), abs=1e-12)
+    # the filter's type code and its geometry code give the same measurement
+    np.testing.assert_allclose(measure(s, x, spec.code, BS_POS), z, rtol=1e-12)
+
+
+def test_fov_rule_follows_the_specs():
+    scn = load_preset("paper")
+    r = scn.sensor.fov_range
+    u = np.zeros(3)
+    for spec in L.landmark_types():
+        near, far = np.array([r - 1.0, 0.0, 0.0]), np.array([r + 1.0, 0.0, 0.0])
+        assert float(fov_detect_prob(u, near, spec.code, scn.sensor)) == scn.sensor.p_detect
+        want_far = 0.0 if spec.range_gated else scn.sensor.p_detect
+        assert float(fov_detect_prob(u, far, spec.code, scn.sensor)) == want_far
+        assert spec.fov_radius(scn.sensor) == (r if spec.range_gated else np.inf)
+    # vectorised over codes: the same rule row by row
+    codes = np.array([s.code for s in L.landmark_types()])
+    pts = np.broadcast_to([r + 1.0, 0.0, 0.0], (codes.size, 3))
+    got = fov_detect_prob(np.zeros((codes.size, 3)), pts, codes, scn.sensor)
+    np.testing.assert_array_equal(got > 0, [not s.range_gated for s in L.landmark_types()])
+
+
+def test_spec_parameters_are_declared_filter_parameters():
+    names = {f.name for f in dataclasses.fields(FilterParams)}
+    scn = load_preset("paper")
+    for spec in L.landmark_types():
+        assert spec.p_detect_param in names
+        assert 0.0 <= spec.p_detect(scn) <= 1.0
+        if spec.mapped:
+            assert spec.threshold_param in names and spec.threshold(scn) > 0
+        else:
+            with pytest.raises(MmslamError, match="no estimate threshold"):
+                spec.threshold(scn)
+    scn2 = with_overrides(scn, ["filter.threshold_vs=0.8", "filter.p_detect_sp=0.5"])
+    assert L.landmark_type("VS").threshold(scn2) == 0.8 and L.landmark_type("SP").p_detect(scn2) == 0.5
+
+
+def test_type_registry_round_trip_and_errors():
+    toy = dataclasses.replace(L.SP_SPEC, name="SPX", code=9)
+    try:
+        assert L.register_landmark_type(toy) is toy
+        assert L.landmark_type("SPX") is toy and L.landmark_type(9) is toy
+        assert 9 in L.known_codes() and 9 in L.range_gated_codes()
+        with pytest.raises(MmslamError, match="already registered"):
+            L.register_landmark_type(toy)
+        with pytest.raises(MmslamError, match="code 9 is taken"):
+            L.register_landmark_type(dataclasses.replace(toy, name="SPY"))
+    finally:
+        L.unregister_landmark_type("SPX")
+    with pytest.raises(MmslamError, match="unknown landmark type"):
+        L.landmark_type(9)
+    with pytest.raises(MmslamError, match="code 4 is taken"):  # OTHER is clutter, never a type
+        L.register_landmark_type(dataclasses.replace(toy, code=4))
+    with pytest.raises(MmslamError, match="needs predict"):
+        L.register_landmark_type(dataclasses.replace(toy, predict=None))
+    with pytest.raises(MmslamError, match="built in"):
+        L.unregister_landmark_type("VA")
+
+
+# ---------------------------------------------------------------- variants
+def test_variant_specs():
+    assert V.variant_names() == ("odometry", "baseline", "cm1", "proposed")
+    assert V.VARIANTS == ("baseline", "cm1", "proposed") and V.REFERENCES == ("odometry",)
+    for name in V.variant_names():
+        v = V.get_variant(name)
+        assert all(t.mapped for t in v.types()) and v.label
+    assert "VS" not in V.get_variant("baseline").map_types
+    assert V.get_variant("cm1").map_types == ("VA", "SP", "VS")
+    p = V.get_variant("proposed")
+    assert p.ego_vs_average and p.predict_at_bs and p.vs_fusion and p.downlink_ego_removal
+    c = V.get_variant("cm1")
+    assert not (c.ego_vs_average or c.predict_at_bs or c.vs_fusion or c.downlink_ego_removal)
+    assert not V.get_variant("odometry").measurement_update and V.get_variant("odometry").reference
+    with pytest.raises(MmslamError, match="unknown variant 'x'.*odometry, baseline, cm1, proposed"):
+        V.get_variant("x")
+    with pytest.raises(MmslamError, match="unknown landmark type"):
+        V.register_variant(V.VariantSpec("bad", "bad", ("VA", "XX")))
+    with pytest.raises(MmslamError, match="not a map type"):
+        V.register_variant(V.VariantSpec("bad", "bad", ("BS",)))
+    assert "bad" not in V.variant_names()
+
+
+def test_pipelines_read_the_variant_specs():
+    from mmslam.pipelines import ablate, figures
+
+    assert ablate.VARIANTS == V.variant_names() and ablate.FILTER_VARIANTS == V.VARIANTS
+    assert ablate.TYPES == ("VA", "SP", "VS") and ablate.SCORED[:3] == ("gospa_VA", "gospa_SP", "gospa_VS")
+    assert figures.VARIANT_LABEL["proposed"] == V.get_variant("proposed").label
+    assert figures.TYPE_NAMES["VS"] == L.VS_SPEC.description
+
+
+# ---------------------------------------------------------------- sources
+def test_source_registry_round_trip():
+    from mmslam.raytrace import trace as T
+
+    scn = load_preset("paper")
+    assert tuple(T.SOURCES) == ("sionna", "analytic")
+    made = []
+
+    def factory(s, **kw):
+        made.append(kw)
+        return AnalyticSource(s)
+
+    T.register_source("toy_src", factory)
+    try:
+        assert "toy_src" in T.SOURCES
+        src = T.make_source("toy_src", scn, max_depth=2, samples=5, seed=3)
+        assert isinstance(src, AnalyticSource) and made == [{"max_depth": 2, "samples": 5, "seed": 3}]
+        with pytest.raises(ConfigError, match="already registered"):
+            T.register_source("toy_src", factory)
+    finally:
+        T.unregister_source("toy_src")
+    with pytest.raises(ConfigError, match="unknown source 'toy_src'; expected one of sionna, analytic"):
+        T.make_source("toy_src", scn)
+
+
+# ---------------------------------------------------------------- run loop
+def test_particles_default_is_the_scenarios_filter_particles(paper12):
+    scn, states, paths = paper12
+    scn7 = with_overrides(scn, ["filter.particles=7"])
+    a = run_filter(scn7, states, paths, variant="cm1", seed=2, steps=5)
+    b = run_filter(scn, states, paths, variant="cm1", particles=7, seed=2, steps=5)
+    assert a.meta["particles"] == 7
+    np.testing.assert_array_equal(a.vehicles["pos_err"], b.vehicles["pos_err"])
+    with pytest.raises(MmslamError, match="particles=0"):
+        run_filter(scn, states, paths, particles=0, steps=2)
+
+
+def test_step_api_stages_reproduce_run_filter(paper12):
+    """Driving CooperativeRun stage by stage (as the benchmark does) is run_filter."""
+    scn, states, paths = paper12
+    ref = run_filter(scn, states, paths, variant="proposed", particles=15, seed=4, steps=10)
+    run = CooperativeRun(scn, states, paths, "proposed", 15, 4, 10)
+    uploads = 0
+    for k in range(run.steps):
+        run.predict_at_bs(k)
+        for n in range(run.n_veh):
+            est = run.local_step(k, n)
+            run.record_vehicle(k, n, est)
+            uploads += run.upload(k, n, est)
+        run.record_fused(k)
+    res = run.result()
+    assert uploads == sum(len(s) for s in run.schedule) > 0
+    for tab in ("vehicles", "metrics", "landmarks"):
+        a, b = getattr(ref, tab), getattr(res, tab)
+        for c in a:
+            np.testing.assert_array_equal(np.asarray(a[c]), np.asarray(b[c]), err_msg=f"{tab}.{c}")
+
+
+def test_unevaluated_run_has_the_same_filter_results(paper12):
+    scn, states, paths = paper12
+    a = CooperativeRun(scn, states, paths, "cm1", 10, 1, 6).run()
+    b = CooperativeRun(scn, states, paths, "cm1", 10, 1, 6, evaluate=False).run()
+    np.testing.assert_array_equal(a.vehicles["pos_err"], b.vehicles["pos_err"])
+    assert len(b.metrics["step"]) == 0 and len(a.metrics["step"]) == 6 * 3 * 3
