@@ -171,7 +171,9 @@ class CooperativeRun:
         sel = np.asarray(meas.mask[k, n], bool)
         Z = np.asarray(meas.z[k, n], float)[sel]
         spd, tr = (self.true[k - 1, n, 4], self.true[k - 1, n, 5]) if k > 0 else (None, None)
-        R_z = (None if meas.R_meas is None else
+        # the constant sensor model's per-measurement covariances are all R: the filter's shared R
+        # (one batched correction) instead of J equal copies (a per-measurement loop, ~2.5x slower)
+        R_z = (None if meas.R_meas is None or scn.sensor.model == "constant" else
                scn.filter.r_scale * np.einsum("ja,ab->jab", np.asarray(meas.R_meas[k, n], float)[sel], np.eye(5)))
         return Z, spd, tr, R_z
 

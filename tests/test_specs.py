@@ -213,3 +213,26 @@ def test_unevaluated_run_has_the_same_filter_results(paper12):
     b = CooperativeRun(scn, states, paths, "cm1", 10, 1, 6, evaluate=False).run()
     np.testing.assert_array_equal(a.vehicles["pos_err"], b.vehicles["pos_err"])
     assert len(b.metrics["step"]) == 0 and len(a.metrics["step"]) == 6 * 3 * 3
+
+
+def test_constant_sensor_model_corrects_with_the_shared_r(paper12):
+    """With sensor.model = constant every measurement's covariance is R: the run hands the filter no
+    per-measurement R_z (the batched shared-R correction); forcing the J copies of R gives the same
+    run to 1e-9 (it only costs more)."""
+    scn, states, paths = paper12
+    run = CooperativeRun(scn, states, paths, "proposed", 12, 5, 8, evaluate=False)
+    forced = CooperativeRun(scn, states, paths, "proposed", 12, 5, 8, evaluate=False)
+    for k in range(8):
+        run.predict_at_bs(k)
+        forced.predict_at_bs(k)
+        for n in range(run.n_veh):
+            Z, spd, tr, R_z = run.local_inputs(k, n)
+            assert R_z is None
+            sel = np.asarray(forced.meas.mask[k, n], bool)
+            R_j = scn.filter.r_scale * np.einsum("ja,ab->jab", forced.meas.R_meas[k, n][sel], np.eye(5))
+            np.testing.assert_allclose(R_j, np.broadcast_to(run.filters[n].R, R_j.shape), rtol=1e-12)
+            a = run.filters[n].step(Z, spd, tr, None)
+            b = forced.filters[n].step(Z, spd, tr, R_j)
+            np.testing.assert_allclose(a.mean, b.mean, rtol=1e-9)
+            run.upload(k, n, a)
+            forced.upload(k, n, b)
