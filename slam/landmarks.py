@@ -33,7 +33,7 @@ Adding a type (docs/extending.md): make a :class:`LandmarkSpec` with its functio
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterable
 
 import numpy as np
@@ -53,6 +53,11 @@ if TYPE_CHECKING:  # pragma: no cover
 
 PdFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 """``pd_fn(vehicle_pos (..., 3), lm_pos (..., 3), lm_type code) -> (...)`` detection probability."""
+
+
+def point_extent(scn: "Scenario") -> None:
+    """A point landmark: the measured point is the landmark state's position (no extent)."""
+    return None
 
 
 @dataclass(frozen=True)
@@ -111,7 +116,7 @@ class LandmarkSpec:
     threshold_param: str = ""
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
-    extent: Callable[["Scenario"], np.ndarray | None] = field(default=lambda scn: None)
+    extent: Callable[["Scenario"], np.ndarray | None] = point_extent
     fuse: Callable[[GM, GM, np.ndarray, FusionInput], tuple[GM, np.ndarray | None]] | None = None
     reduce_fused: Callable[[GM, np.ndarray | None, "Scenario"], GM] | None = None
     predict_at_bs: Callable[[GM, "Scenario"], GM] | None = None

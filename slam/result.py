@@ -9,7 +9,8 @@
 
 ``metrics`` (one row per step, map and landmark type)
     step int32, map string (a vehicle name for its local averaged map, or "fused" for the BS
-    map), type string ("VA" | "SP" | "VS"), gospa, loc, missed, false [m] (GOSPA p=2, c, alpha=2,
+    map), type string (a mapped landmark type of :mod:`mmslam.slam.landmarks`: "VA" | "SP" | "VS"
+    built in, whether or not the variant maps it), gospa, loc, missed, false [m] (GOSPA p=2, c, alpha=2,
     with its localisation / missed / false parts; gospa**2 = loc + missed + false),
     n_est int32, n_true int32, card (the PHD mass: sum of the map's weights, the expected
     number of landmarks of that type), n_visible int32 (landmarks of that type the map's vehicle,
