@@ -34,7 +34,7 @@ Adding a type (docs/extending.md): make a :class:`LandmarkSpec` with its functio
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Iterable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -309,14 +309,6 @@ def landmark_type(name_or_code: str | int) -> LandmarkSpec:
     return spec
 
 
-def type_name(code: int) -> str:
-    """Name of a type code (``OTHER`` included, unknown codes as ``'type <code>'``)."""
-    spec = _CODES.get(int(code))
-    if spec is not None:
-        return spec.name
-    return LandmarkType(code).name if code in LandmarkType._value2member_map_ else f"type {code}"
-
-
 def mapped_types() -> tuple[LandmarkSpec, ...]:
     """Registered types the filter maps (all but the known BS)."""
     return tuple(s for s in _REGISTRY.values() if s.mapped)
@@ -339,11 +331,6 @@ def is_range_gated(codes: int | np.ndarray) -> np.bool_ | np.ndarray:
 def known_codes() -> tuple[int, ...]:
     """Codes a path may carry: the registered types and ``OTHER``."""
     return tuple(sorted({s.code for s in _REGISTRY.values()} | {OTHER}))
-
-
-def codes_of(specs: Iterable[LandmarkSpec]) -> tuple[int, ...]:
-    """Their codes, in order."""
-    return tuple(s.code for s in specs)
 
 
 BS_SPEC = LandmarkSpec(
