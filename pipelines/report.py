@@ -197,6 +197,23 @@ pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
 """
 
 
+def _variants_html(variants: list[str]) -> str:
+    """``<table id="variants">``: each variant's legend label and what it runs (:class:`VariantSpec`)."""
+    from mmslam.slam.variants import variant_names, get_variant
+
+    rows = []
+    for v in variants:
+        if v not in variant_names():  # a variant registered by a plugin that is not loaded now
+            rows.append(f'<tr data-variant="{html.escape(v)}"><td>{html.escape(v)}</td><td></td><td>not registered '
+                        "in this process</td></tr>")
+            continue
+        s = get_variant(v)
+        rows.append(f'<tr data-variant="{html.escape(v)}"><td>{html.escape(v)}</td><td>{html.escape(s.label)}</td>'
+                    f"<td>{html.escape(s.describe())}</td></tr>")
+    return ('<table id="variants"><thead><tr><th>variant</th><th>label</th><th>runs</th></tr></thead><tbody>'
+            + "".join(rows) + "</tbody></table>")
+
+
 def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path]) -> str:
     """The report as one HTML string (figures inlined as base64 PNG)."""
     out = Path(out_dir)
@@ -243,6 +260,8 @@ the map (estimated number of vehicles).</p>
 <p>Per run (same seed: same measurements and prior), score of the variant minus score of baseline; mean and 95% CI
 over runs. A difference whose interval contains 0 is reported as not significant.</p>
 {_paired_html(summary)}
+<h2>Variants</h2>
+{_variants_html(spec.get("variants", []))}
 <h2>Figures</h2>
 {''.join(figs)}
 <h2>Reproduce</h2>

@@ -49,6 +49,17 @@ class VariantSpec:
     downlink_ego_removal: bool = False
     reference: bool = False
 
+    def describe(self) -> str:
+        """One line for the report: its maps and countermeasures, from the flags."""
+        if not self.measurement_update:
+            return "no measurement update: dead reckoning from the prior with the known speed and turn rate, empty maps"
+        cms = [text for on, text in ((self.ego_vs_average, "ego-VS averaging (eq. 11)"),
+                                     (self.predict_at_bs, "prediction at the BS (eq. 16)"),
+                                     (self.vs_fusion, "VS fusion (eqs. 17-18)"),
+                                     (self.downlink_ego_removal, "ego removal on the downlink")) if on]
+        return f"maps {', '.join(self.map_types)}; " + (f"countermeasures: {', '.join(cms)}" if cms
+                                                        else "AA fusion of every map (eq. 8)")
+
     def types(self) -> tuple[LandmarkSpec, ...]:
         """The specs of :attr:`map_types`, in order (raises MmslamError for an unknown name)."""
         return tuple(landmark_type(n) for n in self.map_types)

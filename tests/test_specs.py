@@ -236,3 +236,14 @@ def test_constant_sensor_model_corrects_with_the_shared_r(paper12):
             np.testing.assert_allclose(a.mean, b.mean, rtol=1e-9)
             run.upload(k, n, a)
             forced.upload(k, n, b)
+
+
+def test_report_lists_each_variants_label_and_what_it_runs():
+    from mmslam.pipelines.report import _variants_html
+
+    out = _variants_html(["baseline", "proposed", "gone"])
+    assert out.startswith('<table id="variants">') and out.count("<tr data-variant=") == 3
+    assert "baseline (TWC2020)" in out and "maps VA, SP; AA fusion of every map (eq. 8)" in out
+    assert "countermeasures: ego-VS averaging (eq. 11), prediction at the BS (eq. 16)" in out
+    assert "not registered" in out  # an old ablation's variant from a plugin not loaded now
+    assert V.get_variant("odometry").describe().startswith("no measurement update")
