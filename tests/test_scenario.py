@@ -230,3 +230,25 @@ def test_city_presets_ship_with_the_package():
     assert np.allclose(munich.bs, [8.5, 21.0, 30.0])
     assert all(4.0 <= v.initial_state[4] <= 7.0 for v in munich.vehicles)
     assert all(v.motion == "waypoints" for v in (*canyon.vehicles, *munich.vehicles))
+
+
+def test_every_declared_parameter_is_read_by_the_code():
+    """No dead knobs: each [sensor]/[filter]/[fusion]/[evaluation] parameter is read outside its
+    declaration (an attribute access ``obj.<name>`` in the code, docstrings and strings not counted,
+    or a landmark spec's ``p_detect_param`` / ``threshold_param``)."""
+    import ast
+    from pathlib import Path
+
+    from mmslam.scenes.params import iter_params
+    from mmslam.scenes.scenario import PARAM_SECTIONS
+    from mmslam.slam.landmarks import landmark_types
+
+    root = Path(__file__).resolve().parents[1]
+    skip = {root / "scenes" / "scenario.py", root / "scenes" / "params.py"}
+    read = {n.attr for d in ("slam", "pipelines", "raytrace", "scenes", "mmslam")
+            for p in sorted((root / d).rglob("*.py")) if p not in skip
+            for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Attribute)}
+    read |= {n for s in landmark_types() for n in (s.p_detect_param, s.threshold_param) if n}
+    dead = [f"{sec}.{f.name}" for sec, cls in PARAM_SECTIONS.items() for f, _ in iter_params(cls)
+            if f.name not in read]
+    assert dead == []
