@@ -69,7 +69,7 @@ def register(app: typer.Typer) -> None:
     def ablate_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         variants: str = typer.Option(",".join(BUILTIN_VARIANTS), "--variants",
-                                     help="Comma-separated variants: " + variant_help()),
+                                     help="Comma-separated variants. " + variant_help()),
         mc: int = typer.Option(10, "--mc", help="Monte Carlo runs per variant (seeds seed0..seed0+mc-1)." + span(1, MAX_MC)),
         particles: Optional[int] = typer.Option(None, "--particles", help="Particles per vehicle filter (default: "
                                                 "the scenario's filter.particles)." + span(1, MAX_PARTICLES)),

@@ -35,10 +35,10 @@ def summarize(res) -> list[tuple[str, str, float]]:
 
 
 def variant_help() -> str:
-    """``name (label)`` of every registered variant, for ``--help``."""
+    """Every registered variant and what it runs (:meth:`VariantSpec.describe`), for ``--help``."""
     from mmslam.slam.variants import get_variant, variant_names
 
-    return "; ".join(f"{v} ({get_variant(v).label})" for v in variant_names()) + "."
+    return " ".join(f"{v}: {get_variant(v).describe()}." for v in variant_names())
 
 
 def register(app: typer.Typer) -> None:
@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
     @app.command("slam")
     def slam_cmd(
         cache: Path = typer.Argument(..., help="Path cache directory (from `mmslam trace`)."),
-        variant: str = typer.Option("baseline", help="Filter variant: " + variant_help()),
+        variant: str = typer.Option("baseline", help="Filter variant. " + variant_help()),
         particles: Optional[int] = typer.Option(None, help="Particles per vehicle (default: the scenario's "
                                                 "filter.particles)." + span(1, MAX_PARTICLES)),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),

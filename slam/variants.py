@@ -52,7 +52,7 @@ class VariantSpec:
     def describe(self) -> str:
         """One line for the report: its maps and countermeasures, from the flags."""
         if not self.measurement_update:
-            return "no measurement update: dead reckoning from the prior with the known speed and turn rate, empty maps"
+            return "dead reckoning with the known speed and turn rate (no measurement update, empty maps)"
         cms = [text for on, text in ((self.ego_vs_average, "ego-VS averaging (eq. 11)"),
                                      (self.predict_at_bs, "prediction at the BS (eq. 16)"),
                                      (self.vs_fusion, "VS fusion (eqs. 17-18)"),
