@@ -90,6 +90,9 @@ class LandmarkSpec:
         p_detect_param, threshold_param: ``filter.*`` parameter names of its detection
             probability inside the FOV and of its estimate threshold ('' = ``p_detect_<name>``,
             ``threshold_<name>`` in lower case).
+        merge_param: ``filter.*`` parameter name of its merge gate ``U`` (squared Mahalanobis
+            distance) in the local reduction and the averaged map (default ``merge``; VA:
+            ``merge_va``).
         predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
             (births are added to the predicted map).
         birth: ``birth(states (P, 7), moments, spec, scn, pd_fn) -> GM`` with ``moments`` =
@@ -114,6 +117,7 @@ class LandmarkSpec:
     moving: bool = False
     p_detect_param: str = ""
     threshold_param: str = ""
+    merge_param: str = "merge"
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
     extent: Callable[["Scenario"], np.ndarray | None] = point_extent
@@ -135,6 +139,11 @@ class LandmarkSpec:
     def p_detect(self, scn: "Scenario") -> float:
         """The filter's detection probability inside the FOV (``filter.<p_detect_param>``)."""
         return float(getattr(scn.filter, self.p_detect_param))
+
+    def merge_gate(self, scn: "Scenario") -> float:
+        """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
+        (``filter.<merge_param>``)."""
+        return float(getattr(scn.filter, self.merge_param))
 
     def threshold(self, scn: "Scenario") -> float:
         """Estimate threshold on a component's weight (``filter.<threshold_param>``)."""
@@ -213,12 +222,20 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
     return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
 
 
-def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
-    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.merge``)."""
+def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", merge_param: str = "merge") -> GM:
+    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``)."""
     fp, fu = scn.filter, scn.fusion
     if fused.capacity:
-        fused = prune_merge(fused, fu.average_prune, fp.merge, fp.max_gaussians, fp.max_trace, pos_dims=3)
+        fused = prune_merge(fused, fu.average_prune, float(getattr(fp, merge_param)), fp.max_gaussians,
+                            fp.max_trace, pos_dims=3)
     return fused
+
+
+def reduce_fused_va(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+    """:func:`reduce_fused_static` with the VA merge gate ``filter.merge_va``: two image sources closer
+    than the VA position uncertainty lets U = 49 tell apart stay two (docs/implementation-notes.md,
+    "Detection in cities")."""
+    return reduce_fused_static(fused, pairs, scn, "merge_va")
 
 
 def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
@@ -340,7 +357,7 @@ BS_SPEC = LandmarkSpec(
 VA_SPEC = LandmarkSpec(
     name="VA", code=int(LandmarkType.VA), geometry=Bounce.MIRROR, state_dim=3, range_gated=False,
     description="virtual anchor (VA)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
-    reduce_fused=reduce_fused_static)
+    reduce_fused=reduce_fused_va, merge_param="merge_va")
 SP_SPEC = LandmarkSpec(
     name="SP", code=int(LandmarkType.SP), geometry=Bounce.SCATTER, state_dim=3, range_gated=True,
     description="scattering point (SP)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,

@@ -162,7 +162,8 @@ class LocalFilter:
         for t in self.types:
             g = self.maps[t]
             if g.capacity:  # prune_merge prunes first and trims the slots to the live count
-                g = prune_merge(g, fp.prune, fp.merge, fp.max_gaussians, fp.max_trace, pos_dims=3)
+                g = prune_merge(g, fp.prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians, fp.max_trace,
+                                pos_dims=3)
             self.maps[t] = g
 
     def estimate(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, GM]]:
@@ -173,7 +174,8 @@ class LocalFilter:
         avg = {}
         for t in self.types:
             g = self.maps[t]
-            avg[t] = (average_map(g, w, fu.average_prune, fp.merge, fp.max_gaussians, fp.max_trace)
+            avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
+                                  fp.max_trace)
                       if g.capacity else empty((), 0, self.specs[t].state_dim))
         return mean, cov, avg
 
