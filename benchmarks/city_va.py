@@ -21,6 +21,7 @@ from scipy import stats
 
 
 def seeds_of(s: str) -> list[int]:
+    """``"0-4"`` -> ``[0, 1, 2, 3, 4]``; ``"1,3"`` -> ``[1, 3]``."""
     if "-" in s:
         a, b = s.split("-")
         return list(range(int(a), int(b) + 1))
@@ -28,6 +29,8 @@ def seeds_of(s: str) -> list[int]:
 
 
 def scores(r, kmin: int) -> dict[str, float]:
+    """One run's fused VA GOSPA (m), its missed / false parts (m^2) and truth count, averaged over steps
+    ``k >= kmin``, and the position RMSE (m) over all vehicles and those steps."""
     m = r.metrics
     mp, ty, st = np.asarray(m["map"]).astype(str), np.asarray(m["type"]).astype(str), np.asarray(m["step"])
     sel = (mp == "fused") & (ty == "VA") & (st >= kmin)
@@ -41,6 +44,7 @@ def scores(r, kmin: int) -> dict[str, float]:
 
 
 def ci(a) -> tuple[float, float]:
+    """Mean and 95% Student-t half-width over runs."""
     a = np.asarray(a, float)
     if a.size < 2:
         return float(a.mean()), float("nan")
@@ -62,8 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     from mmslam.slam.filter import run_slam
 
     rows = []
-    results = {}
-    for s in seeds_of(a.seeds):
+    seeds = seeds_of(a.seeds)
+    for s in seeds:
         t0 = time.perf_counter()
         r = run_slam(a.cache, a.variant, a.particles, s, steps=a.steps, overrides=a.set)
         sc = scores(r, a.kmin)
@@ -72,7 +76,6 @@ def main(argv: list[str] | None = None) -> int:
             so = scores(o, a.kmin)
             sc["empty"], sc["odo_rmse"] = so["va"], so["rmse"]
         rows.append(sc)
-        results[s] = r
         print(f"seed {s}: fused VA GOSPA {sc['va']:.2f} m (missed^2 {sc['missed']:.1f}, false^2 {sc['false']:.1f}, "
               f"n_true {sc['n_true']:.2f})  RMSE {sc['rmse']:.3f} m"
               + (f"  empty {sc['empty']:.2f} m  odometry RMSE {sc['odo_rmse']:.3f} m" if a.odometry else "")
@@ -81,10 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         m, h = ci([r[key] for r in rows])
         print(f"mean {key}: {m:.3f} +- {h:.3f}")
     if a.save:
-        np.savez(a.save, **{f"{k}_{i}": np.array([r[k] for r in rows]) for i, k in enumerate(rows[0])})
-        import pickle
-        with open(a.save + ".pkl", "wb") as fh:
-            pickle.dump({s: (r.vehicles, r.metrics, r.landmarks) for s, r in results.items()}, fh)
+        np.savez(a.save, seeds=np.array(seeds), **{k: np.array([r[k] for r in rows]) for k in rows[0]})
     return 0
 
 
