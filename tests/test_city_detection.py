@@ -8,8 +8,9 @@ import pytest
 from scipy import stats
 
 from mmslam.scenes.scenario import load_preset
-from mmslam.slam.filter import FusionCenter, LocalFilter, merge_gate
+from mmslam.slam.filter import FusionCenter, LocalFilter
 from mmslam.slam.gm import GM, empty
+from mmslam.slam.landmarks import landmark_type
 from mmslam.slam.measurement import SP, VA, VS
 
 # Two VAs 1.53 m apart in y (canyon's image sources of the facades y = 9.57 and y = 10.34), each with
@@ -31,9 +32,9 @@ def _pair(batch: tuple[int, ...]) -> GM:
 
 
 def test_merge_gate_is_merge_va_for_vas_and_merge_for_the_others():
-    fp = _scn(merge=49.0, merge_va=4.0).filter
-    assert merge_gate(fp, VA) == 4.0
-    assert merge_gate(fp, SP) == merge_gate(fp, VS) == 49.0
+    scn = _scn(merge=49.0, merge_va=4.0)
+    assert landmark_type(VA).merge_gate(scn) == 4.0
+    assert landmark_type(SP).merge_gate(scn) == landmark_type(VS).merge_gate(scn) == 49.0
     assert load_preset("paper").filter.merge_va == load_preset("paper").filter.merge == 49.0  # paper unchanged
 
 
