@@ -235,7 +235,7 @@ def test_city_presets_ship_with_the_package():
 def test_every_declared_parameter_is_read_by_the_code():
     """No dead knobs: each [sensor]/[filter]/[fusion]/[evaluation] parameter is read outside its
     declaration (an attribute access ``obj.<name>`` in the code, docstrings and strings not counted,
-    or a landmark spec's ``p_detect_param`` / ``threshold_param``)."""
+    or a landmark spec's ``p_detect_param`` / ``threshold_param`` / ``merge_param``)."""
     import ast
     from pathlib import Path
 
@@ -248,7 +248,7 @@ def test_every_declared_parameter_is_read_by_the_code():
     read = {n.attr for d in ("slam", "pipelines", "raytrace", "scenes", "mmslam")
             for p in sorted((root / d).rglob("*.py")) if p not in skip
             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Attribute)}
-    read |= {n for s in landmark_types() for n in (s.p_detect_param, s.threshold_param) if n}
+    read |= {n for s in landmark_types() for n in (s.p_detect_param, s.threshold_param, s.merge_param) if n}
     dead = [f"{sec}.{f.name}" for sec, cls in PARAM_SECTIONS.items() for f, _ in iter_params(cls)
             if f.name not in read]
     assert dead == []
