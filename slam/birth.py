@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from .gm import GM, symmetrize
-from .gmphd import cubature_points
+from .ckf import cubature_points
 from .measurement import SP, VA, VS
 from .vs import vs_birth_covariance, vs_birth_mean
 

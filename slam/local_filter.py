@@ -33,7 +33,7 @@ from mmslam.scenes.scenario import Scenario
 from .birth import birth_moments_by_kind
 from .dynamics import wrap_angle
 from .gm import GM, empty
-from .gmphd import bs_logterm, check_phd_mass, corrected_gm, log_psi, type_terms
+from .gmphd import correct
 from .landmarks import LandmarkSpec
 from .measurement import BS
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
@@ -146,15 +146,10 @@ class LocalFilter:
             return
         R = self.R if R_z is None else np.asarray(R_z, float).reshape(J, 5, 5)
         p_bs = self.pd_fn(self.s[:, 0:3], np.broadcast_to(self.bs, (self.P, 3)), BS)
-        bs_term = bs_logterm(self.s, Z, R, self.bs, np.asarray(p_bs, float))
-        terms = [type_terms(self.maps[t], t, self.s, Z, R, self.bs, self.pd_fn,
-                            self._extent[t]) for t in self.types]
-        lpsi = log_psi(terms, bs_term, self.log_clutter, (self.P, J))
-        for tc in terms:
-            g = corrected_gm(tc, Z, lpsi, prune=self.fp.prune)
-            check_phd_mass(tc.g, g, J, tc.lm_type, self._k)  # cheap; fails loudly on corrupted weights
-            self.maps[tc.lm_type] = g
-        self.logw = self.logw + lpsi.sum(axis=1)
+        corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
+                                  p_bs, self.log_clutter, self.fp.prune, self._extent, self._k)
+        self.maps.update(corrected)
+        self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 
     def reduce(self) -> None:
         """``prune_merge`` of every map (prune, merge, cap, max position trace)."""

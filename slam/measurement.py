@@ -1,4 +1,4 @@
-"""Geometric measurement model (DESIGN.md section 4). Pure NumPy, broadcasting over leading axes.
+"""Geometric measurement model (DESIGN.md section 4, paper eq. (3)): per-point kernels and a NumPy API.
 
 A measurement is ``z = [TOA, AOD az, AOD el, AOA az, AOA el]``: TOA in metres (delay x c) plus
 the clock bias ``B`` (m); AOD at the BS and AOA at the vehicle in radians. The *global* channel
@@ -6,54 +6,148 @@ parameters (:func:`channel_params`) have AOA azimuth in the global frame; the *b
 measurement (:func:`to_body`) subtracts the vehicle heading from it and wraps to ``(-pi, pi]``.
 
 Landmark types (integer codes used in caches and the filter): ``BS=0, VA=1, SP=2, VS=3, OTHER=4``.
+Each filtered type maps to one path geometry (:data:`GEOMETRY`, a :class:`mmslam.model.Bounce`); the
+model is written once, for one landmark point and one vehicle (:func:`channel_point`,
+:func:`measure_point`, numba ``njit``), and the NumPy API (:func:`channel_params`, :func:`measure`)
+loops over it.
 """
 from __future__ import annotations
 
+import math
+
+import numba as nb
 import numpy as np
 
 from mmslam.model import (ANGLE_COMPONENTS, AZIMUTH_COMPONENTS, BS, MEAS_DIM, OTHER, SP, TYPE_CODES,  # noqa: F401
                           TYPE_NAMES, VA, VS, direction_angles, mirror_point, wrap_angle)
+from mmslam.model import Bounce
+
+GEOMETRY: dict[int, int] = {BS: int(Bounce.DIRECT), VA: int(Bounce.MIRROR), SP: int(Bounce.SCATTER),
+                            VS: int(Bounce.SCATTER)}
+"""Landmark type -> path geometry (:class:`mmslam.model.Bounce`): the one place the filter maps a
+type to its measurement function (a VS bounces like a scatter point on its position)."""
+
+_DIRECT, _MIRROR = int(Bounce.DIRECT), int(Bounce.MIRROR)
+_TWO_PI = 2.0 * math.pi
+
+
+def geometry_of(lm_type: int) -> int:
+    """The :class:`~mmslam.model.Bounce` code of a landmark type; ValueError for a type without one."""
+    try:
+        return GEOMETRY[int(lm_type)]
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"unknown landmark type {lm_type!r}; expected one of {sorted(GEOMETRY)}") from None
+
+
+@nb.njit(cache=True)
+def wrap(a: float) -> float:
+    """Angle ``a`` (rad) wrapped to ``(-pi, pi]`` (the scalar twin of :func:`mmslam.model.wrap_angle`)."""
+    w = (a + math.pi) % _TWO_PI - math.pi
+    return math.pi if w == -math.pi else w
+
+
+@nb.njit(cache=True)
+def _elevation(dz: float, r: float) -> float:
+    """``asin(dz / r)`` (rad), clipped to ``[-pi/2, pi/2]``; 0 for a zero-length vector."""
+    return math.asin(min(1.0, max(-1.0, dz / (r if r > 0.0 else 1.0))))
+
+
+@nb.njit(cache=True)
+def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
+
+    Args:
+        geometry: :class:`~mmslam.model.Bounce` code: DIRECT (line of sight, ``x`` ignored),
+            MIRROR (``x`` = image source ``v`` of the BS in the wall) or SCATTER (``x`` = bounce point).
+        u: ``(3,)`` vehicle antenna position; x: ``(3,)`` landmark point; b: ``(3,)`` BS position
+            (global frame, m).
+        out: ``(5,)`` written with ``[toa (m), aod az, aod el, aoa az (global frame), aoa el]`` (rad).
+            MIRROR: the AOD points at the incidence point on the wall, i.e. the direction ``u - v``
+            reflected in the wall plane (the perpendicular bisector of ``b`` and ``v``); the TOA is
+            ``|u - v|``. SCATTER: ``|x - b| + |x - u|``.
+    """
+    if geometry == _DIRECT:
+        dep0, dep1, dep2 = u[0] - b[0], u[1] - b[1], u[2] - b[2]
+        arr0, arr1, arr2 = -dep0, -dep1, -dep2
+        rdep = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
+        rarr = rdep
+        toa = rdep
+    elif geometry == _MIRROR:
+        arr0, arr1, arr2 = x[0] - u[0], x[1] - u[1], x[2] - u[2]  # v - u
+        rarr = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
+        n0, n1, n2 = x[0] - b[0], x[1] - b[1], x[2] - b[2]  # wall normal ~ v - b
+        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        nn = nn if nn > 0.0 else 1.0
+        n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+        proj = -(arr0 * n0 + arr1 * n1 + arr2 * n2)  # (u - v) . n
+        dep0, dep1, dep2 = -arr0 - 2.0 * proj * n0, -arr1 - 2.0 * proj * n1, -arr2 - 2.0 * proj * n2
+        rdep = rarr  # a mirror keeps the length
+        toa = rarr
+    else:
+        dep0, dep1, dep2 = x[0] - b[0], x[1] - b[1], x[2] - b[2]
+        arr0, arr1, arr2 = x[0] - u[0], x[1] - u[1], x[2] - u[2]
+        rdep = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
+        rarr = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
+        toa = rdep + rarr
+    out[0] = toa
+    out[1] = math.atan2(dep1, dep0)
+    out[2] = _elevation(dep2, rdep)
+    out[3] = math.atan2(arr1, arr0)
+    out[4] = _elevation(arr2, rarr)
+
+
+@nb.njit(cache=True)
+def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Noise-free measurement ``h(s, x)`` of one landmark point seen from one vehicle, paper eq. (3).
+
+    ``s (>= 7,)``: vehicle state ``[x, y, z (m), heading (rad), v (m/s), turn rate (rad/s), clock
+    bias B (m)]``; ``x``, ``b``, ``geometry``: as :func:`channel_point`. ``out (5,)``:
+    ``[TOA + B (m), AOD az, AOD el, AOA az - heading (body frame, wrapped to (-pi, pi]), AOA el]``.
+    """
+    channel_point(geometry, s[0:3], x, b, out)
+    out[0] += s[6]
+    out[3] = wrap(out[3] - s[3])
+
+
+@nb.njit(cache=True)
+def _channel_loop(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    for n in range(u.shape[0]):
+        channel_point(geometry, u[n], x[n], b[n], out[n])
+
+
+@nb.njit(cache=True)
+def _measure_loop(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    for n in range(s.shape[0]):
+        measure_point(geometry, s[n], x[n], b[n], out[n])
+
+
+def _flat(a: np.ndarray, shape: tuple[int, ...], k: int) -> np.ndarray:
+    return np.ascontiguousarray(np.broadcast_to(a, shape + (k,))).reshape(-1, k)
 
 
 def channel_params(u: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) -> np.ndarray:
     """Noise-free global channel parameters ``[toa, aod_az, aod_el, aoa_az, aoa_el]`` (m, rad).
 
+    Broadcasts :func:`channel_point` (paper eq. (3)) over the leading axes.
+
     Args:
         u: vehicle antenna positions ``(..., 3)``, global frame, m.
-        lm: landmark positions ``(..., 3)`` (BS: ignored; VA: image source; SP/VS: scatter point).
-        lm_type: one of ``BS, VA, SP, VS``.
+        lm: landmark positions ``(..., 3)`` (BS: ignored, may be None; VA: image source; SP/VS:
+            scatter point).
+        lm_type: one of ``BS, VA, SP, VS`` (mapped to its geometry by :data:`GEOMETRY`).
         bs: BS position ``(3,)`` or ``(..., 3)``.
 
     Returns:
         ``(..., 5)`` with TOA without clock bias and AOA azimuth in the global frame.
-        VA: the AOD points at the incidence point on the wall, i.e. the direction ``u - v``
-        reflected in the wall plane (the perpendicular bisector of ``b`` and ``v``).
     """
+    geo = geometry_of(lm_type)
     u = np.asarray(u, dtype=float)
     b = np.asarray(bs, dtype=float)
-    if lm_type == BS:
-        d_dep = u - b
-        toa = np.linalg.norm(d_dep, axis=-1)
-        d_arr = b - u
-    elif lm_type == VA:
-        v = np.asarray(lm, dtype=float)
-        d_vu = u - v
-        toa = np.linalg.norm(d_vu, axis=-1)
-        n = v - b
-        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        d_dep = d_vu - 2.0 * np.sum(d_vu * n, axis=-1, keepdims=True) * n
-        d_arr = v - u
-    elif lm_type in (SP, VS):
-        s = np.asarray(lm, dtype=float)
-        d_dep = s - b
-        d_arr = s - u
-        toa = np.linalg.norm(d_dep, axis=-1) + np.linalg.norm(d_arr, axis=-1)
-    else:
-        raise ValueError(f"unknown landmark type {lm_type!r}")
-    aod_az, aod_el = direction_angles(d_dep)
-    aoa_az, aoa_el = direction_angles(d_arr)
-    toa, aod_az = np.broadcast_arrays(toa, aod_az)
-    return np.stack([toa, aod_az, aod_el, aoa_az, aoa_el], axis=-1)
+    x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
+    shape = np.broadcast_shapes(u.shape[:-1], x.shape[:-1], b.shape[:-1])
+    out = np.empty(shape + (5,))
+    _channel_loop(geo, _flat(u, shape, 3), _flat(x, shape, 3), _flat(b, shape, 3), out.reshape(-1, 5))
+    return out
 
 
 def to_body(g: np.ndarray, heading: np.ndarray, bias: np.ndarray) -> np.ndarray:
@@ -65,10 +159,15 @@ def to_body(g: np.ndarray, heading: np.ndarray, bias: np.ndarray) -> np.ndarray:
 
 
 def measure(state: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) -> np.ndarray:
-    """Noise-free measurement ``h(s, x, m)`` for vehicle states ``(..., 7)`` (DESIGN.md sec. 3)."""
-    state = np.asarray(state, dtype=float)
-    g = channel_params(state[..., 0:3], lm, lm_type, bs)
-    return to_body(g, state[..., 3], state[..., 6])
+    """Noise-free measurement ``h(s, x, m)`` for vehicle states ``(..., 7)``: :func:`measure_point` broadcast."""
+    geo = geometry_of(lm_type)
+    s = np.asarray(state, dtype=float)
+    b = np.asarray(bs, dtype=float)
+    x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
+    shape = np.broadcast_shapes(s.shape[:-1], x.shape[:-1], b.shape[:-1])
+    out = np.empty(shape + (5,))
+    _measure_loop(geo, _flat(s, shape, s.shape[-1]), _flat(x, shape, 3), _flat(b, shape, 3), out.reshape(-1, 5))
+    return out
 
 
 def residual(z: np.ndarray, zhat: np.ndarray) -> np.ndarray:

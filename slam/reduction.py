@@ -12,10 +12,11 @@ Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, 
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 from .gm import GM, compact, empty, symmetrize
-from .gmphd import soa_cholesky, soa_forward_solve
+from .linalg import spd_inverse
 
 
 def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.ndarray:
@@ -27,234 +28,143 @@ def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.nda
     return keep
 
 
-def _inv_spd(P: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric positive-definite matrices ``(..., d, d)`` (closed form for d <= 3).
+@nb.njit(cache=True)
+def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
+                 out_m: np.ndarray, out_P: np.ndarray) -> float:
+    """Moment match of the components ``members`` of one mixture (Vo & Ma 2006, Table II, step 2).
 
-    Raises FloatingPointError if a matrix is singular or not positive definite (non-positive
-    determinant or non-finite inverse).
+    ``W = sum w_i``, ``m = sum w_i m_i / W``, ``P = sum w_i (P_i + (m_i - m)(m_i - m)^T) / W``,
+    accumulated as offsets from the component ``ref`` (less cancellation far from the origin);
+    ``out_m (d,)`` and ``out_P (d, d)`` (exactly symmetric) are written, ``W`` is returned.
+    Shapes: ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``; ``members (K,)`` slot indices.
     """
-    d = P.shape[-1]
-    if d == 3:
-        # closed form on contiguous entry rows (batch last): the same arithmetic as on the
-        # strided (..., 3, 3) views, faster
-        T = P.reshape(-1, 9).T  # (9, N) view
-        a, b, c, e, f, i = (np.ascontiguousarray(T[k]) for k in (0, 1, 2, 4, 5, 8))
-        A0, A1, A2 = e * i - f * f, c * f - b * i, b * f - c * e
-        det = a * A0 + b * A1 + c * A2
-        if not np.all(det > 0):
-            raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
-        iT = np.empty((9, T.shape[1]))
-        iT[0] = A0
-        iT[1] = iT[3] = A1
-        iT[2] = iT[6] = A2
-        iT[4] = a * i - c * c
-        iT[5] = iT[7] = b * c - a * f
-        iT[8] = a * e - b * b
-        iT /= det
-        inv = np.ascontiguousarray(iT.T).reshape(P.shape)
-    else:
-        inv = _inv_spd_cholesky(P)
-        if inv is None:  # not numerically positive definite: the generic inverse decides
-            try:
-                inv = symmetrize(np.linalg.inv(P))
-            except np.linalg.LinAlgError:
-                raise FloatingPointError("singular covariance in Gaussian-mixture merging") from None
-    if not np.all(np.isfinite(inv)):
-        raise FloatingPointError("singular covariance in Gaussian-mixture merging")
-    return inv
-
-
-def _inv_spd_cholesky(P: np.ndarray) -> np.ndarray | None:
-    """``P^-1 = L^-T L^-1`` for SPD ``P (..., d, d)`` with batch-last closed-form kernels.
-
-    Returns None if some Cholesky pivot is not positive (the caller falls back to LAPACK).
-    The result is exactly symmetric (lower triangle computed, mirrored).
-    """
-    sh, d = P.shape[:-2], P.shape[-1]
-    if P.size == 0:
-        return np.empty_like(P)
-    A = np.moveaxis(P.reshape(-1, d, d), 0, -1)  # (d, d, N)
-    L = soa_cholesky(np.ascontiguousarray(A))
-    diag = np.einsum("iin->in", L)
-    if not (np.isfinite(diag).all() and (diag > 0).all()):
-        return None
-    Linv = soa_tril_inverse(L)  # (d, d, N), exact zeros above the diagonal
-    # (L^-T L^-1)[i, j] = sum_k Linv[k, i] Linv[k, j]: only k >= max(i, j) is non-zero
-    inv = np.empty_like(Linv)
-    for i in range(d):
-        inv[i, :i + 1] = np.einsum("kn,kbn->bn", Linv[i:, i], Linv[i:, :i + 1])
-        inv[:i, i] = inv[i, :i]
-    return inv.transpose(2, 0, 1).reshape(sh + (d, d))
-
-
-def soa_tril_inverse(L: np.ndarray) -> np.ndarray:
-    """Inverses of lower-triangular ``L (d, d, N)`` (batch last) by forward substitution.
-
-    The same operations as ``soa_forward_solve(L, I)`` restricted to the lower triangle (the
-    entries above the diagonal are exactly 0 there too), so the result is bit-identical to it
-    at about half the cost. Returns ``(d, d, N)``, lower triangular.
-    """
-    d = L.shape[0]
-    X = np.zeros_like(L)
-    tmp = np.empty(L.shape[1:])
+    d = m.shape[1]
+    W = 0.0
+    dbar = np.zeros(d)
+    S = np.zeros((d, d))
+    off = np.empty(d)
+    for i in members:
+        W += w[i]
+        for a in range(d):
+            off[a] = m[i, a] - m[ref, a]
+            dbar[a] += w[i] * off[a]
+        for a in range(d):
+            for b in range(d):
+                S[a, b] += w[i] * (P[i, a, b] + off[a] * off[b])
+    Wsafe = W if W > 0.0 else 1.0
     for a in range(d):
-        Xa = X[a, :a + 1]  # row a of L^-1, columns 0..a
-        Xa[a] = 1.0
-        for b in range(a):  # row b is non-zero in columns 0..b only
-            t = tmp[:b + 1]
-            np.multiply(L[a, b], X[b, :b + 1], out=t)
-            np.subtract(Xa[:b + 1], t, out=Xa[:b + 1])
-        np.divide(Xa, L[a, a], out=Xa)
-    return X
+        dbar[a] /= Wsafe
+        out_m[a] = m[ref, a] + dbar[a]
+    for a in range(d):
+        for b in range(a + 1):
+            v = 0.5 * (S[a, b] + S[b, a]) / Wsafe - dbar[a] * dbar[b]
+            out_P[a, b] = v
+            out_P[b, a] = v
+    return W
 
 
-_PAIRWISE_BUDGET = 8_000_000  # max N*Q*Q entries (64 MB) of the precomputed pairwise distances
-_ONEHOT_BUDGET = 2_000_000  # max N*K*Q entries of the one-hot cluster-weight matrix
-_ONEHOT_MAX_CLUSTERS = 64  # beyond, the O(K Q d^2) products cost more than the scatter-add
+@nb.njit(cache=True)
+def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray) -> int:
+    """Greedy Mahalanobis merging of one mixture (Vo & Ma 2006, Table II, step 2).
 
+    Take the highest-weight remaining component ``j`` (the first on ties); its cluster is every
+    remaining ``i`` with ``(m_i - m_j)^T P_i^-1 (m_i - m_j) <= merge`` (squared Mahalanobis
+    distance, dimensionless); write the cluster's :func:`moment_match` to the next output slot;
+    repeat until none remain. A Euclidean pre-gate skips the distance where
+    ``|m_i - m_j|^2 > merge trace(P_i)`` (then the distance exceeds ``merge``: exact).
 
-def _label_single(w: np.ndarray, mc: np.ndarray, Aflat: np.ndarray, b: np.ndarray, c: np.ndarray,
-                  tr: np.ndarray, keep: np.ndarray, merge: float) -> tuple[np.ndarray, np.ndarray]:
-    """Greedy cluster labels of one mixture, shrinking the candidate set as clusters are taken.
+    Args:
+        w: ``(Q,)`` weights; m: ``(Q, d)`` means; P: ``(Q, d, d)`` SPD covariances; keep: ``(Q,)``
+            the components to merge (the others are ignored).
+        out_w, out_m, out_P: ``(Q,)``, ``(Q, d)``, ``(Q, d, d)`` outputs; slot ``k`` holds cluster
+            ``k`` (clusters in the order of their heads' weights).
 
-    Same rule and tie-breaking as the batched loop (head = first index of maximal weight).
-    ``tr (Q,)`` are the covariance traces, used for an exact Euclidean pre-gate.
-    Returns ``label (Q,)`` (-1 for pruned) and ``heads (K,)``.
+    Returns:
+        The number of clusters ``K``, or ``-1`` if a kept covariance is singular / indefinite.
     """
-    d = mc.shape[-1]
-    label = np.full(w.shape[0], -1)
-    heads = []
-    alive = np.nonzero(keep)[0]
-    alive = alive[np.argsort(-w[alive], kind="stable")]
-    # Euclidean gate: D^T A_i D <= merge implies |D|^2 <= merge * lambda_max(P_i) <= merge * trace(P_i)
-    r2 = merge * tr * (1.0 + 1e-9) + 1e-12
-    cols = np.ascontiguousarray(mc.T)  # (d, Q): the gate's squared distance summed column by column
-    while alive.size:
-        j = alive[0]
-        mj = mc[j]
-        ca = cols[:, alive]  # (d, A)
-        e2 = ca[0] - mj[0]
-        e2 *= e2
-        for k in range(1, d):  # the same sequential sum as np.sum(..., axis=-1) over d < 8 terms
-            t = ca[k] - mj[k]
-            t *= t
-            e2 += t
-        near = np.nonzero(e2 <= r2[alive])[0]
-        cand = alive[near]
-        dist = Aflat[cand] @ np.outer(mj, mj).reshape(d * d) - 2.0 * (b[cand] @ mj) + c[cand]
-        L = np.zeros(alive.size, bool)
-        L[near] = dist <= merge
-        L[0] = True
-        label[alive[L]] = len(heads)
-        heads.append(j)
-        alive = alive[~L]
-    return label, np.asarray(heads, dtype=int)
+    q, d = m.shape
+    A = np.empty((q, d, d))
+    r2 = np.empty(q)
+    for i in range(q):
+        if keep[i]:
+            if not spd_inverse(P[i], A[i]):
+                return -1
+            tr = 0.0
+            for a in range(d):
+                tr += P[i, a, a]
+            r2[i] = merge * tr * (1.0 + 1e-9) + 1e-12
+    remaining = keep.copy()
+    members = np.empty(q, np.int64)
+    D = np.empty(d)
+    K = 0
+    while True:
+        j = -1
+        for i in range(q):
+            if remaining[i] and (j < 0 or w[i] > w[j]):
+                j = i
+        if j < 0:
+            return K
+        n = 0
+        for i in range(q):
+            if not remaining[i]:
+                continue
+            if i != j:  # the head always joins its own cluster
+                e2 = 0.0
+                for a in range(d):
+                    D[a] = m[i, a] - m[j, a]
+                    e2 += D[a] * D[a]
+                if e2 > r2[i]:
+                    continue
+                dist = 0.0
+                for a in range(d):
+                    t = 0.0
+                    for b in range(d):
+                        t += A[i, a, b] * D[b]
+                    dist += D[a] * t
+                if not dist <= merge:
+                    continue
+            remaining[i] = False
+            members[n] = i
+            n += 1
+        out_w[K] = moment_match(w, m, P, members[:n], j, out_m[K], out_P[K])
+        K += 1
 
 
-def _outer(a: np.ndarray) -> np.ndarray:
-    """Outer products ``a a^T``: ``(..., d) -> (..., d, d)``, one multiplication per entry (the same
-    values as ``a[..., :, None] * a[..., None, :]``, without broadcasting loops over ``d``)."""
-    return np.einsum("...i,...j->...ij", a, a)
+@nb.njit(cache=True)
+def _merge_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, count: np.ndarray) -> int:
+    """:func:`greedy_merge` of every mixture ``n`` of a flat batch; the first singular ``n`` or -1."""
+    for n in range(w.shape[0]):
+        count[n] = greedy_merge(w[n], m[n], P[n], keep[n], merge, out_w[n], out_m[n], out_P[n])
+        if count[n] < 0:
+            return n
+    return -1
 
 
-def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray,
-                merge: float, pairwise: bool | None = None
+def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Greedy merging on a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``K <= Q``
+    """:func:`greedy_merge` of a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``K <= Q``
     slots (``K`` = the largest number of clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I).
 
-    The loop runs over merge iterations (at most ``Q``), never over batch members: iteration
-    ``it`` picks every member's current highest-weight remaining component (the cluster head)
-    and labels its cluster ``it``. The squared distance of candidate ``i`` to head ``j`` is
-    expanded as ``m_j^T A_i m_j - 2 m_j^T A_i m_i + m_i^T A_i m_i`` (``A_i = P_i^{-1}``, means
-    centred per mixture first to limit cancellation); for small problems the full ``(N, Q, Q)``
-    matrix is formed once with batched matrix products. After labelling, all clusters' moments
-    are computed at once (one-hot matrix products), spreads taken relative to the cluster head.
+    Raises FloatingPointError if a kept covariance is singular or not positive definite.
     """
     n, q, d = m.shape
-    if n == 0 or q == 0 or not keep.any():
-        return np.zeros((n, 0)), np.zeros((n, 0, d)), np.zeros((n, 0, d, d)), np.zeros((n, 0), bool)
-    out_mask = np.zeros((n, q), bool)
-    cnt = keep.sum(-1, keepdims=True)
-    centre = np.where(keep[..., None], m, 0.0).sum(-2) / np.maximum(cnt, 1)  # (N, d)
-    mc = np.where(keep[..., None], m - centre[:, None, :], 0.0)
-    if 2 * int(keep.sum()) >= keep.size:  # mostly live: invert in place (identity in dead slots)
-        A = _inv_spd(np.where(keep[..., None, None], P, np.eye(d)))
-    else:
-        A = np.broadcast_to(np.eye(d), (n, q, d, d)).copy()
-        A[keep] = _inv_spd(P[keep])
-    Aflat = A.reshape(n, q, d * d)
-    b = np.einsum("nqij,nqj->nqi", A, mc)  # (N, Q, d)  A_i m_i
-    c = np.einsum("nqi,nqi->nq", b, mc)  # (N, Q)     m_i^T A_i m_i
-    if pairwise is None:
-        pairwise = n * q * q <= _PAIRWISE_BUDGET
-    if pairwise:
-        outer_all = _outer(mc).reshape(n, q, d * d)
-        # Dt[n, j, i] = distance of candidate i to head j (P_i used); head-major for contiguous rows
-        Dt = outer_all @ np.swapaxes(Aflat, -1, -2) - 2.0 * (mc @ np.swapaxes(b, -1, -2)) + c[:, None, :]
-    remaining = keep.copy()
-    label = np.full((n, q), -1)
-    heads = np.zeros((n, q), int)
-    rows = np.arange(n)
-    n_it = 0
-    if n == 1 and not pairwise:
-        tr = np.trace(P[0], axis1=-2, axis2=-1)
-        lab, hd = _label_single(w[0], mc[0], Aflat[0], b[0], c[0], tr, keep[0], merge)
-        label[0], n_it = lab, hd.size
-        heads[0, :n_it] = hd
-        out_mask[0, :n_it] = True
-        remaining[:] = False
-    for it in range(q if remaining.any() else 0):
-        active = remaining.any(-1)  # (N,)
-        if not active.any():
-            break
-        j = np.argmax(np.where(remaining, w, -np.inf), axis=-1)  # (N,)
-        if pairwise:
-            dist = Dt[rows, j]
-        else:
-            mj = mc[rows, j]
-            outer = (mj[:, :, None] * mj[:, None, :]).reshape(n, 1, d * d)
-            dist = (Aflat * outer).sum(-1) - 2.0 * (b * mj[:, None, :]).sum(-1) + c
-        L = remaining & (dist <= merge)
-        L[rows, j] = remaining[rows, j]  # the head always joins its own cluster
-        np.copyto(label, it, where=L)
-        heads[:, it] = j
-        out_mask[:, it] = active
-        remaining &= ~L
-        n_it = it + 1
-    # ---- moments of all clusters at once (scatter-add by cluster label)
-    valid = label >= 0
-    flat = (rows[:, None] * n_it + label)[valid]  # (M,) cluster index in the flattened (N, K)
-    wv = w[valid]
-    W = np.bincount(flat, weights=wv, minlength=n * n_it).reshape(n, n_it)
-    Wsafe = np.where(W > 0, W, 1.0)
-    head_of = heads[rows[:, None], np.maximum(label, 0)]  # (N, Q)
-    diff_all = np.where(valid[..., None], mc - mc[rows[:, None], head_of], 0.0)  # (N, Q, d) offset from head
-    if n_it <= _ONEHOT_MAX_CLUSTERS and n * n_it * q <= _ONEHOT_BUDGET:
-        # few clusters per mixture (the usual case): weighted one-hot matrix products instead
-        # of the slower unbuffered scatter-add (the same sums up to summation order)
-        Wm = np.where(label[:, None, :] == np.arange(n_it)[None, :, None], w[:, None, :], 0.0)  # (N, K, Q)
-        acc1 = Wm @ diff_all  # (N, K, d)
-        second = _outer(diff_all)
-        second += P
-        second[~valid] = 0.0
-        acc2 = Wm @ second.reshape(n, q, d * d)  # (N, K, d * d)
-    else:
-        diff = diff_all[valid]  # (M, d)
-        acc1 = np.zeros((n * n_it, d))
-        np.add.at(acc1, flat, wv[:, None] * diff)
-        second = P[valid] + diff[:, :, None] * diff[:, None, :]  # (M, d, d)
-        acc2 = np.zeros((n * n_it, d, d))
-        np.add.at(acc2, flat, wv[:, None, None] * second)
-    dbar = acc1.reshape(n, n_it, d) / Wsafe[..., None]  # mean offset from the head
-    S = acc2.reshape(n, n_it, d, d) / Wsafe[..., None, None]
-    Pbar = S - _outer(dbar)
-    mhead = mc[rows[:, None], heads[:, :n_it]]  # (N, K, d)
-    act = out_mask[:, :n_it].copy()
-    out_w = np.where(act, W, 0.0)
-    out_m = np.where(act[..., None], mhead + dbar + centre[:, None, :], 0.0)
-    out_P = np.where(act[..., None, None], symmetrize(Pbar), np.eye(d))
-    return out_w, out_m, out_P, act
+    out_w = np.zeros((n, q))
+    out_m = np.zeros((n, q, d))
+    out_P = np.zeros((n, q, d, d))
+    count = np.zeros(n, np.int64)
+    if n and q:
+        bad = _merge_batch(np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(m, dtype=float),
+                           np.ascontiguousarray(P, dtype=float), np.ascontiguousarray(keep, dtype=bool),
+                           float(merge), out_w, out_m, out_P, count)
+        if bad >= 0:
+            raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
+    k = int(count.max(initial=0))
+    mask = np.arange(k)[None, :] < count[:, None]
+    out_P = out_P[:, :k]
+    out_P[~mask] = np.eye(d)
+    return out_w[:, :k], out_m[:, :k], out_P, mask
 
 
 def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
@@ -313,6 +223,21 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     return out
 
 
+@nb.njit(cache=True)
+def _merge_pairs(w: np.ndarray, m: np.ndarray, P: np.ndarray, pairs: np.ndarray,
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray) -> None:
+    """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``."""
+    d = m.shape[1]
+    for k in range(pairs.shape[0]):
+        i, j = pairs[k, 0], pairs[k, 1]
+        out_w[i] = moment_match(w, m, P, pairs[k], i, out_m[i], out_P[i])
+        out_w[j] = 0.0
+        for a in range(d):
+            out_m[j, a] = 0.0
+            for b in range(d):
+                out_P[j, a, b] = 1.0 if a == b else 0.0
+
+
 def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
     """Merge given disjoint pairs of components of one mixture by moment matching.
 
@@ -337,15 +262,8 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
     out = g.copy()
     if pairs.shape[0] == 0:
         return out
-    i, j = pairs[:, 0], pairs[:, 1]
-    wi, wj = g.w[i], g.w[j]
-    w = wi + wj
-    m = (wi[:, None] * g.m[i] + wj[:, None] * g.m[j]) / w[:, None]
-    di, dj = g.m[i] - m, g.m[j] - m
-    P = (wi[:, None, None] * (g.P[i] + di[:, :, None] * di[:, None, :])
-         + wj[:, None, None] * (g.P[j] + dj[:, :, None] * dj[:, None, :])) / w[:, None, None]
-    out.w[i], out.m[i], out.P[i] = w, m, symmetrize(P)
-    out.w[j], out.m[j], out.P[j], out.mask[j] = 0.0, 0.0, np.eye(g.dim), False
+    _merge_pairs(g.w, np.ascontiguousarray(g.m), np.ascontiguousarray(g.P), pairs, out.w, out.m, out.P)
+    out.mask[pairs[:, 1]] = False
     out.check("after merge_pairs")
     return out
 
@@ -391,8 +309,7 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     w = (g.w * pw[:, None]).reshape(-1)[sel]
     m = g.m.reshape(-1, d)[sel]
     P = g.P.reshape(-1, d, d)[sel]
-    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge,
-                                    pairwise=False)
+    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge)
     omask &= ow >= prune
     out = GM(ow[0], om[0], oP[0], omask[0])
     out = compact(out, min(cap, int(out.count())))

@@ -1,0 +1,251 @@
+"""The cubature Kalman filter (CKF) update of one landmark Gaussian by one measurement set.
+
+The measurement update of the map PHD, paper eqs. (5) and (10), needs, for every landmark
+Gaussian ``N(m, P)`` of every particle and every measurement ``z_j``, the likelihood
+``N(z_j; zhat, S)`` and the updated moments ``m + K (z_j - zhat)``, ``P - K S K^T``. The
+measurement function :func:`~mmslam.slam.measurement.measure_point` (paper eq. (3)) is
+non-linear; the third-degree spherical-radial cubature rule (Arasaratnam & Haykin 2009) gives
+``zhat``, ``S`` and the cross-covariance ``Pxz`` from ``2 x 3 = 6`` points of the *position*
+marginal: ``h`` sees the landmark position only (a VS Gaussian is 7-D ``[x, y, z, vx, vy, vz,
+xi]``; the correction reaches velocity and turn rate through the Gaussian conditional
+``Pxz = P[:, :3] P_pos^-1 Pxz_pos``, exact for a linear model).
+
+:func:`ckf_update` is written for one Gaussian and one vehicle state, like the textbook
+equations; :func:`innovate` runs it over ``N`` Gaussians (numba ``njit``, ``cache=True``).
+Frames and units: global frame, m (VS also m/s, rad/s); measurements as in
+:mod:`~mmslam.slam.measurement`, azimuth residuals wrapped to ``(-pi, pi]``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .linalg import back_solve, cholesky, forward_solve, safe_cholesky
+from .measurement import MEAS_DIM, measure_point, wrap
+
+_LOG_2PI = math.log(2.0 * math.pi)
+_IS_AZIMUTH = np.array([c in (1, 3) for c in range(MEAS_DIM)])  # AZIMUTH_COMPONENTS
+OK, BAD_POSITION_COV, BAD_INNOVATION_COV = 0, 1, 2
+"""Return codes of :func:`ckf_update`."""
+
+
+@nb.njit(cache=True)
+def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
+               extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> int:
+    """CKF update of one landmark Gaussian ``N(m, P)`` seen from one vehicle state ``s``.
+
+    The measurement is ``z = h(s, x + e) + n`` (paper eq. (3), :func:`measure_point` with
+    ``geometry``), ``n ~ N(0, R)``, ``e ~ N(0, extent)`` the scatter point's offset about the
+    landmark position (an extended landmark such as a car body; zeros for a point landmark).
+
+    1. cubature points ``x_k = m_pos +- sqrt(3) L e_k`` (``L L^T = P_pos + extent``), weight 1/6;
+    2. ``zhat = mean h(s, x_k)`` (azimuths averaged as deviations from the first point, wrapped);
+       ``Pzz = mean (h_k - zhat)(h_k - zhat)^T``; ``Cov(x + e, z) = sqrt(3) L G`` with
+       ``G = (Dz_+ - Dz_-) / 6``; ``Pxz = P[:, :3] (L L^T)^-1 Cov(x + e, z)``
+       (``= sqrt(3) L G`` for a 3-D point landmark);
+    3. per measurement covariance ``R_r``: ``S = Pzz + R_r = L_S L_S^T``, ``A = Pxz L_S^-T``
+       (so ``K = A L_S^-1``), ``P_post = P - A A^T``;
+    4. per measurement ``z_j``: whitened residual ``y = L_S^-1 (z_j - zhat)``,
+       ``log N(z_j; zhat, S) = -|y|^2 / 2 - log det L_S - 5/2 log 2 pi``, ``m_post = m + A y``.
+
+    Args:
+        geometry: :class:`mmslam.model.Bounce` code of the landmark type.
+        m: ``(d,)`` mean, position first (d = 3, or 7 for a VS); P: ``(d, d)`` SPD covariance.
+        s: ``(7,)`` vehicle state; b: ``(3,)`` BS position (m).
+        extent: ``(3, 3)`` scatter-point covariance (m^2), zeros for a point landmark.
+        Z: ``(J, 5)`` measurements; R: ``(1, 5, 5)`` one covariance for all, or ``(J, 5, 5)`` one
+            per measurement.
+        loglik: ``(J,)`` out; m_post: ``(J, d)`` out; P_post: ``(len(R), d, d)`` out
+            (exactly symmetric).
+
+    Returns:
+        ``OK``, or ``BAD_POSITION_COV`` / ``BAD_INNOVATION_COV`` if that covariance is not
+        positive definite (after the jitter retry of :func:`~mmslam.slam.linalg.cholesky`).
+    """
+    d = m.shape[0]
+    J = Z.shape[0]
+    point = True
+    Ppos = np.empty((3, 3))
+    for i in range(3):
+        for k in range(3):
+            Ppos[i, k] = P[i, k] + extent[i, k]
+            point = point and extent[i, k] == 0.0
+    L = np.empty((3, 3))
+    if not cholesky(Ppos, L):
+        return BAD_POSITION_COV
+    # 1.-2. cubature points through h; deviations from the first point (azimuths wrapped)
+    c = math.sqrt(3.0)
+    hz = np.empty((6, MEAS_DIM))
+    x = np.empty(3)
+    for k in range(3):
+        for sign in range(2):
+            for i in range(3):
+                x[i] = m[i] + c * L[i, k] if sign == 0 else m[i] - c * L[i, k]
+            measure_point(geometry, s, x, b, hz[k + 3 * sign])
+    zhat = np.empty(MEAS_DIM)
+    Dz = np.empty((6, MEAS_DIM))
+    for a in range(MEAS_DIM):
+        mean = 0.0
+        for k in range(6):
+            dev = hz[k, a] - hz[0, a]
+            Dz[k, a] = wrap(dev) if _IS_AZIMUTH[a] else dev
+            mean += Dz[k, a]
+        mean /= 6.0
+        for k in range(6):
+            Dz[k, a] -= mean
+        zhat[a] = wrap(hz[0, a] + mean) if _IS_AZIMUTH[a] else hz[0, a] + mean
+    Pzz = np.empty((MEAS_DIM, MEAS_DIM))
+    for a in range(MEAS_DIM):
+        for e in range(a + 1):
+            t = 0.0
+            for k in range(6):
+                t += Dz[k, a] * Dz[k, e]
+            Pzz[a, e] = t / 6.0
+            Pzz[e, a] = Pzz[a, e]
+    Pxz = np.empty((d, MEAS_DIM))
+    g = np.empty(3)
+    for a in range(MEAS_DIM):
+        for k in range(3):
+            g[k] = (Dz[k, a] - Dz[k + 3, a]) / 6.0
+        if d == 3 and point:  # Pxz = sqrt(3) L G
+            for i in range(3):
+                t = 0.0
+                for k in range(i + 1):
+                    t += L[i, k] * g[k]
+                Pxz[i, a] = c * t
+        else:  # Pxz = sqrt(3) P[:, :3] L^-T G
+            back_solve(L, g, g)
+            for i in range(d):
+                Pxz[i, a] = c * (P[i, 0] * g[0] + P[i, 1] * g[1] + P[i, 2] * g[2])
+    # 3.-4. per measurement covariance: gain and posterior covariance; per measurement: likelihood, mean
+    S = np.empty((MEAS_DIM, MEAS_DIM))
+    LS = np.empty((MEAS_DIM, MEAS_DIM))
+    A = np.empty((d, MEAS_DIM))
+    y = np.empty(MEAS_DIM)
+    for r in range(R.shape[0]):
+        for a in range(MEAS_DIM):
+            for e in range(MEAS_DIM):
+                S[a, e] = Pzz[a, e] + R[r, a, e]
+        if not cholesky(S, LS):
+            return BAD_INNOVATION_COV
+        half_logdet = 0.0
+        for a in range(MEAS_DIM):
+            half_logdet += math.log(LS[a, a])
+        for i in range(d):
+            forward_solve(LS, Pxz[i], A[i])
+        for i in range(d):
+            for k in range(i + 1):
+                t = 0.5 * (P[i, k] + P[k, i])
+                for a in range(MEAS_DIM):
+                    t -= A[i, a] * A[k, a]
+                P_post[r, i, k] = t
+                P_post[r, k, i] = t
+        j0, j1 = (0, J) if R.shape[0] == 1 else (r, r + 1)
+        for j in range(j0, j1):
+            for a in range(MEAS_DIM):
+                res = Z[j, a] - zhat[a]
+                y[a] = wrap(res) if _IS_AZIMUTH[a] else res
+            forward_solve(LS, y, y)
+            q = 0.0
+            for a in range(MEAS_DIM):
+                q += y[a] * y[a]
+            loglik[j] = -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+            for i in range(d):
+                t = m[i]
+                for a in range(MEAS_DIM):
+                    t += A[i, a] * y[a]
+                m_post[j, i] = t
+    return OK
+
+
+@nb.njit(cache=True)
+def _ckf_batch(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
+               extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> tuple[int, int]:
+    """:func:`ckf_update` of every Gaussian ``n``; returns ``(n, code)`` of the first failure or ``(-1, OK)``."""
+    for n in range(m.shape[0]):
+        code = ckf_update(geometry, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n])
+        if code != OK:
+            return n, code
+    return -1, OK
+
+
+@dataclass
+class Innovation:
+    """CKF update of ``N`` Gaussians against ``J`` measurements (:func:`innovate`).
+
+    ``loglik (N, J)``: ``log N(z_j; zhat_n, S_n)``; ``m_post (N, J, d)``: updated means;
+    ``P_post (N, 1, d, d)`` (one ``R``) or ``(N, J, d, d)`` (one ``R`` per measurement): updated
+    covariances (use :meth:`post`).
+    """
+
+    loglik: np.ndarray
+    m_post: np.ndarray
+    P_post: np.ndarray
+
+    def post(self, n: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``(K, d, d)`` posterior covariances of the pairs (Gaussian ``n[k]``, measurement ``j[k]``)."""
+        return self.P_post[n, j if self.P_post.shape[1] > 1 else 0]
+
+
+def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs: np.ndarray,
+             Z: np.ndarray, R: np.ndarray, stage: str, extent: np.ndarray | None = None) -> Innovation:
+    """:func:`ckf_update` of Gaussians ``N(m[n], P[n])`` seen from vehicle states ``states[n]``.
+
+    Args:
+        m: ``(N, d)`` means; P: ``(N, d, d)`` covariances; states: ``(N, 7)`` the vehicle state of
+            each Gaussian's particle.
+        geometry: :class:`mmslam.model.Bounce` code (:data:`~mmslam.slam.measurement.GEOMETRY`).
+        bs: ``(3,)`` BS position (m).
+        Z: ``(J, 5)`` measurements; R: ``(5, 5)`` one covariance, or ``(J, 5, 5)`` one per measurement.
+        stage: named in errors.
+        extent: ``(3, 3)`` scatter-point covariance (m^2), or None for a point landmark.
+
+    Raises:
+        FloatingPointError: a non-finite or non-positive-definite covariance (naming ``stage``).
+        ValueError: ``R`` of another shape.
+    """
+    m = np.ascontiguousarray(m, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    n, d = m.shape
+    Z = np.ascontiguousarray(np.asarray(Z, float).reshape(-1, MEAS_DIM))
+    J = Z.shape[0]
+    R = np.asarray(R, float)
+    if R.shape == (MEAS_DIM, MEAS_DIM):
+        R = R[None]
+    elif R.shape != (J, MEAS_DIM, MEAS_DIM):
+        raise ValueError(f"R has shape {R.shape}; expected (5, 5) or ({J}, 5, 5)")
+    if not (np.isfinite(m).all() and np.isfinite(P).all()):
+        raise FloatingPointError(f"non-finite covariance in {stage}")
+    ext = np.zeros((3, 3)) if extent is None else np.asarray(extent, float).reshape(3, 3)
+    loglik = np.empty((n, J))
+    m_post = np.empty((n, J, d))
+    P_post = np.empty((n, R.shape[0], d, d))
+    bad, code = _ckf_batch(int(geometry), m, P, np.ascontiguousarray(states, dtype=float),
+                           np.ascontiguousarray(bs, dtype=float), ext, Z, np.ascontiguousarray(R),
+                           loglik, m_post, P_post)
+    if code == BAD_POSITION_COV:
+        raise FloatingPointError(f"covariance not positive definite in {stage}")
+    if code == BAD_INNOVATION_COV:
+        raise FloatingPointError(f"covariance not positive definite in {stage} (innovation covariance)")
+    return Innovation(loglik, m_post, P_post)
+
+
+def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points") -> np.ndarray:
+    """Third-degree spherical-radial cubature points of ``N(m, P)`` (Arasaratnam & Haykin 2009).
+
+    Args:
+        m: means ``(..., d)``; P: covariances ``(..., d, d)`` (SPD).
+
+    Returns:
+        ``(..., 2d, d)``: ``m + sqrt(d) L e_i`` for ``i < d`` and ``m - sqrt(d) L e_i`` after,
+        with ``L`` the lower Cholesky factor of ``P``. All points carry weight ``1 / (2d)``.
+    """
+    d = m.shape[-1]
+    L = safe_cholesky(P, stage) * np.sqrt(d)
+    cols = np.swapaxes(L, -1, -2)  # (..., d, d): row i = L e_i
+    return np.concatenate([m[..., None, :] + cols, m[..., None, :] - cols], axis=-2)
