@@ -32,10 +32,10 @@ OK, BAD_POSITION_COV, BAD_INNOVATION_COV = 0, 1, 2
 """Return codes of :func:`ckf_update`."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
                extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
-               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> int:
+               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple) -> int:
     """CKF update of one landmark Gaussian ``N(m, P)`` seen from one vehicle state ``s``.
 
     The measurement is ``z = h(s, x + e) + n`` (paper eq. (3), :func:`measure_point` with
@@ -61,6 +61,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             per measurement.
         loglik: ``(J,)`` out; m_post: ``(J, d)`` out; P_post: ``(len(R), d, d)`` out
             (exactly symmetric).
+        work: scratch arrays from :func:`workspace` (allocated once per batch, not per Gaussian).
 
     Returns:
         ``OK``, or ``BAD_POSITION_COV`` / ``BAD_INNOVATION_COV`` if that covariance is not
@@ -68,26 +69,21 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
+    Ppos, L, x, hz, Dz, zhat, Pzz, g, S, LS, y, Pxz, A = work
     point = True
-    Ppos = np.empty((3, 3))
     for i in range(3):
         for k in range(3):
             Ppos[i, k] = P[i, k] + extent[i, k]
             point = point and extent[i, k] == 0.0
-    L = np.empty((3, 3))
     if not cholesky(Ppos, L):
         return BAD_POSITION_COV
     # 1.-2. cubature points through h; deviations from the first point (azimuths wrapped)
     c = math.sqrt(3.0)
-    hz = np.empty((6, MEAS_DIM))
-    x = np.empty(3)
     for k in range(3):
         for sign in range(2):
             for i in range(3):
                 x[i] = m[i] + c * L[i, k] if sign == 0 else m[i] - c * L[i, k]
             measure_point(geometry, s, x, b, hz[k + 3 * sign])
-    zhat = np.empty(MEAS_DIM)
-    Dz = np.empty((6, MEAS_DIM))
     for a in range(MEAS_DIM):
         mean = 0.0
         for k in range(6):
@@ -98,7 +94,6 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         for k in range(6):
             Dz[k, a] -= mean
         zhat[a] = wrap(hz[0, a] + mean) if _IS_AZIMUTH[a] else hz[0, a] + mean
-    Pzz = np.empty((MEAS_DIM, MEAS_DIM))
     for a in range(MEAS_DIM):
         for e in range(a + 1):
             t = 0.0
@@ -106,8 +101,6 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 t += Dz[k, a] * Dz[k, e]
             Pzz[a, e] = t / 6.0
             Pzz[e, a] = Pzz[a, e]
-    Pxz = np.empty((d, MEAS_DIM))
-    g = np.empty(3)
     for a in range(MEAS_DIM):
         for k in range(3):
             g[k] = (Dz[k, a] - Dz[k + 3, a]) / 6.0
@@ -122,10 +115,6 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             for i in range(d):
                 Pxz[i, a] = c * (P[i, 0] * g[0] + P[i, 1] * g[1] + P[i, 2] * g[2])
     # 3.-4. per measurement covariance: gain and posterior covariance; per measurement: likelihood, mean
-    S = np.empty((MEAS_DIM, MEAS_DIM))
-    LS = np.empty((MEAS_DIM, MEAS_DIM))
-    A = np.empty((d, MEAS_DIM))
-    y = np.empty(MEAS_DIM)
     for r in range(R.shape[0]):
         for a in range(MEAS_DIM):
             for e in range(MEAS_DIM):
@@ -162,13 +151,28 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     return OK
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
+def workspace(d: int) -> tuple:
+    """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
+    return (np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)),
+            np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)),
+            np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _ckf_batch(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
                extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
                loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> tuple[int, int]:
     """:func:`ckf_update` of every Gaussian ``n``; returns ``(n, code)`` of the first failure or ``(-1, OK)``."""
+    work = workspace(m.shape[1])
     for n in range(m.shape[0]):
-        code = ckf_update(geometry, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n])
+        # one call site per geometry: the inlined update is compiled with a constant geometry (~1.4x faster)
+        if geometry == 0:
+            code = ckf_update(0, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
+        elif geometry == 1:
+            code = ckf_update(1, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
+        else:
+            code = ckf_update(2, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
         if code != OK:
             return n, code
     return -1, OK

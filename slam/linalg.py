@@ -18,7 +18,7 @@ JITTER = 1e-10
 """Relative diagonal jitter of the one retry of :func:`cholesky` (times the largest diagonal entry)."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
     """Cholesky-Crout factor of ``A + jitter I`` into ``L`` (lower triangle of ``A`` read); False if not SPD."""
     d = A.shape[0]
@@ -40,7 +40,7 @@ def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
     """Lower Cholesky factor ``A = L L^T`` of one SPD matrix ``A (d, d)`` written into ``L (d, d)``.
 
@@ -62,7 +62,7 @@ def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
     return _cholesky_once(A, L, JITTER * scale)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def forward_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
     """``x = L^-1 b`` for lower-triangular ``L (d, d)`` and ``b, x (d,)`` (``x`` may be ``b``)."""
     d = L.shape[0]
@@ -73,7 +73,7 @@ def forward_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
         x[i] = t / L[i, i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def back_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
     """``x = L^-T b`` for lower-triangular ``L (d, d)`` and ``b, x (d,)`` (``x`` may be ``b``)."""
     d = L.shape[0]
@@ -84,7 +84,7 @@ def back_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
         x[i] = t / L[i, i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def spd_inverse(A: np.ndarray, out: np.ndarray) -> bool:
     """``out = A^-1 = L^-T L^-1`` of one SPD ``A (d, d)`` (exactly symmetric); False if not SPD."""
     d = A.shape[0]
@@ -103,7 +103,7 @@ def spd_inverse(A: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _cholesky_batch(A: np.ndarray, L: np.ndarray) -> int:
     """:func:`cholesky` of every ``A[n] (d, d)``; returns the first failing index or -1."""
     for n in range(A.shape[0]):
@@ -112,7 +112,7 @@ def _cholesky_batch(A: np.ndarray, L: np.ndarray) -> int:
     return -1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _inverse_batch(A: np.ndarray, out: np.ndarray) -> int:
     """:func:`spd_inverse` of every ``A[n] (d, d)``; returns the first failing index or -1."""
     for n in range(A.shape[0]):

@@ -39,20 +39,22 @@ def geometry_of(lm_type: int) -> int:
         raise ValueError(f"unknown landmark type {lm_type!r}; expected one of {sorted(GEOMETRY)}") from None
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def wrap(a: float) -> float:
     """Angle ``a`` (rad) wrapped to ``(-pi, pi]`` (the scalar twin of :func:`mmslam.model.wrap_angle`)."""
+    if -math.pi < a <= math.pi:  # the usual case: no floating-point modulo
+        return a
     w = (a + math.pi) % _TWO_PI - math.pi
     return math.pi if w == -math.pi else w
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _elevation(dz: float, r: float) -> float:
     """``asin(dz / r)`` (rad), clipped to ``[-pi/2, pi/2]``; 0 for a zero-length vector."""
     return math.asin(min(1.0, max(-1.0, dz / (r if r > 0.0 else 1.0))))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
 
@@ -96,7 +98,7 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, ou
     out[4] = _elevation(arr2, rarr)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """Noise-free measurement ``h(s, x)`` of one landmark point seen from one vehicle, paper eq. (3).
 
@@ -109,13 +111,13 @@ def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, ou
     out[3] = wrap(out[3] - s[3])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _channel_loop(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     for n in range(u.shape[0]):
         channel_point(geometry, u[n], x[n], b[n], out[n])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _measure_loop(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     for n in range(s.shape[0]):
         measure_point(geometry, s[n], x[n], b[n], out[n])
