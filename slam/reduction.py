@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from .gm import GM, compact, empty, symmetrize
-from .linalg import spd_inverse
+from .linalg import cholesky, forward_solve
 
 
 def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.ndarray:
@@ -84,11 +84,11 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
         The number of clusters ``K``, or ``-1`` if a kept covariance is singular / indefinite.
     """
     q, d = m.shape
-    A = np.empty((q, d, d))
+    L = np.empty((q, d, d))  # P_i = L_i L_i^T: the distance is |L_i^-1 (m_i - m_j)|^2
     r2 = np.empty(q)
     for i in range(q):
         if keep[i]:
-            if not spd_inverse(P[i], A[i]):
+            if not cholesky(P[i], L[i]):
                 return -1
             tr = 0.0
             for a in range(d):
@@ -116,12 +116,10 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
                     e2 += D[a] * D[a]
                 if e2 > r2[i]:
                     continue
+                forward_solve(L[i], D, D)
                 dist = 0.0
                 for a in range(d):
-                    t = 0.0
-                    for b in range(d):
-                        t += A[i, a, b] * D[b]
-                    dist += D[a] * t
+                    dist += D[a] * D[a]
                 if not dist <= merge:
                     continue
             remaining[i] = False
