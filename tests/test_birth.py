@@ -100,7 +100,7 @@ def test_birth_with_no_measurements_is_empty():
 def test_birth_moments_equal_the_stacked_reference(lm_type):
     """Component-wise birth_moments == invert_* on stacked points + _image_moments."""
     from mmslam.slam.birth import _image_moments, birth_moments
-    from mmslam.slam.gmphd import cubature_points
+    from mmslam.slam.ckf import cubature_points
 
     rng = np.random.default_rng(4 + lm_type)
     s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (5, 1))

@@ -1,7 +1,7 @@
 """The PHD-mass invariant the filter checks at every correction (issue 10).
 
 Per particle, type and step: ``sum_q w_q(corrected) <= sum_q w_q(predicted) + J``. The check
-(:func:`mmslam.slam.gmphd.check_phd_mass`, called by ``LocalFilter.correct``) must stay silent on
+(:func:`mmslam.slam.gmphd.check_phd_mass`, called by :func:`mmslam.slam.gmphd.correct`) must stay silent on
 normal runs and fail loudly on the weight corruption of the old ``_logsumexp_slots``.
 """
 from __future__ import annotations
@@ -12,7 +12,6 @@ import pytest
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories
-from mmslam.slam import local_filter as filter_mod  # LocalFilter.correct calls check_phd_mass
 from mmslam.slam import gmphd
 from mmslam.slam.filter import run_filter
 from mmslam.slam.gm import GM
@@ -74,13 +73,13 @@ def test_check_phd_mass_bound_by_hand():
 def test_invariant_is_checked_and_silent_on_a_normal_run(paper8, particles, monkeypatch):
     scn, states, paths = paper8
     calls = []
-    real = filter_mod.check_phd_mass
+    real = gmphd.check_phd_mass
 
     def spy(pred, corr, J, t, k):
         calls.append((t, k, J))
         real(pred, corr, J, t, k)
 
-    monkeypatch.setattr(filter_mod, "check_phd_mass", spy)
+    monkeypatch.setattr(gmphd, "check_phd_mass", spy)  # called by gmphd.correct
     res = run_filter(scn, states, paths, variant="proposed", particles=particles, seed=3, steps=STEPS)
     n_veh = len(scn.vehicles)
     assert len(calls) == n_veh * STEPS * 3  # every vehicle, step and type (VA, SP, VS) was checked
@@ -111,6 +110,6 @@ def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monk
         c = np.where(corr.mask, corr.w, 0.0).sum(-1)
         excess.append(float((c - p - J).max()))
 
-    monkeypatch.setattr(filter_mod, "check_phd_mass", record)
+    monkeypatch.setattr(gmphd, "check_phd_mass", record)
     run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
     assert max(excess) > 1.0
