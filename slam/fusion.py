@@ -21,20 +21,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .gm import GM, symmetrize
+from .linalg import spd_inv
 from .vs import predict_vs
 
 POS = slice(0, 3)
 VEL = slice(3, 6)
-
-
-def _inv(P: np.ndarray) -> np.ndarray:
-    try:
-        out = np.linalg.inv(P)
-    except np.linalg.LinAlgError:
-        raise FloatingPointError("singular covariance in MSM distance") from None
-    if not np.all(np.isfinite(out)):
-        raise FloatingPointError("singular covariance in MSM distance")
-    return symmetrize(out)
 
 
 def msm_distance(m1: np.ndarray, P1: np.ndarray, m2: np.ndarray, P2: np.ndarray) -> np.ndarray:
@@ -54,7 +45,7 @@ def msm_distance(m1: np.ndarray, P1: np.ndarray, m2: np.ndarray, P2: np.ndarray)
     q1, q2 = m1.shape[0], m2.shape[0]
     if q1 == 0 or q2 == 0:
         return np.zeros((q1, q2))
-    A1, A2 = _inv(np.asarray(P1, float)), _inv(np.asarray(P2, float))
+    A1, A2 = spd_inv(P1, "MSM distance"), spd_inv(P2, "MSM distance")
     D = m1[:, None, :] - m2[None, :, :]  # (Q1, Q2, d)
     d1 = np.einsum("abi,aij,abj->ab", D, A1, D)
     d2 = np.einsum("abi,bij,abj->ab", D, A2, D)

@@ -41,12 +41,12 @@ def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
+def cholesky(A: np.ndarray, L: np.ndarray, retry: bool = True) -> bool:
     """Lower Cholesky factor ``A = L L^T`` of one SPD matrix ``A (d, d)`` written into ``L (d, d)``.
 
     Reads the lower triangle of ``A``; writes the whole of ``L`` (zeros above the diagonal). If
-    ``A`` is not numerically positive definite, one retry with ``JITTER`` times its largest
-    absolute diagonal entry (at least ``1e-12``) added to the diagonal (round-off on a
+    ``A`` is not numerically positive definite and ``retry``, one retry with ``JITTER`` times its
+    largest absolute diagonal entry (at least ``1e-12``) added to the diagonal (round-off on a
     near-singular but valid covariance). Returns False if that fails too or ``A`` is not finite.
     """
     d = A.shape[0]
@@ -56,6 +56,8 @@ def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
                 return False
     if _cholesky_once(A, L, 0.0):
         return True
+    if not retry:
+        return False
     scale = 1e-12
     for i in range(d):
         scale = max(scale, abs(A[i, i]))
@@ -89,7 +91,7 @@ def spd_inverse(A: np.ndarray, out: np.ndarray) -> bool:
     """``out = A^-1 = L^-T L^-1`` of one SPD ``A (d, d)`` (exactly symmetric); False if not SPD."""
     d = A.shape[0]
     L = np.empty((d, d))
-    if not cholesky(A, L):
+    if not cholesky(A, L, False):
         return False
     e = np.zeros(d)
     for j in range(d):  # column j: L^-T L^-1 e_j

@@ -88,7 +88,7 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
     r2 = np.empty(q)
     for i in range(q):
         if keep[i]:
-            if not cholesky(P[i], L[i]):
+            if not cholesky(P[i], L[i], False):  # no jitter: a singular covariance is an error
                 return -1
             tr = 0.0
             for a in range(d):
