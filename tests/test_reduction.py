@@ -150,20 +150,36 @@ def test_average_map_identical_particles_equal_prune_merge():
     np.testing.assert_allclose(out.P[:k], ref.P[:k], atol=1e-9)
 
 
-def test_pairwise_and_iterative_distance_paths_agree(monkeypatch):
-    import mmslam.slam.reduction as red
+def _ref_greedy(w, m, P, merge):
+    """Plain greedy Vo & Ma merge of one mixture (LAPACK inverse per component, lower index heads ties)."""
+    left = list(np.argsort(-w, kind="stable"))
+    out = []
+    while left:
+        j = left[0]
+        cl = [i for i in left if i == j or (m[i] - m[j]) @ np.linalg.inv(P[i]) @ (m[i] - m[j]) <= merge]
+        W = w[cl].sum()
+        mu = (w[cl, None] * m[cl]).sum(0) / W
+        C = sum(w[i] * (P[i] + np.outer(m[i] - mu, m[i] - mu)) for i in cl) / W
+        out.append((W, mu, C))
+        left = [i for i in left if i not in cl]
+    return out
+
+
+def test_batched_prune_merge_equals_each_mixture_alone():
+    """7-D batch: every mixture's result equals prune_merge of that mixture alone (1e-9 relative)."""
     rng = np.random.default_rng(5)
     B, Q, d = (6,), 12, 7
     A = rng.standard_normal(B + (Q, d, d))
     P = A @ np.swapaxes(A, -1, -2) + np.eye(d)
     g = GM(rng.uniform(0, 1, B + (Q,)), rng.uniform(-3, 3, B + (Q, d)) + 100.0, P, np.ones(B + (Q,), bool))
     ref = prune_merge(g, 0.01, 9.0, 8)
-    monkeypatch.setattr(red, "_PAIRWISE_BUDGET", 0)
-    out = prune_merge(g, 0.01, 9.0, 8)
-    np.testing.assert_array_equal(out.mask, ref.mask)
-    np.testing.assert_allclose(out.w, ref.w)
-    np.testing.assert_allclose(out.m, ref.m, atol=1e-9)
-    np.testing.assert_allclose(out.P, ref.P, atol=1e-9)
+    for i in range(B[0]):
+        one = prune_merge(select(g, i), 0.01, 9.0, 8)
+        k = int(one.count())
+        assert int(ref.count()[i]) == k
+        np.testing.assert_allclose(ref.w[i, :k], one.w[:k], rtol=1e-9)
+        np.testing.assert_allclose(ref.m[i, :k], one.m[:k], rtol=1e-9)
+        np.testing.assert_allclose(ref.P[i, :k], one.P[:k], rtol=1e-9, atol=1e-9 * np.abs(one.P[:k]).max())
     assert (ref.count() < Q).any()  # some merging happened
 
 
@@ -173,8 +189,7 @@ def test_singular_covariance_raises():
         prune_merge(g, 1e-4, 49.0, 5)
 
 
-def test_single_mixture_shrinking_path_agrees(monkeypatch):
-    import mmslam.slam.reduction as red
+def test_single_mixture_merge_equals_the_plain_greedy_reference():
     rng = np.random.default_rng(6)
     Q, d = 40, 7
     A = rng.standard_normal((Q, d, d))
@@ -182,33 +197,35 @@ def test_single_mixture_shrinking_path_agrees(monkeypatch):
     centres = rng.uniform(-20, 20, (5, d))
     m = centres[rng.integers(0, 5, Q)] + rng.standard_normal((Q, d))
     w = rng.uniform(0, 1, Q)
-    w[3] = w[7]  # a weight tie: the lower index must head the cluster on both paths
+    w[3] = w[7]  # a weight tie: the lower index must head the cluster
     g = _gm(w, m, P)
-    ref = prune_merge(g, 0.01, 16.0, Q)  # single mixture, small: pairwise path
-    monkeypatch.setattr(red, "_PAIRWISE_BUDGET", 0)
-    out = prune_merge(g, 0.01, 16.0, Q)  # single mixture: shrinking candidate-set path
-    np.testing.assert_array_equal(out.mask, ref.mask)
-    np.testing.assert_allclose(out.w, ref.w)
-    np.testing.assert_allclose(out.m, ref.m, atol=1e-9)
-    np.testing.assert_allclose(out.P, ref.P, atol=1e-9)
-    assert 1 < ref.count() < Q
+    out = prune_merge(g, 0.01, 16.0, Q)
+    ref = sorted(_ref_greedy(w, m, P, 16.0), key=lambda c: -c[0])
+    assert int(out.count()) == len(ref) and 1 < len(ref) < Q
+    for k, (W, mu, C) in enumerate(ref):
+        np.testing.assert_allclose(out.w[k], W, rtol=1e-9)
+        np.testing.assert_allclose(out.m[k], mu, rtol=1e-9, atol=1e-9 * np.abs(mu).max())
+        np.testing.assert_allclose(out.P[k], C, rtol=1e-9, atol=1e-9 * np.abs(C).max())
 
 
-def test_cholesky_inverse_matches_lapack_inverse():
-    from mmslam.slam.reduction import _inv_spd, _inv_spd_cholesky
+def test_spd_inverse_matches_lapack_inverse():
+    from mmslam.slam.linalg import spd_inv
 
     rng = np.random.default_rng(17)
-    for d in (4, 5, 7):
-        X = rng.standard_normal((2, 6, d, d))
-        P = X @ np.swapaxes(X, -1, -2) + 0.1 * np.eye(d)
-        inv = _inv_spd(P)
-        assert np.allclose(inv, np.linalg.inv(P), rtol=1e-9, atol=1e-9)
+    for d in (2, 3, 4, 5, 7):
+        X = rng.standard_normal((2, 6, d, d + 2))
+        P = X @ np.swapaxes(X, -1, -2) + 1e-3 * np.eye(d)
+        inv = spd_inv(P, "test")
+        ref = np.linalg.inv(P)
+        np.testing.assert_allclose(inv, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
         assert np.array_equal(inv, np.swapaxes(inv, -1, -2))
-    assert _inv_spd_cholesky(np.diag([1.0, -1.0, 1.0, 1.0])[None]) is None
+    for bad in (np.diag([1.0, -1.0, 1.0]), np.diag([1.0, -1.0, 1.0, 1.0]), np.zeros((3, 3))):
+        with pytest.raises(FloatingPointError, match="singular or indefinite covariance in test"):
+            spd_inv(bad[None], "test")
 
 
-def test_one_hot_moments_equal_scatter_add_moments(monkeypatch):
-    """The batched one-hot moment computation equals the np.add.at path."""
+def test_merge_flat_moments_equal_the_plain_reference():
+    """Every mixture of a flat batch (random keep masks) equals the plain greedy reference."""
     import mmslam.slam.reduction as red
 
     rng = np.random.default_rng(18)
@@ -218,11 +235,16 @@ def test_one_hot_moments_equal_scatter_add_moments(monkeypatch):
     X = rng.standard_normal((n, q, d, d))
     P = X @ np.swapaxes(X, -1, -2) + np.eye(d)
     keep = rng.random((n, q)) < 0.8
-    fast = red._merge_flat(w, m, P, keep, 49.0)
-    monkeypatch.setattr(red, "_ONEHOT_BUDGET", 0)
-    slow = red._merge_flat(w, m, P, keep, 49.0)
-    for a, b in zip(fast, slow):
-        assert np.allclose(a, b, rtol=1e-12, atol=1e-12)
+    ow, om, oP, omask = red._merge_flat(w, m, P, keep, 49.0)
+    for i in range(n):
+        k = np.nonzero(keep[i])[0]
+        ref = _ref_greedy(w[i, k], m[i, k], P[i, k], 49.0)
+        assert int(omask[i].sum()) == len(ref) and omask[i, :len(ref)].all()
+        for c, (W, mu, C) in enumerate(ref):
+            np.testing.assert_allclose(ow[i, c], W, rtol=1e-9)
+            np.testing.assert_allclose(om[i, c], mu, rtol=1e-9, atol=1e-9 * np.abs(mu).max())
+            np.testing.assert_allclose(oP[i, c], C, rtol=1e-9, atol=1e-9 * np.abs(C).max())
+        assert (oP[i, len(ref):] == np.eye(d)).all() and (ow[i, len(ref):] == 0).all()
 
 
 @pytest.mark.parametrize("presorted", [False, True])
@@ -248,48 +270,21 @@ def test_compact_equals_stable_argsort_gather(presorted):
         assert np.array_equal(out.P[..., :k, :, :], np.take_along_axis(g.P, order[..., None, None], -3))
 
 
-def test_soa_tril_inverse_equals_forward_solve_of_identity():
-    """soa_tril_inverse == soa_forward_solve(L, I) bit for bit, and == the LAPACK inverse."""
-    from mmslam.slam.gmphd import soa_cholesky, soa_forward_solve
-    from mmslam.slam.reduction import _inv_spd_cholesky, soa_tril_inverse
+def test_moment_match_equals_the_textbook_formula():
+    from mmslam.slam.reduction import moment_match
 
-    rng = np.random.default_rng(3)
-    for d in (2, 3, 5, 7):
-        X = rng.normal(size=(40, d, d + 2))
-        P = X @ X.transpose(0, 2, 1) + 1e-3 * np.eye(d)
-        L = soa_cholesky(np.ascontiguousarray(P.transpose(1, 2, 0)))
-        Li = soa_tril_inverse(L)
-        ref = soa_forward_solve(L, np.broadcast_to(np.eye(d)[:, :, None], L.shape))
-        np.testing.assert_array_equal(Li, ref)
-        assert np.all(np.triu(Li.transpose(2, 0, 1), 1) == 0.0)
-        inv = _inv_spd_cholesky(P)
-        np.testing.assert_array_equal(inv, np.swapaxes(inv, -1, -2))
-        np.testing.assert_allclose(inv, np.linalg.inv(P), rtol=1e-8, atol=1e-10 * np.abs(inv).max())
-
-
-def test_closed_form_3x3_inverse_matches_reference():
-    """d = 3 closed form (batch-last rows) == the strided formula bit for bit and == LAPACK."""
-    from mmslam.slam.reduction import _inv_spd
-
-    rng = np.random.default_rng(23)
-    X = rng.standard_normal((4, 7, 3, 5))
-    P = X @ np.swapaxes(X, -1, -2) + 1e-3 * np.eye(3)
-    a, b, c = P[..., 0, 0], P[..., 0, 1], P[..., 0, 2]
-    e, f, i = P[..., 1, 1], P[..., 1, 2], P[..., 2, 2]
-    A0, A1, A2 = e * i - f * f, c * f - b * i, b * f - c * e
-    det = a * A0 + b * A1 + c * A2
-    ref = np.stack([np.stack([A0, A1, A2], -1), np.stack([A1, a * i - c * c, b * c - a * f], -1),
-                    np.stack([A2, b * c - a * f, a * e - b * b], -1)], -2) / det[..., None, None]
-    inv = _inv_spd(P)
-    assert inv.shape == P.shape and inv.flags.c_contiguous
-    np.testing.assert_array_equal(inv, ref)
-    np.testing.assert_allclose(inv, np.linalg.inv(P), rtol=1e-8, atol=1e-10 * np.abs(inv).max())
-    with pytest.raises(FloatingPointError):
-        _inv_spd(np.diag([1.0, -1.0, 1.0])[None])
-
-
-def test_outer_equals_broadcast_product():
-    from mmslam.slam.reduction import _outer
-
-    a = np.random.default_rng(2).normal(size=(5, 4, 7))
-    np.testing.assert_array_equal(_outer(a), a[..., :, None] * a[..., None, :])
+    rng = np.random.default_rng(2)
+    Q, d = 5, 7
+    w = rng.uniform(0.1, 1.0, Q)
+    m = rng.normal(size=(Q, d)) + 50.0
+    X = rng.normal(size=(Q, d, d))
+    P = X @ np.swapaxes(X, -1, -2) + np.eye(d)
+    members = np.array([0, 2, 3])
+    out_m, out_P = np.empty(d), np.empty((d, d))
+    W = moment_match(w, m, P, members, 2, out_m, out_P)
+    mu = (w[members, None] * m[members]).sum(0) / w[members].sum()
+    C = sum(w[i] * (P[i] + np.outer(m[i] - mu, m[i] - mu)) for i in members) / w[members].sum()
+    assert np.isclose(W, w[members].sum(), rtol=1e-12)
+    np.testing.assert_allclose(out_m, mu, rtol=1e-12)
+    np.testing.assert_allclose(out_P, C, rtol=1e-9, atol=1e-9 * np.abs(C).max())
+    assert np.array_equal(out_P, out_P.T)
