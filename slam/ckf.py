@@ -253,3 +253,14 @@ def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points"
     L = safe_cholesky(P, stage) * np.sqrt(d)
     cols = np.swapaxes(L, -1, -2)  # (..., d, d): row i = L e_i
     return np.concatenate([m[..., None, :] + cols, m[..., None, :] - cols], axis=-2)
+
+
+def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, state: np.ndarray, geometry: int,
+                  bs: np.ndarray, extent: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """CKF update of one Gaussian ``N(m (d,), P (d, d))`` by one measurement ``z (5,)`` seen from ``state (7,)``.
+
+    A thin wrapper over :func:`innovate` (tests, single Gaussians): ``(m_post, P_post, log N(z; zhat, S))``.
+    """
+    inn = innovate(np.asarray(m, float)[None], np.asarray(P, float)[None], np.asarray(state, float)[None],
+                   geometry, bs, np.asarray(z, float)[None], R, "kalman_update", extent)
+    return inn.m_post[0, 0], inn.P_post[0, 0], float(inn.loglik[0, 0])

@@ -51,7 +51,7 @@ def cholesky(A: np.ndarray, L: np.ndarray, retry: bool = True) -> bool:
     """
     d = A.shape[0]
     for i in range(d):
-        for j in range(d):
+        for j in range(i + 1):
             if not np.isfinite(A[i, j]):
                 return False
     if _cholesky_once(A, L, 0.0):
