@@ -6,9 +6,9 @@ import pytest
 
 from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
 from mmslam.slam.gm import GM
-from mmslam.slam.gmphd import (bs_logterm, ckf_moments, corrected_gm, cubature_points, kalman_update,
-                               log_psi, type_terms)
-from mmslam.slam.measurement import SP, VA, VS, measure
+from mmslam.slam.ckf import cubature_points, innovate, kalman_update
+from mmslam.slam.gmphd import bs_logterm, corrected_gm, log_psi, type_terms
+from mmslam.slam.measurement import GEOMETRY, SP, VA, VS, measure
 
 BS_POS = np.array([0.0, 0.0, 40.0])
 R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
@@ -19,33 +19,9 @@ def _spd(rng, d, scale=1.0):
     return scale * (A @ A.T + d * np.eye(d))
 
 
-@pytest.mark.parametrize("d", [3, 7])
-def test_ckf_update_equals_kalman_update_for_a_linear_measurement(d):
-    rng = np.random.default_rng(d)
-    H = rng.standard_normal((5, d)) * 0.05  # small so the "azimuth" components never wrap
-    if d == 7:
-        H[:, 3:] = 0.0  # like VS: only the position is observed
-    m = rng.standard_normal(d)
-    P = _spd(rng, d, 0.1)
-    Rm = _spd(rng, 5, 0.01)
-    z = H @ m + rng.standard_normal(5) * 0.1
-    if d == 7:  # marginal rule on the observed position (as the filter does for VS)
-        m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H[:, :3].T, obs_dims=3)
-        m_full, P_full, ll_full = kalman_update(m, P, z, Rm, lambda x: x @ H.T)  # full 7-D rule
-        assert np.allclose(m_full, m_ckf) and np.allclose(P_full, P_ckf) and np.isclose(ll_full, ll_ckf)
-    else:
-        m_ckf, P_ckf, ll_ckf = kalman_update(m, P, z, Rm, lambda x: x @ H.T)
-    S = H @ P @ H.T + Rm
-    K = P @ H.T @ np.linalg.inv(S)
-    r = z - H @ m
-    m_kf = m + K @ r
-    P_kf = P - K @ S @ K.T
-    ll_kf = -0.5 * r @ np.linalg.solve(S, r) - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
-    assert np.allclose(m_ckf, m_kf, atol=1e-10)
-    assert np.allclose(P_ckf, P_kf, atol=1e-10)
-    assert np.isclose(ll_ckf, ll_kf, atol=1e-9)
-    if d == 7:  # the unobserved velocity is corrected only through its correlation
-        assert not np.allclose(m_ckf[3:], m[3:])
+# The CKF is exact for a linear measurement (3-D and 7-D through the position marginal):
+# tests/test_kernels_reference.py::test_reference_ckf_is_the_kalman_filter_for_a_linear_measurement,
+# with the kernel equal to that reference to 1e-9 (test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf).
 
 
 def test_cubature_points_reproduce_mean_and_covariance():
@@ -59,16 +35,17 @@ def test_cubature_points_reproduce_mean_and_covariance():
     assert np.allclose(np.einsum("nka,nkb->nab", D, D) / 14, P)
 
 
-def test_ckf_moments_handle_azimuth_wrap_at_pi():
+def test_ckf_handles_azimuth_wrap_at_pi():
     # vehicle heading 0, SP straight behind it: body AOA azimuth ~ +-pi
     s = np.array([50.0, 0.0, 0.0, 0.0, 20.0, 0.3, 0.0])
     lm = np.array([30.0, 0.0, 5.0])
     P = np.eye(3) * 0.5
-    zhat, Pzz, _ = ckf_moments(lm, P, lambda x: measure(s, x, SP, BS_POS))
     ztrue = measure(s, lm, SP, BS_POS)
-    d = (zhat[3] - ztrue[3] + np.pi) % (2 * np.pi) - np.pi
-    assert abs(d) < 1e-2
-    assert Pzz[3, 3] < 0.01  # a naive mean over +-pi would give a variance ~ pi^2
+    assert abs(abs(ztrue[3]) - np.pi) < 0.1
+    m_post, P_post, ll = kalman_update(lm, P, ztrue, R, s, GEOMETRY[SP], BS_POS)
+    # a naive mean over +-pi would give zhat ~ 0, a residual ~ pi and a log-likelihood ~ -pi^2 / (2 0.03^2)
+    assert ll > -20.0
+    assert np.abs(m_post - lm).max() < 0.5 and np.all(np.linalg.eigvalsh(P_post) > 0)
 
 
 def test_vs_ct_jacobian_matches_finite_differences():
@@ -141,15 +118,21 @@ def test_nan_in_a_map_raises_floating_point_error():
         type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, _pd)
 
 
-def test_batched_cholesky_and_triangular_inverse_match_lapack():
-    from mmslam.slam.gmphd import batched_cholesky, safe_cholesky, tril_inverse
+def test_cholesky_and_triangular_solves_match_lapack():
+    from scipy.linalg import solve_triangular
+
+    from mmslam.slam.linalg import back_solve, forward_solve, safe_cholesky
 
     rng = np.random.default_rng(9)
     for d in (3, 5, 7):
         A = np.stack([_spd(rng, d) for _ in range(6)]).reshape(2, 3, d, d)
-        L = batched_cholesky(A)
-        assert np.allclose(L, np.linalg.cholesky(A))
-        assert np.allclose(tril_inverse(L) @ L, np.eye(d), atol=1e-12)
+        L = safe_cholesky(A, "test")
+        np.testing.assert_allclose(L, np.linalg.cholesky(A), rtol=1e-9, atol=1e-12)
+        b, x = rng.standard_normal(d), np.empty(d)
+        forward_solve(L[0, 0], b, x)
+        np.testing.assert_allclose(x, solve_triangular(L[0, 0], b, lower=True), rtol=1e-9, atol=1e-12)
+        back_solve(L[0, 0], b, x)
+        np.testing.assert_allclose(x, solve_triangular(L[0, 0].T, b), rtol=1e-9, atol=1e-12)
     bad = np.diag([1.0, -1.0, 1.0])[None]
     with pytest.raises(FloatingPointError, match="not positive definite in test stage"):
         safe_cholesky(bad, "test stage")
@@ -178,9 +161,9 @@ def test_pruned_correction_equals_dense_correction_after_pruning():
 
 
 @pytest.mark.parametrize("lm_type", [VA, SP, VS])
-def test_fast_landmark_h_equals_the_measurement_model(lm_type):
+def test_measure_equals_channel_params_in_the_body_frame(lm_type):
     from mmslam.slam.dynamics import wrap_angle
-    from mmslam.slam.gmphd import landmark_h
+    from mmslam.slam.measurement import channel_params, to_body
 
     rng = np.random.default_rng(lm_type)
     s = np.column_stack([rng.uniform(-80, 80, (6, 2)), rng.uniform(0, 2, 6), rng.uniform(-4, 4, 6),
@@ -190,35 +173,27 @@ def test_fast_landmark_h_equals_the_measurement_model(lm_type):
         pts = pts + rng.standard_normal(pts.shape)
     else:
         pts = np.concatenate([rng.uniform(-90, 90, (6, 4, 5, 2)), rng.uniform(0, 40, (6, 4, 5, 1))], -1)
-    got = landmark_h(s, lm_type, BS_POS)(pts)
-    ref = measure(s[:, None, None, :], pts, lm_type, BS_POS)
+    got = measure(s[:, None, None, :], pts, lm_type, BS_POS)
+    u = np.broadcast_to(s[:, None, None, :3], pts.shape)
+    ref = to_body(channel_params(u, pts, lm_type, BS_POS), s[:, None, None, 3], s[:, None, None, 6])
     d = got - ref
     d[..., 3] = wrap_angle(d[..., 3])
     assert np.abs(d).max() < 1e-9
 
 
-def test_soa_cholesky_and_forward_solve_match_lapack():
-    from mmslam.slam.gmphd import soa_cholesky, soa_forward_solve
+def test_cholesky_without_retry_rejects_indefinite_and_singular():
+    from mmslam.slam.linalg import cholesky
 
-    rng = np.random.default_rng(21)
-    for d in (3, 5, 7):
-        A = np.stack([_spd(rng, d, 10.0 ** rng.uniform(-3, 2)) for _ in range(40)])  # (N, d, d)
-        L = soa_cholesky(np.ascontiguousarray(A.transpose(1, 2, 0)))
-        Lref = np.linalg.cholesky(A)
-        assert np.allclose(L.transpose(2, 0, 1), Lref, rtol=1e-12, atol=1e-14 * np.abs(Lref).max())
-        B = rng.standard_normal((d, 4, 40))  # (d, J, N)
-        X = soa_forward_solve(L, B)
-        ref = np.linalg.solve(Lref[:, None], B.transpose(2, 1, 0)[..., None])[..., 0]  # (N, J, d)
-        assert np.allclose(X.transpose(2, 1, 0), ref, rtol=1e-10, atol=1e-12)
-    bad = np.diag([1.0, -1.0, 1.0])[:, :, None]
-    assert not np.all(np.diagonal(soa_cholesky(bad), axis1=0, axis2=1) > 0)  # NaN or 0 pivot, caller checks
+    L = np.empty((3, 3))
+    assert not cholesky(np.diag([1.0, -1.0, 1.0]), L, False)
+    assert not cholesky(np.zeros((3, 3)), L, False)
+    assert not cholesky(np.diag([1.0, np.nan, 1.0]), L)
+    assert cholesky(np.diag([4.0, 1.0, 9.0]), L, False) and np.array_equal(L, np.diag([2.0, 1.0, 3.0]))
 
 
 @pytest.mark.parametrize("lm_type", [VA, SP, VS])
-def test_flat_innovation_equals_generic_ckf_innovation(lm_type):
-    """The batch-last kernel reproduces innovation(landmark_h, obs_dims=3) on a padded batch."""
-    from mmslam.slam.gmphd import flat_innovation, innovation, landmark_h
-
+def test_innovate_on_a_padded_batch_equals_kalman_update_per_gaussian(lm_type):
+    """The batched kernel gives each Gaussian the result of the single-Gaussian update."""
     rng = np.random.default_rng(30 + lm_type)
     P_, Q, d = 3, 4, (7 if lm_type == VS else 3)
     s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
@@ -231,12 +206,14 @@ def test_flat_innovation_equals_generic_ckf_innovation(lm_type):
         m[..., 3:] = rng.standard_normal((P_, Q, 4))
     Pm = np.stack([_spd(rng, d, 0.3) for _ in range(P_ * Q)]).reshape(P_, Q, d, d)
     Z = np.stack([measure(s[0], base + rng.standard_normal(3), lm_type, BS_POS) for _ in range(3)])
-    ref = innovation(m, Pm, Z, R, landmark_h(s, lm_type, BS_POS), "test", obs_dims=3)
-    fi = flat_innovation(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), lm_type, BS_POS, Z, R, "test")
-    assert np.allclose(fi.loglik.T.reshape(P_, Q, -1), ref.loglik, rtol=1e-9, atol=1e-9)
-    assert np.allclose(fi.y.transpose(2, 1, 0).reshape(P_, Q, -1, 5), ref.y, rtol=1e-8, atol=1e-9)
-    assert np.allclose(fi.gain.transpose(2, 0, 1).reshape(P_, Q, d, 5), ref.gain_sqrt, rtol=1e-8, atol=1e-10)
-    assert np.allclose(fi.P_post.transpose(2, 0, 1).reshape(P_, Q, d, d), ref.P_post, rtol=1e-8, atol=1e-10)
+    inn = innovate(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), GEOMETRY[lm_type], BS_POS, Z, R, "test")
+    for n in range(P_ * Q):
+        for j in range(3):
+            mk, Pk, llk = kalman_update(m.reshape(-1, d)[n], Pm.reshape(-1, d, d)[n], Z[j], R, s[n // Q],
+                                        GEOMETRY[lm_type], BS_POS)
+            np.testing.assert_allclose(inn.loglik[n, j], llk, rtol=1e-12)
+            np.testing.assert_allclose(inn.m_post[n, j], mk, rtol=1e-12)
+            np.testing.assert_allclose(inn.P_post[n, 0], Pk, rtol=1e-12, atol=1e-15)
 
 
 def test_correction_skips_undetectable_gaussians_exactly():
@@ -258,24 +235,6 @@ def test_correction_skips_undetectable_gaussians_exactly():
     assert np.allclose(out.w[:, 1:Q:2], 0.8)  # missed weight = full weight
     det_w = out.w[:, Q:].reshape(P_, Q)
     assert np.all(det_w[:, 1::2] == 0.0) and np.all(det_w[:, 0::2] > 0)
-
-
-def test_flat_innovation_blocks_equal_one_pass(monkeypatch):
-    """Blocked evaluation (many Gaussians) gives exactly the single-pass result."""
-    import mmslam.slam.gmphd as gm_mod
-
-    rng = np.random.default_rng(40)
-    n = 37
-    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (n, 1))
-    s[:, 0:2] += rng.standard_normal((n, 2))
-    m = np.array([60.0, 20.0, 5.0]) + rng.standard_normal((n, 3)) * 3
-    P = np.stack([_spd(rng, 3, 0.3) for _ in range(n)])
-    Z = np.stack([measure(s[0], np.array([60.0, 20.0, 5.0]), SP, BS_POS), np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
-    one = gm_mod.flat_innovation(m, P, s, SP, BS_POS, Z, R, "test")
-    monkeypatch.setattr(gm_mod, "INNOVATION_BLOCK", 8)
-    blk = gm_mod.flat_innovation(m, P, s, SP, BS_POS, Z, R, "test")
-    for f in ("loglik", "y", "gain", "P_post"):
-        assert np.array_equal(getattr(one, f), getattr(blk, f))
 
 
 @pytest.mark.parametrize("Q,J", [(1, 1), (5, 1), (12, 1), (3, 2), (11, 3), (18, 7), (40, 9)])
@@ -314,12 +273,11 @@ def test_logsumexp_slots_equals_reference_and_leaves_its_input_alone(shape):
     assert np.array_equal(np.isneginf(got), np.isneginf(ref))
 
 
-def test_flat_innovation_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_e():
+def test_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_e():
     """Extended VS (a car body): z = h(x + e) + n, e ~ N(0, E) independent of the 7-D state x.
-    (1) zhat and S are those of a point landmark with position covariance P_pos + E (same cubature);
-    (2) the cross-covariance Cov(x, z) agrees with a Monte Carlo estimate from 400k samples."""
-    from mmslam.slam.gmphd import flat_innovation
-
+    (1) the likelihood is that of a point landmark with position covariance P_pos + E (same cubature);
+    (2) the posterior correction P - P_post = Pxz S^-1 Pxz^T agrees with a Monte Carlo estimate from
+    400k samples (and differs from the point model's)."""
     rng = np.random.default_rng(4)
     bs = np.array([0.0, 0.0, 40.0])
     m = np.array([[30.0, 12.0, 0.5, 3.0, -2.0, 0.0, 0.1]])
@@ -327,36 +285,33 @@ def test_flat_innovation_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_
     P = (A @ A.T + np.diag([0.5, 0.5, 0.05, 1.0, 1.0, 0.01, 0.01]))[None]
     E = np.diag([1.0, 1.0, 0.09])
     st = np.array([[20.0, 5.0, 0.0, 0.3, 10.0, 0.0, 2.0]])
-    R = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
+    Rm = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
     Z = np.array([[55.0, 0.4, -0.5, 0.6, -0.01]])
-    ext = flat_innovation(m, P, st, VS, bs, Z, R, "test", extent=E)
+    geo = GEOMETRY[VS]
+    ext = innovate(m, P, st, geo, bs, Z, Rm, "test", extent=E)
     Pi = P.copy()
     Pi[0, :3, :3] += E
-    infl = flat_innovation(m, Pi, st, VS, bs, Z, R, "test")
+    infl = innovate(m, Pi, st, geo, bs, Z, Rm, "test")
     np.testing.assert_allclose(ext.loglik, infl.loglik, rtol=1e-12)
-    np.testing.assert_allclose(ext.y, infl.y, rtol=1e-12)
-    # gain A = Pxz L_S^-T: recover Pxz = A L_S^T with S from the inflated run (same S)
+    # Pxz_ext = P[:, :3] (P_pos + E)^-1 Pxz_infl[:3] with the same S: so are the mean corrections
+    np.testing.assert_allclose(ext.m_post[0, 0] - m[0], P[0][:, :3] @ np.linalg.solve(Pi[0][:3, :3], infl.m_post[0, 0, :3] - m[0, :3]),
+                               rtol=1e-9, atol=1e-12)
     x = rng.multivariate_normal(m[0], P[0], size=400_000)
     e = rng.multivariate_normal(np.zeros(3), E, size=400_000)
     z = measure(np.broadcast_to(st[0], (len(x), 7)), x[:, :3] + e, VS, bs)
     mc = (x - x.mean(0)).T @ (z - z.mean(0)) / len(x)  # (7, 5)
-    A_ext = ext.gain[:, :, 0]  # (7, 5) = Pxz L^-T
-    A_pt = infl.gain[:, :, 0]
-    # Pxz_ext = P[:, :3] (P_pos + E)^-1 Pxz_infl[:3]: the gains relate the same way (same L_S)
-    np.testing.assert_allclose(A_ext, P[0][:, :3] @ np.linalg.solve(Pi[0][:3, :3], A_pt[:3]), rtol=1e-9, atol=1e-12)
-    # Monte Carlo: gain = Cov(x, z) chol(Cov(z) + R)^-T from samples of z = h(x + e) (+ n: only R)
-    S_mc = np.cov(z.T, bias=True) + R
-    A_mc = mc @ np.linalg.inv(np.linalg.cholesky(S_mc)).T
-    np.testing.assert_allclose(A_ext, A_mc, atol=0.03 * np.abs(A_ext).max())
-    assert np.abs(A_ext - A_pt).max() > 0.2 * np.abs(A_ext).max()  # the point model's gain is different
+    S_mc = np.cov(z.T, bias=True) + Rm
+    red_mc = mc @ np.linalg.solve(S_mc, mc.T)
+    red_ext = P[0] - ext.P_post[0, 0]
+    red_pt = P[0] - infl.P_post[0, 0]
+    np.testing.assert_allclose(red_ext, red_mc, atol=0.05 * np.abs(red_ext).max())
+    assert np.abs(red_ext - red_pt[:7, :7]).max() > 0.2 * np.abs(red_ext).max()  # the point model differs
 
 
 @pytest.mark.parametrize("lm_type", [VA, VS])
 def test_per_measurement_R_equal_to_the_shared_R_gives_the_shared_innovation(lm_type):
     """R (J, 5, 5) with every R_j = R is the constant model: same likelihoods and residuals, and each
     measurement's gain / posterior equals the shared one; a larger R_j lowers that likelihood peak."""
-    from mmslam.slam.gmphd import flat_innovation
-
     rng = np.random.default_rng(1)
     d = 7 if lm_type == VS else 3
     bs = np.array([0.0, 0.0, 40.0])
@@ -366,15 +321,15 @@ def test_per_measurement_R_equal_to_the_shared_R_gives_the_shared_innovation(lm_
     st = np.c_[rng.uniform(-5, 5, (4, 3)), rng.uniform(-1, 1, (4, 1)), np.full((4, 2), 5.0), np.full((4, 1), 2.0)]
     R = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
     Z = np.array([[70.0, 0.3, -0.4, 0.5, -0.1], [90.0, 1.0, -0.2, 1.1, 0.0], [60.0, 0.1, -0.5, 0.2, 0.05]])
-    shared = flat_innovation(m, P, st, lm_type, bs, Z, R, "t")
-    per = flat_innovation(m, P, st, lm_type, bs, Z, np.stack([R] * 3), "t")
+    geo = GEOMETRY[lm_type]
+    shared = innovate(m, P, st, geo, bs, Z, R, "t")
+    per = innovate(m, P, st, geo, bs, Z, np.stack([R] * 3), "t")
     np.testing.assert_allclose(per.loglik, shared.loglik, rtol=1e-12)
-    np.testing.assert_allclose(per.y, shared.y, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(per.m_post, shared.m_post, rtol=1e-12, atol=1e-15)
     for j in range(3):
-        np.testing.assert_allclose(per.gain[:, :, j], shared.gain, rtol=1e-12)
-        np.testing.assert_allclose(per.post_of(np.full(4, j), np.arange(4)), shared.P_post, rtol=1e-12)
-    wide = flat_innovation(m, P, st, lm_type, bs, Z, np.stack([R, 4 * R, R]), "t")
-    np.testing.assert_allclose(wide.loglik[[0, 2]], shared.loglik[[0, 2]], rtol=1e-12)
-    assert not np.allclose(wide.loglik[1], shared.loglik[1])
+        np.testing.assert_allclose(per.post(np.arange(4), np.full(4, j)), shared.P_post[:, 0], rtol=1e-12)
+    wide = innovate(m, P, st, geo, bs, Z, np.stack([R, 4 * R, R]), "t")
+    np.testing.assert_allclose(wide.loglik[:, [0, 2]], shared.loglik[:, [0, 2]], rtol=1e-12)
+    assert not np.allclose(wide.loglik[:, 1], shared.loglik[:, 1])
     bs_shared = bs_logterm(st, Z, R, bs, np.full(4, 0.9))
     np.testing.assert_allclose(bs_logterm(st, Z, np.stack([R] * 3), bs, np.full(4, 0.9)), bs_shared, rtol=1e-12)
