@@ -18,173 +18,159 @@ and, for SP and VS, when its mean lies outside the sensor FOV (``p_D = 0`` there
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
+import numba as nb
 import numpy as np
 
-from .gm import GM, symmetrize
+from mmslam.model import Bounce
+
 from .ckf import cubature_points
-from .measurement import SP, VA, VS
+from .gm import GM
+from .measurement import GEOMETRY, SP, VA, VS
 from .vs import vs_birth_covariance, vs_birth_mean
 
 
-def aoa_direction(state: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Global unit AOA direction ``(..., 3)`` from body-frame AOA in ``z (..., 5)`` and heading."""
-    az = z[..., 3] + state[..., 3]
-    az, el = np.broadcast_arrays(az, z[..., 4])
-    ce = np.cos(el)
-    return np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=-1)
+_MIRROR, _SCATTER = int(Bounce.MIRROR), int(Bounce.SCATTER)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def invert_point(geometry: int, s: np.ndarray, z: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
+    """Landmark point ``x`` with the TOA and AOA of ``z`` seen from ``s``: paper eq. (3) inverted.
+
+    The AOA ray from the antenna ``u`` has the global direction ``d`` (body azimuth ``z[3]`` plus
+    heading ``s[3]``, elevation ``z[4]``) and ``L = TOA - B`` (m):
+
+    - MIRROR (VA): ``x = u + L d`` (the image source lies on the ray at the path length);
+    - SCATTER (SP, VS): ``x = u + r d`` on the ellipsoid ``|b - x| + |x - u| = L``:
+      ``r = (L^2 - |b - u|^2) / (2 (L - d . (b - u)))``, which needs ``L > |b - u|``.
+
+    Args: ``geometry`` (:class:`mmslam.model.Bounce`, MIRROR or SCATTER), ``s (7,)`` vehicle
+    state, ``z (5,)`` measurement, ``b (3,)`` BS position (m); ``out (3,)`` receives ``x``
+    (global frame, m). Returns False for an invalid image (non-positive range, ``L <= |b - u|``).
+    """
+    az = z[3] + s[3]
+    ce = math.cos(z[4])
+    d0, d1, d2 = ce * math.cos(az), ce * math.sin(az), math.sin(z[4])
+    L = z[0] - s[6]
+    if geometry == _MIRROR:
+        r = L
+        valid = L > 0.0
+    else:
+        b0, b1, b2 = b[0] - s[0], b[1] - s[1], b[2] - s[2]
+        nbu2 = b0 * b0 + b1 * b1 + b2 * b2
+        den = 2.0 * (L - (d0 * b0 + d1 * b1 + d2 * b2))
+        valid = L * L > nbu2 and L > 0.0 and den > 0.0
+        r = (L * L - nbu2) / den if valid else 0.0
+        valid = valid and r > 0.0
+    out[0] = s[0] + r * d0
+    out[1] = s[1] + r * d1
+    out[2] = s[2] + r * d2
+    return valid
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _invert_loop(geometry: int, s: np.ndarray, z: np.ndarray, b: np.ndarray, out: np.ndarray,
+                 valid: np.ndarray) -> None:
+    for n in range(s.shape[0]):
+        valid[n] = invert_point(geometry, s[n], z[n], b, out[n])
+
+
+def _invert(lm_type: int, state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    state, z = np.asarray(state, float), np.asarray(z, float)
+    shape = np.broadcast_shapes(state.shape[:-1], z.shape[:-1])
+    out, valid = np.empty(shape + (3,)), np.empty(shape, bool)
+    _invert_loop(GEOMETRY[lm_type], np.ascontiguousarray(np.broadcast_to(state, shape + (state.shape[-1],))).reshape(-1, state.shape[-1]),
+                 np.ascontiguousarray(np.broadcast_to(z, shape + (5,))).reshape(-1, 5),
+                 np.ascontiguousarray(bs, dtype=float), out.reshape(-1, 3), valid.reshape(-1))
+    return out, valid
 
 
 def invert_va(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """VA image-source position from a measurement: ``(position (..., 3), valid (...))``.
 
-    ``state (..., 7)`` vehicle states and ``z (..., 5)`` measurements broadcast together.
-    ``bs`` is unused (kept for a uniform signature).
+    ``state (..., 7)`` vehicle states and ``z (..., 5)`` measurements broadcast together
+    (:func:`invert_point`, MIRROR). ``bs`` is unused (kept for a uniform signature).
     """
-    r = z[..., 0] - state[..., 6]
-    pos = state[..., 0:3] + r[..., None] * aoa_direction(state, z)
-    return pos, r > 0.0
+    return _invert(VA, state, z, bs)
 
 
 def invert_sp(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Single-scatter point from a measurement: ``(position (..., 3), valid (...))``.
+    """Single-scatter point from a measurement: ``(position (..., 3), valid (...))`` (:func:`invert_point`, SCATTER)."""
+    return _invert(SP, state, z, bs)
 
-    The point on the AOA ray from ``u`` whose bistatic range ``|b - s| + |s - u|`` equals
-    ``TOA - B`` (closed form, see module docstring).
+
+@nb.njit(cache=True, error_model="numpy")
+def image_moments(geometry: int, s: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
+                  cov: np.ndarray) -> bool:
+    """Birth moments of one measurement for one vehicle state: mean and covariance of the images.
+
+    ``zpts (K, 5)``: the cubature points of ``N(z, R)``; each is inverted (:func:`invert_point`)
+    and ``mean (3,) = sum x_k / K``, ``cov (3, 3) = sum (x_k - mean)(x_k - mean)^T / K`` are
+    written. Returns False if an image is invalid, a moment is not finite, or the spread is
+    degenerate (``det(cov) <= 0``).
     """
-    u = state[..., 0:3]
-    d = aoa_direction(state, z)
-    L = z[..., 0] - state[..., 6]
-    bu = np.asarray(bs, float) - u
-    nbu2 = np.einsum("...i,...i->...", bu, bu)
-    den = 2.0 * (L - np.einsum("...i,...i->...", d, bu))
-    valid = (L * L > nbu2) & (L > 0.0) & (den > 0.0)
-    r = np.where(valid, (L * L - nbu2) / np.where(den > 0.0, den, 1.0), 0.0)
-    valid &= r > 0.0
-    return u + r[..., None] * d, valid
+    K = zpts.shape[0]
+    x = np.empty((K, 3))
+    ok = True
+    for k in range(K):
+        ok = invert_point(geometry, s, zpts[k], b, x[k]) and ok
+    for a in range(3):
+        t = 0.0
+        for k in range(K):
+            t += x[k, a]
+        mean[a] = t / K
+    for a in range(3):
+        for c in range(a + 1):
+            t = 0.0
+            for k in range(K):
+                t += (x[k, a] - mean[a]) * (x[k, c] - mean[c])
+            cov[a, c] = t / K
+            cov[c, a] = cov[a, c]
+    for a in range(3):
+        ok = ok and np.isfinite(mean[a])
+        for c in range(3):
+            ok = ok and np.isfinite(cov[a, c])
+    if not ok:
+        return False
+    det = (cov[0, 0] * (cov[1, 1] * cov[2, 2] - cov[1, 2] * cov[1, 2])
+           - cov[0, 1] * (cov[0, 1] * cov[2, 2] - cov[0, 2] * cov[1, 2])
+           + cov[0, 2] * (cov[0, 1] * cov[1, 2] - cov[0, 2] * cov[1, 1]))
+    return det > 0.0
 
 
-def _image_moments(pts: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Equal-weight mean ``(..., 3)`` and covariance ``(..., 3, 3)`` of images ``(..., K, 3)``."""
-    mean = pts.mean(axis=-2)
-    dev = pts - mean[..., None, :]
-    cov = symmetrize(np.einsum("...ka,...kb->...ab", dev, dev) / pts.shape[-2])
-    ok = valid.all(axis=-1) & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
-    # guard against a degenerate (rank-deficient) spread: the minimum eigenvalue must be > 0
-    ok &= np.linalg.det(np.where(ok[..., None, None], cov, np.eye(3))) > 0.0
-    return mean, cov, ok
-
-
-def _aoa_rays(states: np.ndarray, zpts: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Global AOA unit directions and ``L = TOA - B`` for every cubature point x particle.
-
-    ``states (P, 7)``, ``zpts (J, K, 5)`` -> ``dx, dy, dz, L`` each ``(K, J, P)`` (the
-    components of :func:`aoa_direction`, not stacked; cubature point first so that the
-    moments over the ``K`` points are sums of contiguous ``(J, P)`` slabs, particles last so
-    that every elementwise loop runs over ``P``).
-    """
-    zk = zpts.transpose(1, 0, 2)[..., None]  # (K, J, 5, 1)
-    az = zk[:, :, 3] + states[:, 3]
-    el = zk[:, :, 4]  # (K, J, 1): the elevation does not depend on the particle
-    ce = np.cos(el)
-    dx, dy, dz = ce * np.cos(az), ce * np.sin(az), np.sin(el)
-    L = zk[:, :, 0] - states[:, 6]
-    return dx, dy, dz, L
-
-
-def _invert_batch_last(states: np.ndarray, rays: tuple[np.ndarray, ...], lm_type: int,
-                       bs: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """:func:`invert_va` / :func:`invert_sp` of every cubature point x particle, component-wise.
-
-    ``states (P, 7)``, ``rays`` from :func:`_aoa_rays` -> positions ``(x, y, z)`` each
-    ``(K, J, P)`` (m) and ``valid (K, J, P)``; the same formulas as the public functions,
-    without stacking the 3-vectors (the birth's hot path).
-    """
-    dx, dy, dz, L = rays
-    ux, uy, uz = (states[:, i] for i in range(3))
-    if lm_type == VA:
-        return (ux + L * dx, uy + L * dy, uz + L * dz), L > 0.0
-    b = np.asarray(bs, float)
-    bx, by, bz = b[0] - ux, b[1] - uy, b[2] - uz
-    nbu2 = bx * bx + by * by + bz * bz
-    den = 2.0 * (L - (dx * bx + dy * by + dz * bz))
-    valid = (L * L > nbu2) & (L > 0.0) & (den > 0.0)
-    r = np.where(valid, (L * L - nbu2) / np.where(den > 0.0, den, 1.0), 0.0)
-    valid &= r > 0.0
-    return (ux + r * dx, uy + r * dy, uz + r * dz), valid
-
-
-def _sum_first(a: np.ndarray) -> np.ndarray:
-    """``a.sum(axis=0)`` for ``a (K, ...)`` as whole-slab additions, in NumPy's order for a
-    contiguous reduction of ``K`` values (sequential below 8; from 8 to 128 eight partial sums
-    combined pairwise, then the remainder in sequence), so the result equals
-    ``np.moveaxis(a, 0, -1).sum(-1)`` bit for bit for ``K <= 128`` (NumPy's pairwise summation;
-    beyond, ``a.sum(axis=0)``, equal up to rounding). Here ``K = 10`` cubature points."""
-    k = a.shape[0]
-    if k < 8 or k > 128:
-        return a.sum(axis=0) if k > 128 else _seq_sum(a)
-    r = [a[j].copy() for j in range(8)]
-    i = 8
-    while i + 8 <= k:
-        for j in range(8):
-            r[j] += a[i + j]
-        i += 8
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-    for j in range(i, k):
-        res += a[j]
-    return res
-
-
-def _seq_sum(a: np.ndarray) -> np.ndarray:
-    res = a[0].copy() if a.shape[0] else np.zeros(a.shape[1:])
-    for j in range(1, a.shape[0]):
-        res += a[j]
-    return res
-
-
-def _moments_batch_last(xyz: tuple[np.ndarray, np.ndarray, np.ndarray],
-                        valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Equal-weight moments of images given component-wise (``3 x (K, J, P)``, ``valid (K, J, P)``);
-    see :func:`birth_moments`. Returns ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``."""
-    K = valid.shape[0]
-    mean_t = [_sum_first(c) / K for c in xyz]  # 3 x (J, P)
-    dev = [c - mt for c, mt in zip(xyz, mean_t)]
-    mean = np.stack(mean_t, axis=-1).transpose(1, 0, 2)  # (P, J, 3)
-    cov = np.empty(mean.shape + (3,))
-    for i in range(3):
-        for j in range(i + 1):
-            cov[..., i, j] = cov[..., j, i] = (_sum_first(dev[i] * dev[j]) / K).T
-    ok = valid.all(axis=0).T & np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2))
-    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 0, 2]
-    e, f, i_ = cov[..., 1, 1], cov[..., 1, 2], cov[..., 2, 2]
-    with np.errstate(invalid="ignore", over="ignore"):
-        det = a * (e * i_ - f * f) - b * (b * i_ - c * f) + c * (b * f - c * e)
-    # guard against a degenerate (rank-deficient) spread: the determinant must be > 0
-    ok &= np.where(ok, det, 0.0) > 0.0
-    return mean, cov, ok
+@nb.njit(cache=True, error_model="numpy")
+def _moments_batch(geometry: int, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
+                   cov: np.ndarray, ok: np.ndarray) -> None:
+    for p in range(states.shape[0]):
+        for j in range(zpts.shape[0]):
+            ok[p, j] = image_moments(geometry, states[p], zpts[j], b, mean[p, j], cov[p, j])
 
 
 def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
                           bs: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """:func:`birth_moments` for several inversion kinds (VA, SP) sharing the cubature points
-    and AOA rays: ``{kind: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}``."""
-    J = Z.shape[0]
-    zpts = cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature")  # (J, 10, 5)
-    rays = _aoa_rays(states, zpts)
-    return {k: _moments_batch_last(*_invert_batch_last(states, rays, VA if k == VA else SP, bs))
-            for k in kinds}
+    """:func:`birth_moments` for several landmark types sharing the cubature points:
+    ``{type: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}`` (types of one geometry give the same)."""
+    J, P_ = Z.shape[0], states.shape[0]
+    zpts = np.ascontiguousarray(cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature"))  # (J, 10, 5)
+    s = np.ascontiguousarray(states, dtype=float)
+    b = np.ascontiguousarray(bs, dtype=float)
+    out = {}
+    for k in kinds:
+        mean, cov, ok = np.empty((P_, J, 3)), np.empty((P_, J, 3, 3)), np.empty((P_, J), bool)
+        _moments_batch(GEOMETRY[k], s, zpts, b, mean, cov, ok)
+        out[k] = (mean, cov, ok)
+    return out
 
 
 def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,
                   bs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
 
-    ``lm_type`` VA uses :func:`invert_va`, SP and VS :func:`invert_sp` (the same images: compute
-    once and pass to :func:`birth_from_moments` for both). No FOV gating here. The equal-weight
-    moments of the 10 images are computed component-wise (closed-form 3x3 determinant for the
-    degeneracy check); ``ok`` is False for an invalid image, a non-finite moment or a
-    covariance with a non-positive determinant.
+    The 10 cubature points of ``N(z_j, R)`` are inverted for every particle with the type's
+    geometry (:func:`image_moments`). No FOV gating here; ``ok`` is False for an invalid image,
+    a non-finite moment or a covariance with a non-positive determinant.
     """
     return birth_moments_by_kind(states, Z, R, (lm_type,), bs)[lm_type]
 
@@ -195,7 +181,7 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
                        vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
                        vs_turn_std: float = np.pi / 2) -> GM:
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`)."""
-    if lm_type in (SP, VS):
+    if GEOMETRY[lm_type] == _SCATTER:  # a MIRROR image lies behind its wall: no FOV test
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
         ok = ok & (pd > 0.0)
     mean = np.where(ok[..., None], mean, 0.0)

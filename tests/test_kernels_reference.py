@@ -860,10 +860,24 @@ def test_compact_and_concat_equal_per_mixture_reference(seed, batch, Q, d, cap, 
 
 
 # ====================================================================== birth
+def _ref_invert(state, z, lm_type):
+    """Textbook inversion of one measurement: the AOA ray from the antenna, at range ``TOA - B``
+    (VA) or where it meets the ellipsoid with foci BS and antenna (SP); returns ``(x, valid)``."""
+    u, L = state[:3], z[0] - state[6]
+    az, el = z[3] + state[3], z[4]
+    d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    if lm_type == VA:
+        return u + L * d, L > 0
+    bu = BS_POS - u
+    if not (L > np.linalg.norm(bu) and L - d @ bu > 0):
+        return u, False
+    r = (L * L - bu @ bu) / (2.0 * (L - d @ bu))
+    return u + r * d, r > 0
+
+
 def _ref_birth(states, Z, R, lm_type):
-    """Cubature points of ``N(z_j, R)`` one by one, inverted with the public invert_va / invert_sp,
+    """Cubature points of ``N(z_j, R)`` one by one, inverted with :func:`_ref_invert`,
     equal-weight mean and ``np.cov(bias=True)``; ok = every image valid, finite, ``det(cov) > 0``."""
-    inv = birth_mod.invert_va if lm_type == VA else birth_mod.invert_sp
     Lr = np.linalg.cholesky(R)
     P_, J = states.shape[0], Z.shape[0]
     mean, cov, ok = np.zeros((P_, J, 3)), np.zeros((P_, J, 3, 3)), np.zeros((P_, J), bool)
@@ -871,7 +885,7 @@ def _ref_birth(states, Z, R, lm_type):
     for j in range(J):
         pts = [Z[j] + np.sqrt(5) * Lr[:, i] for i in range(5)] + [Z[j] - np.sqrt(5) * Lr[:, i] for i in range(5)]
         for p in range(P_):
-            imgs, valid = zip(*(inv(states[p], z, BS_POS) for z in pts))
+            imgs, valid = zip(*(_ref_invert(states[p], z, lm_type) for z in pts))
             imgs, valid = np.array(imgs), np.array(valid)
             pos_all[:, j, p], valid_all[:, j, p] = imgs, valid
             mean[p, j] = imgs.mean(0)
@@ -901,12 +915,12 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     _close(cov[ok], ref_cov[ok], 2, "birth covariance")
     for a, b in zip(both[lm_type], (mean, cov, ok)):
         assert np.array_equal(a, b)
-    # the component-wise inversion of every cubature point x particle
-    zpts = ckf.cubature_points(Z, np.broadcast_to(R, (J, 5, 5)))
-    rays = birth_mod._aoa_rays(s, zpts)
-    (x, y, z), valid = birth_mod._invert_batch_last(s, rays, lm_type, BS_POS)
+    # the inversion of every cubature point x particle (the per-point kernel and its NumPy API)
+    zpts = ckf.cubature_points(Z, np.broadcast_to(R, (J, 5, 5)))  # (J, 10, 5)
+    inv = birth_mod.invert_va if lm_type == VA else birth_mod.invert_sp
+    pos, valid = inv(s[None, None, :, :], zpts.transpose(1, 0, 2)[:, :, None, :], BS_POS)  # (10, J, P)
     assert np.array_equal(valid, ref_valid)
-    _close(np.stack([x, y, z], -1)[valid], ref_pos[valid], 1, "_invert_batch_last positions")
+    _close(pos[valid], ref_pos[valid], 1, "invert_* positions")
 
 
 # ====================================================================== detection, VS prediction, particles
