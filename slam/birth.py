@@ -36,24 +36,21 @@ _MIRROR, _SCATTER = int(Bounce.MIRROR), int(Bounce.SCATTER)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def invert_point(geometry: int, s: np.ndarray, z: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
-    """Landmark point ``x`` with the TOA and AOA of ``z`` seen from ``s``: paper eq. (3) inverted.
+def invert_ray(geometry: int, s: np.ndarray, d0: float, d1: float, d2: float, L: float, b: np.ndarray,
+               out: np.ndarray) -> bool:
+    """Landmark point ``x`` on the AOA ray ``u + r d`` of vehicle state ``s`` with path length ``L``.
 
-    The AOA ray from the antenna ``u`` has the global direction ``d`` (body azimuth ``z[3]`` plus
-    heading ``s[3]``, elevation ``z[4]``) and ``L = TOA - B`` (m):
+    Paper eq. (3) inverted for the TOA and AOA (the AOD does not enter):
 
     - MIRROR (VA): ``x = u + L d`` (the image source lies on the ray at the path length);
     - SCATTER (SP, VS): ``x = u + r d`` on the ellipsoid ``|b - x| + |x - u| = L``:
       ``r = (L^2 - |b - u|^2) / (2 (L - d . (b - u)))``, which needs ``L > |b - u|``.
 
-    Args: ``geometry`` (:class:`mmslam.model.Bounce`, MIRROR or SCATTER), ``s (7,)`` vehicle
-    state, ``z (5,)`` measurement, ``b (3,)`` BS position (m); ``out (3,)`` receives ``x``
-    (global frame, m). Returns False for an invalid image (non-positive range, ``L <= |b - u|``).
+    Args: ``geometry`` (:class:`mmslam.model.Bounce`), ``s (7,)`` vehicle state (antenna ``u =
+    s[:3]``), ``d = (d0, d1, d2)`` global unit AOA direction, ``L = TOA - B`` (m), ``b (3,)`` BS
+    position; ``out (3,)`` receives ``x`` (global frame, m). Returns False for an invalid image
+    (non-positive range, ``L <= |b - u|``).
     """
-    az = z[3] + s[3]
-    ce = math.cos(z[4])
-    d0, d1, d2 = ce * math.cos(az), ce * math.sin(az), math.sin(z[4])
-    L = z[0] - s[6]
     if geometry == _MIRROR:
         r = L
         valid = L > 0.0
@@ -68,6 +65,15 @@ def invert_point(geometry: int, s: np.ndarray, z: np.ndarray, b: np.ndarray, out
     out[1] = s[1] + r * d1
     out[2] = s[2] + r * d2
     return valid
+
+
+@nb.njit(cache=True, error_model="numpy")
+def invert_point(geometry: int, s: np.ndarray, z: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
+    """:func:`invert_ray` of measurement ``z (5,)``: global AOA direction (body azimuth ``z[3]`` plus
+    heading ``s[3]``, elevation ``z[4]``) and ``L = z[0] - s[6]``."""
+    az = z[3] + s[3]
+    ce = math.cos(z[4])
+    return invert_ray(geometry, s, ce * math.cos(az), ce * math.sin(az), math.sin(z[4]), z[0] - s[6], b, out)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -102,25 +108,20 @@ def invert_sp(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndar
 
 
 @nb.njit(cache=True, error_model="numpy")
-def image_moments(geometry: int, s: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
-                  cov: np.ndarray) -> bool:
-    """Birth moments of one measurement for one vehicle state: mean and covariance of the images.
+def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
+    """Equal-weight moments of the images ``x (K, 3)`` of one measurement's cubature points.
 
-    ``zpts (K, 5)``: the cubature points of ``N(z, R)``; each is inverted (:func:`invert_point`)
-    and ``mean (3,) = sum x_k / K``, ``cov (3, 3) = sum (x_k - mean)(x_k - mean)^T / K`` are
-    written. Returns False if an image is invalid, a moment is not finite, or the spread is
-    degenerate (``det(cov) <= 0``).
+    ``mean (3,) = sum x_k / K``, ``cov (3, 3) = sum (x_k - mean)(x_k - mean)^T / K`` are written.
+    Returns False if a moment is not finite or the spread is degenerate (``det(cov) <= 0``).
     """
-    K = zpts.shape[0]
-    x = np.empty((K, 3))
+    K = x.shape[0]
     ok = True
-    for k in range(K):
-        ok = invert_point(geometry, s, zpts[k], b, x[k]) and ok
     for a in range(3):
         t = 0.0
         for k in range(K):
             t += x[k, a]
         mean[a] = t / K
+        ok = ok and np.isfinite(mean[a])
     for a in range(3):
         for c in range(a + 1):
             t = 0.0
@@ -128,9 +129,6 @@ def image_moments(geometry: int, s: np.ndarray, zpts: np.ndarray, b: np.ndarray,
                 t += (x[k, a] - mean[a]) * (x[k, c] - mean[c])
             cov[a, c] = t / K
             cov[c, a] = cov[a, c]
-    for a in range(3):
-        ok = ok and np.isfinite(mean[a])
-        for c in range(3):
             ok = ok and np.isfinite(cov[a, c])
     if not ok:
         return False
@@ -143,9 +141,26 @@ def image_moments(geometry: int, s: np.ndarray, zpts: np.ndarray, b: np.ndarray,
 @nb.njit(cache=True, error_model="numpy")
 def _moments_batch(geometry: int, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
                    cov: np.ndarray, ok: np.ndarray) -> None:
+    """Birth moments of every particle ``p`` and measurement ``j`` from the cubature points ``zpts (J, K, 5)``.
+
+    The AOA direction of point ``k`` seen with heading ``h_p`` uses ``cos(a + h) = cos a cos h -
+    sin a sin h`` (and the same for sin): the trigonometric functions are evaluated once per
+    point and once per particle instead of per pair.
+    """
+    J, K = zpts.shape[0], zpts.shape[1]
+    ca, sa = np.cos(zpts[:, :, 3]), np.sin(zpts[:, :, 3])
+    ce, se = np.cos(zpts[:, :, 4]), np.sin(zpts[:, :, 4])
+    x = np.empty((K, 3))
     for p in range(states.shape[0]):
-        for j in range(zpts.shape[0]):
-            ok[p, j] = image_moments(geometry, states[p], zpts[j], b, mean[p, j], cov[p, j])
+        s = states[p]
+        ch, sh = math.cos(s[3]), math.sin(s[3])
+        for j in range(J):
+            valid = True
+            for k in range(K):
+                d0 = ce[j, k] * (ca[j, k] * ch - sa[j, k] * sh)
+                d1 = ce[j, k] * (sa[j, k] * ch + ca[j, k] * sh)
+                valid = invert_ray(geometry, s, d0, d1, se[j, k], zpts[j, k, 0] - s[6], b, x[k]) and valid
+            ok[p, j] = image_moments(x, mean[p, j], cov[p, j]) and valid
 
 
 def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
@@ -169,7 +184,7 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
 
     The 10 cubature points of ``N(z_j, R)`` are inverted for every particle with the type's
-    geometry (:func:`image_moments`). No FOV gating here; ``ok`` is False for an invalid image,
+    geometry (:func:`invert_ray`) and summarised by :func:`image_moments`. No FOV gating here; ``ok`` is False for an invalid image,
     a non-finite moment or a covariance with a non-positive determinant.
     """
     return birth_moments_by_kind(states, Z, R, (lm_type,), bs)[lm_type]
