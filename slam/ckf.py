@@ -83,7 +83,8 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         for sign in range(2):
             for i in range(3):
                 x[i] = m[i] + c * L[i, k] if sign == 0 else m[i] - c * L[i, k]
-            measure_point(geometry, s, x, b, hz[k + 3 * sign])
+            r = k + 3 * sign
+            hz[r, 0], hz[r, 1], hz[r, 2], hz[r, 3], hz[r, 4] = measure_point(geometry, s, x, b)
     for a in range(MEAS_DIM):
         mean = 0.0
         for k in range(6):

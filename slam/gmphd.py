@@ -156,7 +156,7 @@ def _bs_loglik(states: np.ndarray, Z: np.ndarray, L: np.ndarray, b: np.ndarray, 
     zhat = np.empty(MEAS_DIM)
     y = np.empty(MEAS_DIM)
     for p in range(states.shape[0]):
-        measure_point(0, states[p], b, b, zhat)  # Bounce.DIRECT
+        zhat[0], zhat[1], zhat[2], zhat[3], zhat[4] = measure_point(0, states[p], b, b)  # Bounce.DIRECT
         for j in range(Z.shape[0]):
             Lj = L[j if L.shape[0] > 1 else 0]
             half_logdet = 0.0

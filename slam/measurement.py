@@ -55,15 +55,18 @@ def _elevation(dz: float, r: float) -> float:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
+                  ) -> tuple[float, float, float, float, float]:
     """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
 
     Args:
         geometry: :class:`~mmslam.model.Bounce` code: DIRECT (line of sight, ``x`` ignored),
             MIRROR (``x`` = image source ``v`` of the BS in the wall) or SCATTER (``x`` = bounce point).
-        u: ``(3,)`` vehicle antenna position; x: ``(3,)`` landmark point; b: ``(3,)`` BS position
-            (global frame, m).
-        out: ``(5,)`` written with ``[toa (m), aod az, aod el, aoa az (global frame), aoa el]`` (rad).
+        u: ``(>= 3,)`` vehicle antenna position (first three entries read); x: ``(3,)`` landmark
+            point; b: ``(3,)`` BS position (global frame, m).
+
+    Returns:
+        ``(toa (m), aod az, aod el, aoa az (global frame), aoa el)`` (rad).
             MIRROR: the AOD points at the incidence point on the wall, i.e. the direction ``u - v``
             reflected in the wall plane (the perpendicular bisector of ``b`` and ``v``); the TOA is
             ``|u - v|``. SCATTER: ``|x - b| + |x - u|``.
@@ -91,36 +94,33 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, ou
         rdep = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
         rarr = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
         toa = rdep + rarr
-    out[0] = toa
-    out[1] = math.atan2(dep1, dep0)
-    out[2] = _elevation(dep2, rdep)
-    out[3] = math.atan2(arr1, arr0)
-    out[4] = _elevation(arr2, rarr)
+    return (toa, math.atan2(dep1, dep0), _elevation(dep2, rdep), math.atan2(arr1, arr0),
+            _elevation(arr2, rarr))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray
+                  ) -> tuple[float, float, float, float, float]:
     """Noise-free measurement ``h(s, x)`` of one landmark point seen from one vehicle, paper eq. (3).
 
     ``s (>= 7,)``: vehicle state ``[x, y, z (m), heading (rad), v (m/s), turn rate (rad/s), clock
-    bias B (m)]``; ``x``, ``b``, ``geometry``: as :func:`channel_point`. ``out (5,)``:
-    ``[TOA + B (m), AOD az, AOD el, AOA az - heading (body frame, wrapped to (-pi, pi]), AOA el]``.
+    bias B (m)]``; ``x``, ``b``, ``geometry``: as :func:`channel_point`. Returns
+    ``(TOA + B (m), AOD az, AOD el, AOA az - heading (body frame, wrapped to (-pi, pi]), AOA el)``.
     """
-    channel_point(geometry, s[0:3], x, b, out)
-    out[0] += s[6]
-    out[3] = wrap(out[3] - s[3])
+    toa, aod_az, aod_el, aoa_az, aoa_el = channel_point(geometry, s, x, b)
+    return toa + s[6], aod_az, aod_el, wrap(aoa_az - s[3]), aoa_el
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _channel_loop(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     for n in range(u.shape[0]):
-        channel_point(geometry, u[n], x[n], b[n], out[n])
+        out[n, 0], out[n, 1], out[n, 2], out[n, 3], out[n, 4] = channel_point(geometry, u[n], x[n], b[n])
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _measure_loop(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     for n in range(s.shape[0]):
-        measure_point(geometry, s[n], x[n], b[n], out[n])
+        out[n, 0], out[n, 1], out[n, 2], out[n, 3], out[n, 4] = measure_point(geometry, s[n], x[n], b[n])
 
 
 def _flat(a: np.ndarray, shape: tuple[int, ...], k: int) -> np.ndarray:

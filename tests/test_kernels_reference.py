@@ -399,12 +399,10 @@ def test_measurement_kernels_equal_the_textbook_geometry(seed, P_, Q, K, lm_type
     got = measure(np.broadcast_to(s[:, None, None, :], (P_, Q, K, 7)), pts, lm_type, BS_POS)  # BS: pts unused
     _close_angles(got, ref, 1, "measure")
     geo = GEOMETRY[lm_type]
-    one = np.empty(5)
     for p in range(P_):
         for q in range(Q):
             for k in range(K):
-                measure_point(geo, s[p], pts[p, q, k], BS_POS, one)
-                _close_angles(one, ref[p, q, k], 1, "measure_point")
+                _close_angles(np.array(measure_point(geo, s[p], pts[p, q, k], BS_POS)), ref[p, q, k], 1, "measure_point")
     glob = channel_params(np.broadcast_to(s[:, None, None, :3], pts.shape), pts, lm_type, BS_POS)
     body = glob.copy()
     body[..., 0] += s[:, None, None, 6]
