@@ -123,21 +123,26 @@ def _inverse_batch(A: np.ndarray, out: np.ndarray) -> int:
     return -1
 
 
+def _per_matrix(kernel, P: np.ndarray, stage: str, failure: str) -> np.ndarray:
+    """Run a per-matrix kernel (``_cholesky_batch`` / ``_inverse_batch``) over ``P (..., d, d)``."""
+    P = np.asarray(P, dtype=float)
+    if not np.isfinite(P).all():
+        raise FloatingPointError(f"non-finite covariance in {stage}")
+    d = P.shape[-1]
+    A = np.ascontiguousarray(P.reshape(-1, d, d))
+    out = np.empty_like(A)
+    if kernel(A, out) >= 0:
+        raise FloatingPointError(f"{failure} in {stage}")
+    return out.reshape(P.shape)
+
+
 def safe_cholesky(P: np.ndarray, stage: str) -> np.ndarray:
     """Lower Cholesky factors of SPD matrices ``P (..., d, d)``; FloatingPointError naming ``stage``.
 
     The jitter retry of :func:`cholesky` applies; a non-finite matrix or one that stays
     indefinite raises ``FloatingPointError`` (non-finite / not positive definite in ``stage``).
     """
-    P = np.asarray(P, dtype=float)
-    if not np.isfinite(P).all():
-        raise FloatingPointError(f"non-finite covariance in {stage}")
-    d = P.shape[-1]
-    A = np.ascontiguousarray(P.reshape(-1, d, d))
-    L = np.empty_like(A)
-    if _cholesky_batch(A, L) >= 0:
-        raise FloatingPointError(f"covariance not positive definite in {stage}")
-    return L.reshape(P.shape)
+    return _per_matrix(_cholesky_batch, P, stage, "covariance not positive definite")
 
 
 def spd_inv(P: np.ndarray, stage: str) -> np.ndarray:
@@ -145,12 +150,4 @@ def spd_inv(P: np.ndarray, stage: str) -> np.ndarray:
 
     Raises FloatingPointError naming ``stage`` if some matrix is non-finite or not positive definite.
     """
-    P = np.asarray(P, dtype=float)
-    if not np.isfinite(P).all():
-        raise FloatingPointError(f"non-finite covariance in {stage}")
-    d = P.shape[-1]
-    A = np.ascontiguousarray(P.reshape(-1, d, d))
-    out = np.empty_like(A)
-    if _inverse_batch(A, out) >= 0:
-        raise FloatingPointError(f"singular or indefinite covariance in {stage}")
-    return out.reshape(P.shape)
+    return _per_matrix(_inverse_batch, P, stage, "singular or indefinite covariance")

@@ -123,8 +123,21 @@ def _measure_loop(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray, ou
         out[n, 0], out[n, 1], out[n, 2], out[n, 3], out[n, 4] = measure_point(geometry, s[n], x[n], b[n])
 
 
-def _flat(a: np.ndarray, shape: tuple[int, ...], k: int) -> np.ndarray:
-    return np.ascontiguousarray(np.broadcast_to(a, shape + (k,))).reshape(-1, k)
+def _broadcast(loop, v: np.ndarray, lm: np.ndarray | None, lm_type: int, bs: np.ndarray) -> np.ndarray:
+    """Run ``loop`` (:func:`_channel_loop` / :func:`_measure_loop`) over broadcast vehicle rows
+    ``v (..., k)``, landmark points ``lm (..., 3)`` (the BS for DIRECT) and BS positions: ``(..., 5)``."""
+    geo = geometry_of(lm_type)
+    v = np.asarray(v, dtype=float)
+    b = np.asarray(bs, dtype=float)
+    x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
+    shape = np.broadcast_shapes(v.shape[:-1], x.shape[:-1], b.shape[:-1])
+    out = np.empty(shape + (5,))
+
+    def flat(a: np.ndarray, k: int) -> np.ndarray:
+        return np.ascontiguousarray(np.broadcast_to(a, shape + (k,))).reshape(-1, k)
+
+    loop(geo, flat(v, v.shape[-1]), flat(x, 3), flat(b, 3), out.reshape(-1, 5))
+    return out
 
 
 def channel_params(u: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) -> np.ndarray:
@@ -142,14 +155,7 @@ def channel_params(u: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) 
     Returns:
         ``(..., 5)`` with TOA without clock bias and AOA azimuth in the global frame.
     """
-    geo = geometry_of(lm_type)
-    u = np.asarray(u, dtype=float)
-    b = np.asarray(bs, dtype=float)
-    x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
-    shape = np.broadcast_shapes(u.shape[:-1], x.shape[:-1], b.shape[:-1])
-    out = np.empty(shape + (5,))
-    _channel_loop(geo, _flat(u, shape, 3), _flat(x, shape, 3), _flat(b, shape, 3), out.reshape(-1, 5))
-    return out
+    return _broadcast(_channel_loop, u, lm, lm_type, bs)
 
 
 def to_body(g: np.ndarray, heading: np.ndarray, bias: np.ndarray) -> np.ndarray:
@@ -162,14 +168,7 @@ def to_body(g: np.ndarray, heading: np.ndarray, bias: np.ndarray) -> np.ndarray:
 
 def measure(state: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) -> np.ndarray:
     """Noise-free measurement ``h(s, x, m)`` for vehicle states ``(..., 7)``: :func:`measure_point` broadcast."""
-    geo = geometry_of(lm_type)
-    s = np.asarray(state, dtype=float)
-    b = np.asarray(bs, dtype=float)
-    x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
-    shape = np.broadcast_shapes(s.shape[:-1], x.shape[:-1], b.shape[:-1])
-    out = np.empty(shape + (5,))
-    _measure_loop(geo, _flat(s, shape, s.shape[-1]), _flat(x, shape, 3), _flat(b, shape, 3), out.reshape(-1, 5))
-    return out
+    return _broadcast(_measure_loop, state, lm, lm_type, bs)
 
 
 def residual(z: np.ndarray, zhat: np.ndarray) -> np.ndarray:
