@@ -170,8 +170,11 @@ def _moments_batch(geometry: int, states: np.ndarray, zpts: np.ndarray, b: np.nd
 
 def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
                           bs: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """:func:`birth_moments` for several landmark types sharing the cubature points:
-    ``{type: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}`` (types of one geometry give the same)."""
+    """:func:`birth_moments` for several path geometries sharing the cubature points.
+
+    ``kinds``: :class:`mmslam.model.Bounce` codes (MIRROR, SCATTER; types of one geometry share
+    the inversion). Returns ``{geometry: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}``.
+    """
     J, P_ = Z.shape[0], states.shape[0]
     zpts = np.ascontiguousarray(cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature"))  # (J, 10, 5)
     s = np.ascontiguousarray(states, dtype=float)
@@ -179,8 +182,8 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     out = {}
     for k in kinds:
         mean, cov, ok = np.empty((P_, J, 3)), np.empty((P_, J, 3, 3)), np.empty((P_, J), bool)
-        _moments_batch(GEOMETRY[k], s, zpts, b, mean, cov, ok)
-        out[k] = (mean, cov, ok)
+        _moments_batch(int(k), s, zpts, b, mean, cov, ok)
+        out[int(k)] = (mean, cov, ok)
     return out
 
 
@@ -189,10 +192,12 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
 
     The 10 cubature points of ``N(z_j, R)`` are inverted for every particle with the type's
-    geometry (:func:`invert_ray`) and summarised by :func:`image_moments`. No FOV gating here; ``ok`` is False for an invalid image,
-    a non-finite moment or a covariance with a non-positive determinant.
+    geometry (:data:`~mmslam.slam.measurement.GEOMETRY`, :func:`invert_ray`) and summarised by
+    :func:`image_moments`. No FOV gating here; ``ok`` is False for an invalid image, a non-finite
+    moment or a covariance with a non-positive determinant.
     """
-    return birth_moments_by_kind(states, Z, R, (lm_type,), bs)[lm_type]
+    geo = GEOMETRY[lm_type]
+    return birth_moments_by_kind(states, Z, R, (geo,), bs)[geo]
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,

@@ -906,12 +906,12 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     snap = _snapshot(s, Z, R)
     ref_mean, ref_cov, ref_ok, ref_pos, ref_valid = _ref_birth(s, Z, R, lm_type)
     mean, cov, ok = birth_mod.birth_moments(s, Z, R, lm_type, BS_POS)
-    both = birth_mod.birth_moments_by_kind(s, Z, R, (VA, SP), BS_POS)
+    both = birth_mod.birth_moments_by_kind(s, Z, R, (GEOMETRY[VA], GEOMETRY[SP]), BS_POS)  # keyed by geometry
     _unchanged(snap, "birth_moments")
     assert np.array_equal(ok, ref_ok)
     _close(mean[ok], ref_mean[ok], 1, "birth mean")
     _close(cov[ok], ref_cov[ok], 2, "birth covariance")
-    for a, b in zip(both[lm_type], (mean, cov, ok)):
+    for a, b in zip(both[GEOMETRY[lm_type]], (mean, cov, ok)):
         assert np.array_equal(a, b)
     # the inversion of every cubature point x particle (the per-point kernel and its NumPy API)
     zpts = ckf.cubature_points(Z, np.broadcast_to(R, (J, 5, 5)))  # (J, 10, 5)
