@@ -28,7 +28,8 @@ from mmslam.model import Bounce
 
 from .ckf import cubature_points
 from .gm import GM
-from .measurement import GEOMETRY, SP, VA, VS
+from .dynamics import VS_DIM
+from .measurement import SP, VA, geometry_of
 from .vs import vs_birth_covariance, vs_birth_mean
 
 
@@ -87,7 +88,7 @@ def _invert(lm_type: int, state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> t
     state, z = np.asarray(state, float), np.asarray(z, float)
     shape = np.broadcast_shapes(state.shape[:-1], z.shape[:-1])
     out, valid = np.empty(shape + (3,)), np.empty(shape, bool)
-    _invert_loop(GEOMETRY[lm_type], np.ascontiguousarray(np.broadcast_to(state, shape + (state.shape[-1],))).reshape(-1, state.shape[-1]),
+    _invert_loop(geometry_of(lm_type), np.ascontiguousarray(np.broadcast_to(state, shape + (state.shape[-1],))).reshape(-1, state.shape[-1]),
                  np.ascontiguousarray(np.broadcast_to(z, shape + (5,))).reshape(-1, 5),
                  np.ascontiguousarray(bs, dtype=float), out.reshape(-1, 3), valid.reshape(-1))
     return out, valid
@@ -192,11 +193,11 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     """Birth position moments by cubature inversion: ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``.
 
     The 10 cubature points of ``N(z_j, R)`` are inverted for every particle with the type's
-    geometry (:data:`~mmslam.slam.measurement.GEOMETRY`, :func:`invert_ray`) and summarised by
+    geometry (:func:`~mmslam.slam.measurement.geometry_of`, :func:`invert_ray`) and summarised by
     :func:`image_moments`. No FOV gating here; ``ok`` is False for an invalid image, a non-finite
     moment or a covariance with a non-positive determinant.
     """
-    geo = GEOMETRY[lm_type]
+    geo = geometry_of(lm_type)
     return birth_moments_by_kind(states, Z, R, (geo,), bs)[geo]
 
 
@@ -205,13 +206,20 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
                        pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                        vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
                        vs_turn_std: float = np.pi / 2) -> GM:
-    """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`)."""
-    if GEOMETRY[lm_type] == _SCATTER:  # a MIRROR image lies behind its wall: no FOV test
+    """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
+
+    The type's spec (:func:`mmslam.slam.landmarks.landmark_type`) decides: a range-gated type's
+    births need ``p_D > 0`` at their mean; a 7-D (moving, VS) type gets the velocity / turn-rate prior.
+    """
+    from .landmarks import landmark_type  # lazy: the registry module imports this one
+
+    spec = landmark_type(lm_type)
+    if spec.range_gated:  # e.g. not a VA: its image lies behind the wall
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
         ok = ok & (pd > 0.0)
     mean = np.where(ok[..., None], mean, 0.0)
     cov = np.where(ok[..., None, None], cov, np.eye(3))
-    if lm_type == VS:
+    if spec.state_dim == VS_DIM:
         m7 = np.asarray(vs_birth_mean(mean), float)
         c7 = np.asarray(vs_birth_covariance(cov, vs_velocity_var, vs_turn_std), float)
         mean = np.where(ok[..., None], m7, 0.0)
@@ -244,7 +252,9 @@ def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs:
     """
     P_, J = states.shape[0], Z.shape[0]
     if J == 0:
-        d = 7 if lm_type == VS else 3
+        from .landmarks import landmark_type  # lazy: the registry module imports this one
+
+        d = landmark_type(lm_type).state_dim
         return GM(np.zeros((P_, 0)), np.zeros((P_, 0, d)), np.zeros((P_, 0, d, d)), np.zeros((P_, 0), bool))
     mean, cov, ok = birth_moments(states, Z, R, lm_type, bs)
     return birth_from_moments(states, mean, cov, ok, lm_type, birth_weight, pd_fn, vs_velocity_var, vs_turn_std)

@@ -23,7 +23,7 @@ import numpy as np
 from .ckf import Innovation, innovate
 from .gm import GM
 from .linalg import forward_solve, safe_cholesky
-from .measurement import BS, GEOMETRY, MEAS_DIM, TYPE_NAMES, measure_point, wrap
+from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point, wrap
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _IS_AZIMUTH = np.array([c in (1, 3) for c in range(MEAS_DIM)])  # AZIMUTH_COMPONENTS
@@ -144,7 +144,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     pidx, qidx = np.nonzero(det)
     det_index = np.full((P_, Q), -1)
     det_index[pidx, qidx] = np.arange(pidx.size)
-    inn = innovate(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], GEOMETRY[lm_type], bs, Z, R, stage, extent)
+    inn = innovate(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], geometry_of(lm_type), bs, Z, R, stage, extent)
     logq = np.full((P_, Q, J), -np.inf)
     logq[pidx, qidx] = np.log(pd[pidx, qidx] * g.w[pidx, qidx])[:, None] + inn.loglik
     return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn, det_index)

@@ -6,7 +6,7 @@ parameters (:func:`channel_params`) have AOA azimuth in the global frame; the *b
 measurement (:func:`to_body`) subtracts the vehicle heading from it and wraps to ``(-pi, pi]``.
 
 Landmark types (integer codes used in caches and the filter): ``BS=0, VA=1, SP=2, VS=3, OTHER=4``.
-Each filtered type maps to one path geometry (:data:`GEOMETRY`, a :class:`mmslam.model.Bounce`); the
+Each type maps to one path geometry (:func:`geometry_of`, a :class:`mmslam.model.Bounce`); the
 model is written once, for one landmark point and one vehicle (:func:`channel_point`,
 :func:`measure_point`, numba ``njit``), and the NumPy API (:func:`channel_params`, :func:`measure`)
 loops over it.
@@ -22,21 +22,22 @@ from mmslam.model import (ANGLE_COMPONENTS, AZIMUTH_COMPONENTS, BS, MEAS_DIM, OT
                           TYPE_NAMES, VA, VS, direction_angles, mirror_point, wrap_angle)
 from mmslam.model import Bounce
 
-GEOMETRY: dict[int, int] = {BS: int(Bounce.DIRECT), VA: int(Bounce.MIRROR), SP: int(Bounce.SCATTER),
-                            VS: int(Bounce.SCATTER)}
-"""Landmark type -> path geometry (:class:`mmslam.model.Bounce`): the one place the filter maps a
-type to its measurement function (a VS bounces like a scatter point on its position)."""
-
 _DIRECT, _MIRROR = int(Bounce.DIRECT), int(Bounce.MIRROR)
 _TWO_PI = 2.0 * math.pi
 
 
 def geometry_of(lm_type: int) -> int:
-    """The :class:`~mmslam.model.Bounce` code of a landmark type; ValueError for a type without one."""
+    """The :class:`~mmslam.model.Bounce` code of a landmark type, from its spec in the registry of
+    :mod:`mmslam.slam.landmarks` (the one owner of the type -> geometry mapping; a VS bounces like a
+    scatter point on its position). ValueError for an unknown type."""
+    from mmslam.errors import MmslamError
+
+    from .landmarks import landmark_type  # lazy: the registry module imports the kernels
+
     try:
-        return GEOMETRY[int(lm_type)]
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"unknown landmark type {lm_type!r}; expected one of {sorted(GEOMETRY)}") from None
+        return int(landmark_type(int(lm_type)).geometry)
+    except (MmslamError, TypeError, ValueError) as e:
+        raise ValueError(f"unknown landmark type {lm_type!r}: {e}") from None
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -149,7 +150,7 @@ def channel_params(u: np.ndarray, lm: np.ndarray, lm_type: int, bs: np.ndarray) 
         u: vehicle antenna positions ``(..., 3)``, global frame, m.
         lm: landmark positions ``(..., 3)`` (BS: ignored, may be None; VA: image source; SP/VS:
             scatter point).
-        lm_type: one of ``BS, VA, SP, VS`` (mapped to its geometry by :data:`GEOMETRY`).
+        lm_type: a registered landmark type, e.g. ``BS, VA, SP, VS`` (its geometry: :func:`geometry_of`).
         bs: BS position ``(3,)`` or ``(..., 3)``.
 
     Returns:

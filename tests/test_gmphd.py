@@ -8,7 +8,7 @@ from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
 from mmslam.slam.gm import GM
 from mmslam.slam.ckf import cubature_points, innovate, kalman_update
 from mmslam.slam.gmphd import bs_logterm, corrected_gm, log_psi, type_terms
-from mmslam.slam.measurement import GEOMETRY, SP, VA, VS, measure
+from mmslam.slam.measurement import SP, VA, VS, geometry_of, measure
 
 BS_POS = np.array([0.0, 0.0, 40.0])
 R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
@@ -42,7 +42,7 @@ def test_ckf_handles_azimuth_wrap_at_pi():
     P = np.eye(3) * 0.5
     ztrue = measure(s, lm, SP, BS_POS)
     assert abs(abs(ztrue[3]) - np.pi) < 0.1
-    m_post, P_post, ll = kalman_update(lm, P, ztrue, R, s, GEOMETRY[SP], BS_POS)
+    m_post, P_post, ll = kalman_update(lm, P, ztrue, R, s, geometry_of(SP), BS_POS)
     # a naive mean over +-pi would give zhat ~ 0, a residual ~ pi and a log-likelihood ~ -pi^2 / (2 0.03^2)
     assert ll > -20.0
     assert np.abs(m_post - lm).max() < 0.5 and np.all(np.linalg.eigvalsh(P_post) > 0)
@@ -206,11 +206,11 @@ def test_innovate_on_a_padded_batch_equals_kalman_update_per_gaussian(lm_type):
         m[..., 3:] = rng.standard_normal((P_, Q, 4))
     Pm = np.stack([_spd(rng, d, 0.3) for _ in range(P_ * Q)]).reshape(P_, Q, d, d)
     Z = np.stack([measure(s[0], base + rng.standard_normal(3), lm_type, BS_POS) for _ in range(3)])
-    inn = innovate(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), GEOMETRY[lm_type], BS_POS, Z, R, "test")
+    inn = innovate(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), geometry_of(lm_type), BS_POS, Z, R, "test")
     for n in range(P_ * Q):
         for j in range(3):
             mk, Pk, llk = kalman_update(m.reshape(-1, d)[n], Pm.reshape(-1, d, d)[n], Z[j], R, s[n // Q],
-                                        GEOMETRY[lm_type], BS_POS)
+                                        geometry_of(lm_type), BS_POS)
             np.testing.assert_allclose(inn.loglik[n, j], llk, rtol=1e-12)
             np.testing.assert_allclose(inn.m_post[n, j], mk, rtol=1e-12)
             np.testing.assert_allclose(inn.P_post[n, 0], Pk, rtol=1e-12, atol=1e-15)
@@ -287,7 +287,7 @@ def test_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_e():
     st = np.array([[20.0, 5.0, 0.0, 0.3, 10.0, 0.0, 2.0]])
     Rm = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
     Z = np.array([[55.0, 0.4, -0.5, 0.6, -0.01]])
-    geo = GEOMETRY[VS]
+    geo = geometry_of(VS)
     ext = innovate(m, P, st, geo, bs, Z, Rm, "test", extent=E)
     Pi = P.copy()
     Pi[0, :3, :3] += E
@@ -321,7 +321,7 @@ def test_per_measurement_R_equal_to_the_shared_R_gives_the_shared_innovation(lm_
     st = np.c_[rng.uniform(-5, 5, (4, 3)), rng.uniform(-1, 1, (4, 1)), np.full((4, 2), 5.0), np.full((4, 1), 2.0)]
     R = np.diag([0.09, 1e-3, 1e-3, 1e-3, 1e-3])
     Z = np.array([[70.0, 0.3, -0.4, 0.5, -0.1], [90.0, 1.0, -0.2, 1.1, 0.0], [60.0, 0.1, -0.5, 0.2, 0.05]])
-    geo = GEOMETRY[lm_type]
+    geo = geometry_of(lm_type)
     shared = innovate(m, P, st, geo, bs, Z, R, "t")
     per = innovate(m, P, st, geo, bs, Z, np.stack([R] * 3), "t")
     np.testing.assert_allclose(per.loglik, shared.loglik, rtol=1e-12)

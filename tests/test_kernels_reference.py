@@ -37,7 +37,7 @@ from mmslam.slam import gm as gm_mod
 from mmslam.slam import gmphd, linalg
 from mmslam.slam import reduction as red
 from mmslam.slam.gm import GM
-from mmslam.slam.measurement import BS, GEOMETRY, SP, VA, VS, channel_params, measure, measure_point
+from mmslam.slam.measurement import BS, SP, VA, VS, channel_params, geometry_of, measure, measure_point
 
 RTOL = 1e-9
 TINY = 1e-300  # absolute floor: below it, values are round-off of underflowed terms
@@ -398,7 +398,7 @@ def test_measurement_kernels_equal_the_textbook_geometry(seed, P_, Q, K, lm_type
                     for p in range(P_)]).reshape(P_, Q, K, 5)
     got = measure(np.broadcast_to(s[:, None, None, :], (P_, Q, K, 7)), pts, lm_type, BS_POS)  # BS: pts unused
     _close_angles(got, ref, 1, "measure")
-    geo = GEOMETRY[lm_type]
+    geo = geometry_of(lm_type)
     for p in range(P_):
         for q in range(Q):
             for k in range(K):
@@ -425,7 +425,7 @@ def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, 
     R = np.array([rand_R(rng) for _ in range(J)]).reshape(J, 5, 5) if per_meas_R else rand_R(rng)
     E = rand_spd(rng, (), 3, 1.0, 0.1, 1.0) if extent else None
     snap = _snapshot(m, P, s, Z, R)
-    inn = ckf.innovate(m[None], P[None], s, GEOMETRY[lm_type], BS_POS, Z, R, "test", E)
+    inn = ckf.innovate(m[None], P[None], s, geometry_of(lm_type), BS_POS, Z, R, "test", E)
     _unchanged(snap, "innovate")
     assert inn.loglik.shape == (1, J) and inn.m_post.shape == (1, J, d)
     for j in range(J):
@@ -433,7 +433,7 @@ def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, 
         _close_scalar(inn.loglik[0, j:j + 1], r["loglik"], "loglik")
         _close(inn.m_post[0, j], r["m_post"][0], 1, "posterior mean")
         _close(inn.post(np.array([0]), np.array([j]))[0], r["P_post"], 2, "posterior covariance")
-        mk, Pk, llk = ckf.kalman_update(m, P, Z[j], R[j] if per_meas_R else R, s[0], GEOMETRY[lm_type], BS_POS, E)
+        mk, Pk, llk = ckf.kalman_update(m, P, Z[j], R[j] if per_meas_R else R, s[0], geometry_of(lm_type), BS_POS, E)
         _close(mk, r["m_post"][0], 1, "kalman_update mean")
         _close(Pk, r["P_post"], 2, "kalman_update covariance")
         _close_scalar(llk, r["loglik"][0], "kalman_update loglik")
@@ -455,7 +455,7 @@ def test_innovate_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond):
     Z = rand_Z(rng, s if n else rand_states(rng, 1), J)
     R = rand_R(rng)
     snap = _snapshot(m, P, s, Z, R)
-    inn = ckf.innovate(m, P, s, GEOMETRY[lm_type], BS_POS, Z, R, "test")
+    inn = ckf.innovate(m, P, s, geometry_of(lm_type), BS_POS, Z, R, "test")
     _unchanged(snap, "innovate")
     assert inn.loglik.shape == (n, J) and inn.m_post.shape == (n, J, d) and inn.P_post.shape == (n, 1, d, d)
     for i in range(n):
@@ -906,12 +906,12 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     snap = _snapshot(s, Z, R)
     ref_mean, ref_cov, ref_ok, ref_pos, ref_valid = _ref_birth(s, Z, R, lm_type)
     mean, cov, ok = birth_mod.birth_moments(s, Z, R, lm_type, BS_POS)
-    both = birth_mod.birth_moments_by_kind(s, Z, R, (GEOMETRY[VA], GEOMETRY[SP]), BS_POS)  # keyed by geometry
+    both = birth_mod.birth_moments_by_kind(s, Z, R, (geometry_of(VA), geometry_of(SP)), BS_POS)  # keyed by geometry
     _unchanged(snap, "birth_moments")
     assert np.array_equal(ok, ref_ok)
     _close(mean[ok], ref_mean[ok], 1, "birth mean")
     _close(cov[ok], ref_cov[ok], 2, "birth covariance")
-    for a, b in zip(both[GEOMETRY[lm_type]], (mean, cov, ok)):
+    for a, b in zip(both[geometry_of(lm_type)], (mean, cov, ok)):
         assert np.array_equal(a, b)
     # the inversion of every cubature point x particle (the per-point kernel and its NumPy API)
     zpts = ckf.cubature_points(Z, np.broadcast_to(R, (J, 5, 5)))  # (J, 10, 5)
