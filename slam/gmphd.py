@@ -41,9 +41,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         ``D_t^+(x) = (1 - p_D(x)) D_t(x) + sum_j p_D(x) N(z_j; h_t(s_p, x), R) D_t(x) / psi(z_j)``,
         ``psi(z_j) = c(z_j) + p_D,BS N(z_j; h(s_p, b), R) + sum_t int p_D N(z_j; h_t(s_p, x), R) D_t(x) dx``,
 
-    and eq. (6): the particle weight is multiplied by ``prod_j psi(z_j)`` (the caller adds
-    ``log psi(z).sum(1)`` to the log-weights; the ``exp(-int p_D D)`` factor is left out as in the
-    paper's implementation).
+    and eq. (6), the particle weight: the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
+    weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md), i.e. the
+    caller adds ``log psi(z).sum(1)`` to the log-weights.
 
     Steps:
 
