@@ -4,8 +4,12 @@ Two public functions, both pure and batched over leading axes:
 
 - :func:`prune_merge`: Vo & Ma 2006 ("The Gaussian mixture probability hypothesis density
   filter"), Table II, applied to every mixture of a batch at once (e.g. the ``P`` particle maps).
-- :func:`average_map`: the particle-weighted average map PHD of the paper's eq. (prevMFave),
-  ``sum_p w_p D^p``, reduced in the spirit of Mullane et al. 2011, Table IV.
+- :func:`average_map`: the particle-weighted average map PHD of the paper's eq. (7),
+  ``sum_p w_p D^p``, reduced in the spirit of Mullane et al. 2011, Table IV;
+- :func:`merge_pairs`: moment matching of given pairs (the fused VS map).
+
+All three use one merge written for one mixture (:func:`greedy_merge`, :func:`moment_match`;
+numba ``njit``, ``cache=True``), run over the batch's mixtures.
 
 Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, covariances
 ``(*B, Q, d, d)``, mask ``(*B, Q)``. Means are in the global frame (m; VS also m/s and rad/s).
@@ -268,7 +272,7 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
 
 def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,
                 max_trace: float | None = None, pos_dims: int = 3) -> GM:
-    """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (prevMFave)).
+    """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (7)).
 
     ``D_bar(x) = sum_p w_p D^p(x)``: the union of all particles' components with weights
     ``w_p * eta^{p,q}``, then reduced in the order of Mullane et al. 2011 (Table IV):
