@@ -1,4 +1,4 @@
-"""Motion models (DESIGN.md section 3). Pure NumPy, broadcasting over leading axes.
+"""Motion models (DESIGN.md section 3), broadcasting over leading axes.
 
 Global frame: x east, y north, z up, metres; angles in radians; time in seconds.
 
@@ -10,6 +10,9 @@ unknown turn rate (Li & Jilkov 2003, sec. V-B), :func:`vs_ct` and its Jacobian :
 """
 from __future__ import annotations
 
+import math
+
+import numba as nb
 import numpy as np
 
 from mmslam.model import wrap_angle  # noqa: F401  (re-exported: the filter's angle convention)
@@ -64,56 +67,66 @@ def vehicle_ct(s: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-def vs_ct(t: np.ndarray, dt: float) -> np.ndarray:
-    """Cartesian coordinated-turn transition of VS states ``[x, y, z, vx, vy, vz, xi]``.
+@nb.njit(cache=True, error_model="numpy")
+def vs_ct_point(t: np.ndarray, dt: float, out: np.ndarray, F: np.ndarray) -> None:
+    """Cartesian coordinated turn of one VS state and its Jacobian, paper eq. (2) without noise.
 
-    ``x' = x + (sin(xi T)/xi) vx - ((1 - cos(xi T))/xi) vy`` etc. (DESIGN.md section 3);
-    equals constant velocity as ``xi -> 0``. Shape ``(..., 7)`` in and out.
+    ``t = [x, y, z, vx, vy, vz, xi]`` (m, m/s, rad/s): ``x' = x + (sin(xi T)/xi) vx - ((1 - cos(xi
+    T))/xi) vy``, ``y' = y + ((1 - cos(xi T))/xi) vx + (sin(xi T)/xi) vy``, ``z' = z + T vz``,
+    ``[vx', vy'] = R(xi T) [vx, vy]``, ``vz, xi`` unchanged; constant velocity as ``xi -> 0``
+    (series below ``|xi T| < 1e-4``). Writes ``out (7,)`` and ``F = d t' / d t (7, 7)``.
     """
+    vx, vy, w = t[3], t[4], t[6]
+    wt = w * dt
+    cw, sw = math.cos(wt), math.sin(wt)
+    if abs(wt) < 1e-4:
+        s1 = dt * (1.0 - wt * wt / 6.0)
+        c1 = dt * (wt / 2.0 - wt * wt * wt / 24.0)
+        ds1 = -dt * dt * dt * w / 3.0  # d/dw of sin(w T)/w and (1 - cos(w T))/w
+        dc1 = dt * dt / 2.0 - dt * dt * dt * dt * w * w / 8.0
+    else:
+        s1, c1 = sw / w, (1.0 - cw) / w
+        ds1 = (dt * cw * w - sw) / (w * w)
+        dc1 = (dt * sw * w - (1.0 - cw)) / (w * w)
+    out[0] = t[0] + s1 * vx - c1 * vy
+    out[1] = t[1] + c1 * vx + s1 * vy
+    out[2] = t[2] + dt * t[5]
+    out[3] = cw * vx - sw * vy
+    out[4] = sw * vx + cw * vy
+    out[5] = t[5]
+    out[6] = w
+    F[:, :] = 0.0
+    for i in range(7):
+        F[i, i] = 1.0
+    F[0, 3], F[0, 4], F[0, 6] = s1, -c1, ds1 * vx - dc1 * vy
+    F[1, 3], F[1, 4], F[1, 6] = c1, s1, dc1 * vx + ds1 * vy
+    F[2, 5] = dt
+    F[3, 3], F[3, 4], F[3, 6] = cw, -sw, -dt * (sw * vx + cw * vy)
+    F[4, 3], F[4, 4], F[4, 6] = sw, cw, dt * (cw * vx - sw * vy)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _vs_ct_loop(t: np.ndarray, dt: float, out: np.ndarray, F: np.ndarray) -> None:
+    for n in range(t.shape[0]):
+        vs_ct_point(t[n], dt, out[n], F[n])
+
+
+def _vs_ct_both(t: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     t = np.asarray(t, dtype=float)
-    x, y, z, vx, vy, vz, w = np.moveaxis(t, -1, 0)
-    s1, c1 = _sinc_terms(w, dt)
-    cw, sw = np.cos(w * dt), np.sin(w * dt)
-    out = np.empty_like(t)
-    out[..., 0] = x + s1 * vx - c1 * vy
-    out[..., 1] = y + c1 * vx + s1 * vy
-    out[..., 2] = z + dt * vz
-    out[..., 3] = cw * vx - sw * vy
-    out[..., 4] = sw * vx + cw * vy
-    out[..., 5] = vz
-    out[..., 6] = w
-    return out
+    flat = np.ascontiguousarray(t.reshape(-1, VS_DIM))
+    out, F = np.empty_like(flat), np.empty((flat.shape[0], VS_DIM, VS_DIM))
+    _vs_ct_loop(flat, float(dt), out, F)
+    return out.reshape(t.shape), F.reshape(t.shape[:-1] + (VS_DIM, VS_DIM))
+
+
+def vs_ct(t: np.ndarray, dt: float) -> np.ndarray:
+    """Cartesian coordinated-turn transition of VS states ``[x, y, z, vx, vy, vz, xi]`` (:func:`vs_ct_point`).
+
+    Shape ``(..., 7)`` in and out; equals constant velocity as ``xi -> 0``.
+    """
+    return _vs_ct_both(t, dt)[0]
 
 
 def vs_ct_jacobian(t: np.ndarray, dt: float) -> np.ndarray:
-    """Jacobian ``d vs_ct(t) / d t``, shape ``(..., 7, 7)``; exact, including ``xi -> 0``."""
-    t = np.asarray(t, dtype=float)
-    vx, vy, w = t[..., 3], t[..., 4], t[..., 6]
-    s1, c1 = _sinc_terms(w, dt)
-    wt = w * dt
-    cw, sw = np.cos(wt), np.sin(wt)
-    small = np.abs(wt) < 1e-4
-    w_safe = np.where(small, 1.0, w)
-    # d/dw of sin(w dt)/w and (1 - cos(w dt))/w
-    ds1 = np.where(small, -dt**3 * w / 3.0, (dt * cw * w - sw) / w_safe**2)
-    dc1 = np.where(small, dt**2 / 2.0 - dt**4 * w**2 / 8.0, (dt * sw * w - (1.0 - cw)) / w_safe**2)
-    J = np.zeros(t.shape[:-1] + (7, 7))
-    J[..., 0, 0] = 1.0
-    J[..., 0, 3] = s1
-    J[..., 0, 4] = -c1
-    J[..., 0, 6] = ds1 * vx - dc1 * vy
-    J[..., 1, 1] = 1.0
-    J[..., 1, 3] = c1
-    J[..., 1, 4] = s1
-    J[..., 1, 6] = dc1 * vx + ds1 * vy
-    J[..., 2, 2] = 1.0
-    J[..., 2, 5] = dt
-    J[..., 3, 3] = cw
-    J[..., 3, 4] = -sw
-    J[..., 3, 6] = -dt * (sw * vx + cw * vy)
-    J[..., 4, 3] = sw
-    J[..., 4, 4] = cw
-    J[..., 4, 6] = dt * (cw * vx - sw * vy)
-    J[..., 5, 5] = 1.0
-    J[..., 6, 6] = 1.0
-    return J
+    """Jacobian ``d vs_ct(t) / d t``, shape ``(..., 7, 7)``; exact, including ``xi -> 0`` (:func:`vs_ct_point`)."""
+    return _vs_ct_both(t, dt)[1]

@@ -8,13 +8,41 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 
-from .dynamics import VS_DIM, vs_ct, vs_ct_jacobian
+from .dynamics import VS_DIM, vs_ct_point
 from .gm import GM, symmetrize
 
 DEFAULT_TURN_MEAN = 0.0
 """Mean of the Gaussian birth turn rate (rad/s); see :func:`vs_birth_mean`."""
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _ekf_predict(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, m_out: np.ndarray,
+                 P_out: np.ndarray) -> None:
+    """EKF prediction of each Gaussian ``N(m[n], P[n])`` (7-D VS): ``m' = f(m)``, ``P' = F P F^T + add``
+    (exactly symmetric), with ``f``, ``F`` from :func:`~mmslam.slam.dynamics.vs_ct_point`."""
+    F = np.empty((VS_DIM, VS_DIM))
+    FP = np.empty((VS_DIM, VS_DIM))
+    for n in range(m.shape[0]):
+        vs_ct_point(m[n], dt, m_out[n], F)
+        for i in range(VS_DIM):
+            for k in range(VS_DIM):
+                t = 0.0
+                for a in range(VS_DIM):
+                    t += F[i, a] * P[n, a, k]
+                FP[i, k] = t
+        for i in range(VS_DIM):
+            for k in range(i + 1):
+                t1 = 0.0
+                t2 = 0.0
+                for a in range(VS_DIM):
+                    t1 += FP[i, a] * F[k, a]
+                    t2 += FP[k, a] * F[i, a]
+                v = 0.5 * (t1 + t2) + 0.5 * (add[i, k] + add[k, i])
+                P_out[n, i, k] = v
+                P_out[n, k, i] = v
 
 
 def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
@@ -49,12 +77,13 @@ def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
         add = add + np.diag(dither)
     live = g.mask
     idx = np.nonzero(live)  # only live components are propagated (masked slots: 0 / I)
-    m = g.m[idx]
-    J = vs_ct_jacobian(m, dt)
+    m, P = np.ascontiguousarray(g.m[idx]), np.ascontiguousarray(g.P[idx])
+    m_pred, P_pred = np.empty_like(m), np.empty_like(P)
+    _ekf_predict(m, P, float(dt), add, m_pred, P_pred)
     m_new = np.zeros_like(g.m)
-    m_new[idx] = vs_ct(m, dt)
+    m_new[idx] = m_pred
     P_new = np.broadcast_to(np.eye(VS_DIM), g.P.shape).copy()
-    P_new[idx] = symmetrize(J @ g.P[idx] @ np.swapaxes(J, -1, -2) + add)
+    P_new[idx] = P_pred
     w_new = np.where(live, g.w * p_survival, 0.0)
     out = GM(w_new, m_new, P_new, live.copy())
     out.check("after VS prediction")
