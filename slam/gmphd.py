@@ -251,46 +251,67 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     g, inn = t.g, t.inn
     P_, Q, d = g.m.shape
     J = Z.shape[0]
-    w_det = np.subtract(t.logq, logpsi[:, None, :])
-    np.exp(w_det, out=w_det)  # (P, Q, J); 0 where masked (logq = -inf); in place: no second buffer
-    w_all = np.concatenate([np.where(g.mask, t.missed_w, 0.0), w_det.reshape(P_, Q * J)], axis=1)
-    mask_all = np.concatenate([g.mask, np.repeat(g.mask, J, axis=1)], axis=1)
-    if prune is None:
-        keep = mask_all
-        order = np.broadcast_to(np.arange(Q * (1 + J)), (P_, Q * (1 + J)))
-        live = keep
-        w = np.where(live, w_all, 0.0)
-    else:
-        # stable compaction of the kept slots to the front of each row (slot order kept)
-        keep = mask_all & (w_all >= prune)
-        cnt = keep.sum(1)
-        K = int(cnt.max(initial=0))
-        pp, cc = np.nonzero(keep)  # row-major: ascending slot within each row
-        rank = np.arange(pp.size) - (np.cumsum(cnt) - cnt)[pp]
-        order = np.zeros((P_, K), dtype=np.intp)  # dead slots point at slot 0 (zeroed below)
-        order[pp, rank] = cc
-        live = np.arange(K)[None, :] < cnt[:, None]
-        w = np.zeros((P_, K))
-        w[pp, rank] = w_all[pp, cc]
-    is_det = order >= Q
-    q_idx = np.where(is_det, (order - Q) // max(J, 1), order)
-    j_idx = np.where(is_det, (order - Q) % max(J, 1), 0)
-    pi = np.arange(P_)[:, None]
-    m = g.m[pi, q_idx]  # (P, K, d) predicted moments (missed detections; undetectable updates)
-    Pc = g.P[pi, q_idx]
-    n_idx = t.det_index[pi, q_idx]
-    upd = live & is_det & (n_idx >= 0)  # updated components with an innovation
-    if upd.any():
-        n_u, j_u = n_idx[upd], j_idx[upd]
-        m[upd] = inn.m_post[n_u, j_u]
-        Pc[upd] = inn.post(n_u, j_u)
-    m[~live] = 0.0
-    Pc[~live] = np.eye(d)
+    dense = prune is None
+    args = (g.mask, t.missed_w, t.logq, logpsi, g.m, g.P, t.det_index, inn.m_post, inn.P_post,
+            0.0 if dense else float(prune), dense)
+    K = Q * (1 + J)
+    if not dense:  # a first pass counts the kept components
+        none = (np.zeros((0, 0)), np.zeros((0, 0, d)), np.zeros((0, 0, d, d)), np.zeros((0, 0), bool))
+        K = int(_corrected_components(*args, True, *none).max(initial=0))
+    w, m, Pc, live = np.zeros((P_, K)), np.zeros((P_, K, d)), np.empty((P_, K, d, d)), np.zeros((P_, K), bool)
+    Pc[...] = np.eye(d)
+    _corrected_components(*args, False, w, m, Pc, live)
     out = GM(w, m, Pc, live)
     if not np.isfinite(out.w.sum() + out.m.sum() + out.P.sum()):  # masked slots are 0 / I
         out.check(f"after the {_tname(t.lm_type)} correction")
         raise FloatingPointError(f"non-finite values after the {_tname(t.lm_type)} correction")
     return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarray, lpsi: np.ndarray,
+                          m: np.ndarray, P: np.ndarray, det_index: np.ndarray, m_post: np.ndarray,
+                          P_post: np.ndarray, prune: float, dense: bool, count_only: bool,
+                          out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray) -> np.ndarray:
+    """The components of paper eq. (5) for each particle ``p`` (see :func:`corrected_gm`).
+
+    Missed detections ``(1 - p_D) w`` with the predicted moments (slots ``q``), then one updated
+    Gaussian per ``(q, j)``: weight ``exp(logq - log psi(z_j)) = p_D w N(z_j) / psi(z_j)``, moments
+    from the innovation (``det_index[p, q] >= 0``) or the predicted ones (``p_D = 0``). ``dense``:
+    every live slot at its fixed place ``q`` / ``Q + q J + j``; else only weights ``>= prune``,
+    compacted in that order. Returns the number of components of each particle (``count_only``:
+    nothing is written).
+    """
+    Pn, Q, d = m.shape
+    J = logq.shape[2]
+    counts = np.zeros(Pn, np.int64)
+    for p in range(Pn):
+        k = 0
+        for slot in range(Q * (1 + J)):
+            q = slot if slot < Q else (slot - Q) // J
+            if not mask[p, q]:
+                continue
+            if slot < Q:
+                wk = missed_w[p, q]
+            else:
+                j = (slot - Q) % J
+                wk = math.exp(logq[p, q, j] - lpsi[p, j])
+            if not (dense or wk >= prune):
+                continue
+            if not count_only:
+                at = slot if dense else k
+                out_w[p, at] = wk
+                out_mask[p, at] = True
+                n = det_index[p, q]
+                if slot >= Q and n >= 0:
+                    out_m[p, at] = m_post[n, j]
+                    out_P[p, at] = P_post[n, j if P_post.shape[1] > 1 else 0]
+                else:
+                    out_m[p, at] = m[p, q]
+                    out_P[p, at] = P[p, q]
+            k += 1
+        counts[p] = k
+    return counts
 
 
 PHD_MASS_RTOL = 1e-9
