@@ -284,6 +284,7 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
     """
     Pn, Q, d = m.shape
     J = logq.shape[2]
+    log_prune = math.log(prune) if prune > 0.0 else -np.inf
     counts = np.zeros(Pn, np.int64)
     for p in range(Pn):
         k = 0
@@ -293,11 +294,14 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
                 continue
             if slot < Q:
                 wk = missed_w[p, q]
+                if not (dense or wk >= prune):
+                    continue
             else:
                 j = (slot - Q) % J
-                wk = math.exp(logq[p, q, j] - lpsi[p, j])
-            if not (dense or wk >= prune):
-                continue
+                logw = logq[p, q, j] - lpsi[p, j]
+                if not (dense or logw >= log_prune):  # the prune test in the log domain: exp only when kept
+                    continue
+                wk = math.exp(logw)
             if not count_only:
                 at = slot if dense else k
                 out_w[p, at] = wk
