@@ -160,23 +160,39 @@ def workspace(d: int) -> tuple:
             np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _ckf_batch(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
-               extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
-               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> tuple[int, int]:
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _ckf_loop(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
+              extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+              loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> tuple[int, int]:
     """:func:`ckf_update` of every Gaussian ``n``; returns ``(n, code)`` of the first failure or ``(-1, OK)``."""
     work = workspace(m.shape[1])
     for n in range(m.shape[0]):
-        # one call site per geometry: the inlined update is compiled with a constant geometry (~1.4x faster)
-        if geometry == 0:
-            code = ckf_update(0, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
-        elif geometry == 1:
-            code = ckf_update(1, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
-        else:
-            code = ckf_update(2, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
+        code = ckf_update(geometry, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
         if code != OK:
             return n, code
     return -1, OK
+
+
+# One compiled batch per path geometry: each inlines :func:`ckf_update` with a constant geometry
+# (~1.4x faster than a run-time branch) and is compiled only when a map of that geometry is first
+# corrected (one function with all three call sites took ~18 s to compile on a cold cache).
+@nb.njit(cache=True, error_model="numpy")
+def _ckf_batch_direct(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
+    return _ckf_loop(0, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.DIRECT
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _ckf_batch_mirror(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
+    return _ckf_loop(1, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.MIRROR
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _ckf_batch_scatter(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
+    return _ckf_loop(2, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.SCATTER
+
+
+_CKF_BATCH = (_ckf_batch_direct, _ckf_batch_mirror, _ckf_batch_scatter)
+"""The compiled batch of each :class:`mmslam.model.Bounce` code."""
 
 
 @dataclass
@@ -230,7 +246,7 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
     loglik = np.empty((n, J))
     m_post = np.empty((n, J, d))
     P_post = np.empty((n, R.shape[0], d, d))
-    bad, code = _ckf_batch(int(geometry), m, P, np.ascontiguousarray(states, dtype=float),
+    bad, code = _CKF_BATCH[int(geometry)](m, P, np.ascontiguousarray(states, dtype=float),
                            np.ascontiguousarray(bs, dtype=float), ext, Z, np.ascontiguousarray(R),
                            loglik, m_post, P_post)
     if code == BAD_POSITION_COV:
