@@ -4,9 +4,9 @@ Per upload of vehicle ``n`` (every ``fusion.period`` steps from ``fusion.start[n
 type: the BS map components inside the vehicle's accumulated FOV (its positions since its last
 upload, radius :meth:`~mmslam.slam.landmarks.LandmarkSpec.fov_radius`; only if the filter's
 ``p_D`` of the type reaches ``fusion.gamma_detect``) take part in the type's fusion operator
-(AA fusion, eq. 8; VS: ego averaging, eq. 11, and VS fusion, eqs. 17-18, when the variant asks);
+(AA fusion, eq. 8; VS: ego averaging, eq. 11, and VS fusion, eqs. 16-20, when the variant asks);
 then the type's reduction. Between uploads, variants with ``predict_at_bs`` predict the maps of
-types that have a BS predictor (VS, eq. 16, no birth).
+types that have a BS predictor (VS, eq. 15, no birth).
 """
 from __future__ import annotations
 

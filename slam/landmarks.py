@@ -10,7 +10,7 @@ BS (known)    0      DIRECT      3      none           --          -- (a known l
 VA            1      MIRROR      3      none           static      AA fusion ``F_AA`` (eq. 8)
 SP            2      SCATTER     3      fov_range      static      AA fusion ``F_AA`` (eq. 8)
 VS            3      SCATTER     7      fov_range      CT (eq. 2)  ``F_AA`` (cm1), or ego average
-                                                                   (eq. 11) + VS fusion (eq. 17)
+                                                                   (eq. 11), VS fusion (eqs. 16-20)
 ============  =====  ==========  =====  =============  ==========  ================================
 
 - **geometry** (:class:`~mmslam.model.Bounce`): how a landmark point maps to a measurement
@@ -202,7 +202,7 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
 
     ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
     (eq. 11; the ego Gaussian of :func:`mmslam.slam.fusion_center.ego_gaussian`, widened by
-    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 17-18 (``fuse_vs``).
+    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 16-20 (``fuse_vs``).
     """
     from . import fusion as fm
     from .fusion_center import ego_gaussian
@@ -252,7 +252,7 @@ def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
 
 
 def predict_vs_at_bs(g: GM, scn: "Scenario") -> GM:
-    """The fused VS map predicted one step at the BS without birth (eq. 16)."""
+    """The fused VS map predicted one step at the BS without birth (eq. 15)."""
     from .fusion import predict_bs_vs
 
     fp = scn.filter

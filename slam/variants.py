@@ -32,8 +32,8 @@ class VariantSpec:
             (:mod:`mmslam.slam.landmarks`); a type not listed is unmodelled.
         measurement_update: False: dead reckoning (no correction, births, maps or fusion).
         ego_vs_average: the uploaded VS map places the ego vehicle by ``F'_AA`` (eq. 11).
-        predict_at_bs: the fused maps of types with a BS predictor are predicted every step (eq. 16).
-        vs_fusion: the VS map is fused with the proposed VS fusion (eqs. 17-18) instead of ``F_AA``.
+        predict_at_bs: the fused maps of types with a BS predictor are predicted every step (eq. 15).
+        vs_fusion: the VS map is fused with the proposed VS fusion (eqs. 16-20) instead of ``F_AA``.
         downlink_ego_removal: on the downlink, VS components matched to the receiving vehicle are
             dropped (when ``fusion.downlink_ego = "remove"``).
         reference: a reference run beside the filter variants (not a filter variant).
@@ -54,8 +54,8 @@ class VariantSpec:
         if not self.measurement_update:
             return "dead reckoning with the known speed and turn rate (no measurement update, empty maps)"
         cms = [text for on, text in ((self.ego_vs_average, "ego-VS averaging (eq. 11)"),
-                                     (self.predict_at_bs, "prediction at the BS (eq. 16)"),
-                                     (self.vs_fusion, "VS fusion (eqs. 17-18)"),
+                                     (self.predict_at_bs, "prediction at the BS (eq. 15)"),
+                                     (self.vs_fusion, "VS fusion (eqs. 16-20)"),
                                      (self.downlink_ego_removal, "ego removal on the downlink")) if on]
         return f"maps {', '.join(self.map_types)}; " + (f"countermeasures: {', '.join(cms)}" if cms
                                                         else "AA fusion of every map (eq. 8)")

@@ -244,6 +244,6 @@ def test_report_lists_each_variants_label_and_what_it_runs():
     out = _variants_html(["baseline", "proposed", "gone"])
     assert out.startswith('<table id="variants">') and out.count("<tr data-variant=") == 3
     assert "baseline (TWC2020)" in out and "maps VA, SP; AA fusion of every map (eq. 8)" in out
-    assert "countermeasures: ego-VS averaging (eq. 11), prediction at the BS (eq. 16)" in out
+    assert "countermeasures: ego-VS averaging (eq. 11), prediction at the BS (eq. 15)" in out
     assert "not registered" in out  # an old ablation's variant from a plugin not loaded now
     assert V.get_variant("odometry").describe().startswith("dead reckoning")
