@@ -1,0 +1,42 @@
+"""The numba kernel cache is dropped when a kernel source changes (numba alone only checks the
+source file of the kernel itself, not of the functions it inlines)."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import mmslam.slam as slam_pkg
+
+
+def _copy_pkg(tmp_path: Path) -> Path:
+    src = Path(slam_pkg.__file__).parent
+    dst = tmp_path / "slam"
+    dst.mkdir()
+    for name in slam_pkg.KERNEL_SOURCES:
+        shutil.copy(src / name, dst / name)
+    return dst
+
+
+def test_stale_kernels_removed_only_after_a_source_change(tmp_path, monkeypatch):
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    pkg = _copy_pkg(tmp_path)
+    cache = pkg / "__pycache__"
+    slam_pkg._invalidate_stale_kernels(pkg)  # first call: writes the stamp
+    (cache / "ckf.innovate-1.py311.nbi").write_bytes(b"index")
+    (cache / "ckf.innovate-1.py311.1.nbc").write_bytes(b"code")
+    (cache / "ckf.cpython-311.pyc").write_bytes(b"pyc")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False  # unchanged sources: the cache stays
+    assert (cache / "ckf.innovate-1.py311.nbi").exists()
+    with open(pkg / "measurement.py", "a") as f:  # an inlined callee changes, ckf.py does not
+        f.write("\n# edited\n")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is True
+    assert not list(cache.glob("*.nb[ic]"))
+    assert (cache / "ckf.cpython-311.pyc").exists()  # only numba's files are removed
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False  # the new stamp is kept
+
+
+def test_custom_numba_cache_dir_left_alone(tmp_path, monkeypatch):
+    pkg = _copy_pkg(tmp_path)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False
+    assert not (pkg / "__pycache__").exists()
