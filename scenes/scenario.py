@@ -186,6 +186,14 @@ class FilterParams:
                                probability=True)
     p_detect_vs: float = param(0.95, "the filter's detection probability of a VS inside the FOV range", "",
                                probability=True)
+    pd_model: str = param("fixed", "the filter's detection model inside the FOV: fixed (p_detect_<type> for "
+                          "every Gaussian, the paper's) or beta (each VA / SP Gaussian learns its own p_D "
+                          "from its detection history: a Beta(s, t) per Gaussian, E[p_D] = s / (s + t), "
+                          "missed -> (s, t + 1), detected -> (s + 1, t); Beta-Gaussian PHD, Mahler, Vo & "
+                          "Vo 2011); docs/equations.md", choices=("fixed", "beta"))
+    pd_beta_count: float = param(2.0, "pd_model beta: pseudo-count s0 + t0 of a birth's Beta prior, whose mean "
+                                 "is p_detect_<type> (s0 = count p_detect, t0 = count (1 - p_detect)); small: "
+                                 "a Gaussian's own history soon dominates", "", lo=0.0, lo_open=True, hi=1e6)
     vs_extent_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of where on a car body a VS path bounces, about the car's antenna position "
         "[horizontal (each axis), vertical]: diag(h^2, h^2, v^2) is added to the scatter point in the VS "

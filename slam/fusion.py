@@ -99,8 +99,16 @@ def _match(C: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[r[ok]], cols[c[ok]]
 
 
-def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None):
+def _pd_beta(g: GM, n: int) -> np.ndarray | None:
+    """The live components' Beta detection parameters ``(n, 2)`` (``GM.pd_beta``), or None."""
+    return None if g.pd_beta is None else g.pd_beta[g.mask].reshape(n, 2)
+
+
+def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None, ab_b=None, ab_u=None):
     """Union of the two weighted sets, live components only, sorted by weight.
+
+    ``ab_b``, ``ab_u``: the two sets' Beta detection parameters ``(n, 2)`` (or None), carried with
+    their components (an empty set without them takes the other's).
 
     With ``pairs = (r, c)`` (matched BS / uploaded indices into ``wb`` / ``wu``) also returns the
     ``(n, 2)`` slots of each matched pair in the output (pairs with a dropped member are left out).
@@ -110,7 +118,12 @@ def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None):
     P = np.concatenate([Pb.reshape(-1, d, d), Pu.reshape(-1, d, d)])
     keep = w > 0
     order = np.argsort(-w[keep], kind="stable")
-    out = GM(w[keep][order], m[keep][order], symmetrize(P[keep][order]), np.ones(int(keep.sum()), bool))
+    ab = None
+    if ab_b is not None or ab_u is not None:
+        if (ab_b is None and wb.shape[0]) or (ab_u is None and wu.shape[0]):
+            raise ValueError("cannot fuse a mixture with Beta detection parameters and one without")
+        ab = np.concatenate([np.ones((0, 2)) if a is None else a for a in (ab_b, ab_u)])[keep][order]
+    out = GM(w[keep][order], m[keep][order], symmetrize(P[keep][order]), np.ones(int(keep.sum()), bool), ab)
     out.check("after map fusion")
     if pairs is None:
         return out
@@ -170,7 +183,8 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
     beta_u = np.ones(wu.shape[0])
     beta_b[r] = 0.5
     beta_u[c] = 0.5
-    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None)
+    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None,
+                  _pd_beta(bs, wb.shape[0]), _pd_beta(ue, wu.shape[0]))
 
 
 def _ego_match(m: np.ndarray, P: np.ndarray, ego_mean: np.ndarray, ego_cov: np.ndarray,
@@ -202,7 +216,8 @@ def remove_ego(vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: flo
     ego_mean, ego_cov = _ego(ego_mean, ego_cov, vs.dim)
     _, w, m, P = _live(vs)
     keep = ~_ego_match(m, P, ego_mean, ego_cov, threshold)
-    out = GM(w[keep], m[keep], P[keep], np.ones(int(keep.sum()), bool))
+    ab = _pd_beta(vs, w.shape[0])
+    out = GM(w[keep], m[keep], P[keep], np.ones(int(keep.sum()), bool), None if ab is None else ab[keep])
     out.check("after remove_ego")
     return out
 
@@ -293,4 +308,5 @@ def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel:
     ib_inv, iu_inv = 1.0 / rho_b[r], 1.0 / rho_u[c]
     beta_b[r] = ib_inv / (ib_inv + iu_inv)
     beta_u[c] = iu_inv / (ib_inv + iu_inv)
-    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None)
+    return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None,
+                  _pd_beta(bs_pred, wb.shape[0]), _pd_beta(ue, wu.shape[0]))

@@ -7,6 +7,9 @@ A batch of mixtures (e.g. one per particle) is held as arrays with a leading bat
 - ``m``    ``(*B, Q, d)``     means (global frame, m; VS: ``[x, y, z, vx, vy, vz, xi]``)
 - ``P``    ``(*B, Q, d, d)``  covariances, symmetric positive definite where ``mask``
 - ``mask`` ``(*B, Q)``        True where the slot holds a component
+- ``pd_beta`` ``(*B, Q, 2)`` optional: the Beta(s, t) parameters of each component's own detection
+  probability (``filter.pd_model = "beta"``, :mod:`mmslam.slam.detection`); None for a fixed ``p_D``.
+  Masked slots hold (1, 1). Every operation here carries it with its component.
 
 Masked-out slots keep ``w = 0``, ``m = 0`` and ``P = I`` so any batched linear algebra on them
 stays finite. Functions return new arrays (no in-place mutation of inputs).
@@ -26,6 +29,7 @@ class GM:
     m: np.ndarray
     P: np.ndarray
     mask: np.ndarray
+    pd_beta: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -44,7 +48,13 @@ class GM:
         return self.mask.sum(axis=-1)
 
     def copy(self) -> "GM":
-        return GM(self.w.copy(), self.m.copy(), self.P.copy(), self.mask.copy())
+        return GM(self.w.copy(), self.m.copy(), self.P.copy(), self.mask.copy(),
+                  None if self.pd_beta is None else self.pd_beta.copy())
+
+    def take(self, idx) -> "GM":
+        """``GM(w[idx], m[idx], P[idx], mask[idx], pd_beta[idx])``: the same index on every array."""
+        return GM(self.w[idx], self.m[idx], self.P[idx], self.mask[idx],
+                  None if self.pd_beta is None else self.pd_beta[idx])
 
     def check(self, where: str = "") -> None:
         """Raise FloatingPointError if a live component has a NaN/inf weight, mean or covariance."""
@@ -58,18 +68,33 @@ class GM:
             raise FloatingPointError(f"non-finite Gaussian component {where}".strip())
 
 
-def empty(batch: tuple[int, ...], capacity: int, dim: int) -> GM:
-    """An all-masked mixture batch."""
+def empty(batch: tuple[int, ...], capacity: int, dim: int, with_pd_beta: bool = False) -> GM:
+    """An all-masked mixture batch (``with_pd_beta``: with a ``pd_beta`` array of (1, 1) slots)."""
     w = np.zeros(batch + (capacity,))
     m = np.zeros(batch + (capacity, dim))
     P = np.broadcast_to(np.eye(dim), batch + (capacity, dim, dim)).copy()
-    return GM(w, m, P, np.zeros(batch + (capacity,), bool))
+    pd_beta = np.ones(batch + (capacity, 2)) if with_pd_beta else None
+    return GM(w, m, P, np.zeros(batch + (capacity,), bool), pd_beta)
+
+
+def _beta_or_fill(g: GM, other: GM) -> np.ndarray | None:
+    """``g.pd_beta``, or (1, 1) slots when only ``other`` carries one and ``g`` has no slots.
+
+    Raises ValueError if ``g`` has slots and no ``pd_beta`` while ``other`` has one (a component
+    would lose its detection history)."""
+    if g.pd_beta is not None or other.pd_beta is None:
+        return g.pd_beta
+    if g.capacity:
+        raise ValueError("cannot join a mixture with Beta detection parameters and one without")
+    return np.ones(g.batch_shape + (0, 2))
 
 
 def concat(a: GM, b: GM) -> GM:
     """Concatenate the component axis of two batches with the same batch shape and dim."""
+    ba, bb = _beta_or_fill(a, b), _beta_or_fill(b, a)
+    pd_beta = None if ba is None else np.concatenate([ba, bb], -2)
     return GM(np.concatenate([a.w, b.w], -1), np.concatenate([a.m, b.m], -2),
-              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1))
+              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1), pd_beta)
 
 
 def compact(g: GM, capacity: int | None = None) -> GM:
@@ -87,7 +112,8 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     if cap <= q and (q < 2 or bool((key[..., 1:] >= key[..., :-1]).all())):
         # identity permutation (a stable sort of non-decreasing keys): trim only
         mask = g.mask[..., :cap]
-        return GM(np.where(mask, g.w[..., :cap], 0.0), g.m[..., :cap, :], g.P[..., :cap, :, :], mask)
+        return GM(np.where(mask, g.w[..., :cap], 0.0), g.m[..., :cap, :], g.P[..., :cap, :, :], mask,
+                  None if g.pd_beta is None else g.pd_beta[..., :cap, :])
     order = np.argsort(key, axis=-1, kind="stable")[..., :cap]
     B = g.batch_shape
     n = int(np.prod(B, dtype=int))
@@ -98,11 +124,12 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     mask = g.mask.reshape(n, q)[rows, o].reshape(B + (k,))
     m = g.m.reshape(n, q, g.dim)[rows, o].reshape(B + (k, g.dim))
     P = g.P.reshape(n, q, g.dim, g.dim)[rows, o].reshape(B + (k, g.dim, g.dim))
+    pd_beta = None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2)[rows, o].reshape(B + (k, 2))
     if k < cap:  # pad when capacity exceeds current slots
-        pad = empty(B, cap - k, g.dim)
-        return concat(GM(w, m, P, mask), pad)
+        pad = empty(B, cap - k, g.dim, g.pd_beta is not None)
+        return concat(GM(w, m, P, mask, pd_beta), pad)
     w = np.where(mask, w, 0.0)
-    return GM(w, m, P, mask)
+    return GM(w, m, P, mask, pd_beta)
 
 
 def symmetrize(P: np.ndarray) -> np.ndarray:
@@ -112,4 +139,4 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
 
 def select(g: GM, idx) -> GM:
     """Index the batch axes (e.g. ``select(g, p)`` for particle ``p``)."""
-    return GM(g.w[idx], g.m[idx], g.P[idx], g.mask[idx])
+    return g.take(idx)

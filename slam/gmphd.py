@@ -21,6 +21,7 @@ import numba as nb
 import numpy as np
 
 from .ckf import Innovation, innovate
+from .detection import corrected_pd_beta, expected_pd
 from .gm import GM
 from .linalg import forward_solve, safe_cholesky
 from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point, wrap
@@ -88,8 +89,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
 
 
 def predict_static(g: GM, p_survival: float) -> GM:
-    """Static landmark prediction (identity dynamics): weights times ``p_survival``."""
-    return GM(g.w * p_survival, g.m, g.P, g.mask)
+    """Static landmark prediction (identity dynamics): weights times ``p_survival`` (a Beta detection
+    history ``pd_beta`` is kept as it is)."""
+    return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta)
 
 
 @dataclass
@@ -125,7 +127,9 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         states: ``(P, 7)`` particle vehicle states.
         Z: ``(J, 5)`` measurements of this vehicle and step.
         pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
-            probability evaluated at the Gaussian means.
+            probability evaluated at the Gaussian means; with ``g.pd_beta`` (``filter.pd_model =
+            "beta"``) only its FOV gate (``> 0``) is used and ``p_D = s / (s + t)`` of each
+            Gaussian's own Beta (:func:`mmslam.slam.detection.expected_pd`).
         extent: ``(3, 3)`` scatter-point covariance of an extended landmark (VS: a car body), see
             :func:`mmslam.slam.ckf.ckf_update`; None for point landmarks.
 
@@ -139,6 +143,8 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     P_, Q = g.w.shape
     J = Z.shape[0]
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
+    if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
+        pd = expected_pd(pd, g.pd_beta)
     pd = np.where(g.mask, pd, 0.0)
     det = pd > 0.0
     pidx, qidx = np.nonzero(det)
@@ -247,6 +253,10 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     (the same rule as the first step of ``prune_merge``), compacted to the front (slot order:
     missed-detection components first, then updates in ``(q, j)`` order) with as many slots as
     the largest surviving count. This avoids building the ``(P, Q J, d, d)`` arrays.
+
+    A map with Beta detection parameters (``g.pd_beta``) gets them updated per component
+    (:func:`mmslam.slam.detection.corrected_pd_beta`: missed ``(s, t + 1)`` inside the FOV,
+    detected ``(s + 1, t)``).
     """
     g, inn = t.g, t.inn
     P_, Q, d = g.m.shape
@@ -256,12 +266,15 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
             0.0 if dense else float(prune), dense)
     K = Q * (1 + J)
     if not dense:  # a first pass counts the kept components
-        none = (np.zeros((0, 0)), np.zeros((0, 0, d)), np.zeros((0, 0, d, d)), np.zeros((0, 0), bool))
+        none = (np.zeros((0, 0)), np.zeros((0, 0, d)), np.zeros((0, 0, d, d)), np.zeros((0, 0), bool),
+                np.zeros((0, 0), np.int64))
         K = int(_corrected_components(*args, True, *none).max(initial=0))
     w, m, Pc, live = np.zeros((P_, K)), np.zeros((P_, K, d)), np.empty((P_, K, d, d)), np.zeros((P_, K), bool)
+    src = np.zeros((P_, K), np.int64)
     Pc[...] = np.eye(d)
-    _corrected_components(*args, False, w, m, Pc, live)
-    out = GM(w, m, Pc, live)
+    _corrected_components(*args, False, w, m, Pc, live, src)
+    pd_beta = None if g.pd_beta is None else corrected_pd_beta(g.pd_beta, t.det_index, src, live, Q, J)
+    out = GM(w, m, Pc, live, pd_beta)
     if not np.isfinite(out.w.sum() + out.m.sum() + out.P.sum()):  # masked slots are 0 / I
         out.check(f"after the {_tname(t.lm_type)} correction")
         raise FloatingPointError(f"non-finite values after the {_tname(t.lm_type)} correction")
@@ -272,15 +285,16 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
 def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarray, lpsi: np.ndarray,
                           m: np.ndarray, P: np.ndarray, det_index: np.ndarray, m_post: np.ndarray,
                           P_post: np.ndarray, prune: float, dense: bool, count_only: bool,
-                          out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray) -> np.ndarray:
+                          out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray,
+                          out_src: np.ndarray) -> np.ndarray:
     """The components of paper eq. (5) for each particle ``p`` (see :func:`corrected_gm`).
 
     Missed detections ``(1 - p_D) w`` with the predicted moments (slots ``q``), then one updated
     Gaussian per ``(q, j)``: weight ``exp(logq - log psi(z_j)) = p_D w N(z_j) / psi(z_j)``, moments
     from the innovation (``det_index[p, q] >= 0``) or the predicted ones (``p_D = 0``). ``dense``:
     every live slot at its fixed place ``q`` / ``Q + q J + j``; else only weights ``>= prune``,
-    compacted in that order. Returns the number of components of each particle (``count_only``:
-    nothing is written).
+    compacted in that order; ``out_src`` gets each written component's dense slot (its source).
+    Returns the number of components of each particle (``count_only``: nothing is written).
     """
     Pn, Q, d = m.shape
     J = logq.shape[2]
@@ -306,6 +320,7 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
                 at = slot if dense else k
                 out_w[p, at] = wk
                 out_mask[p, at] = True
+                out_src[p, at] = slot
                 n = det_index[p, q]
                 if slot >= Q and n >= 0:
                     out_m[p, at] = m_post[n, j]

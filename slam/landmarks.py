@@ -93,6 +93,8 @@ class LandmarkSpec:
         merge_param: ``filter.*`` parameter name of its merge gate ``U`` (squared Mahalanobis
             distance) in the local reduction and the averaged map (default ``merge``; VA:
             ``merge_va``).
+        learns_pd: with ``filter.pd_model = "beta"`` its Gaussians carry a Beta of their own
+            detection probability (:mod:`mmslam.slam.detection`; VA and SP, not the moving VS).
         predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
             (births are added to the predicted map).
         birth: ``birth(states (P, 7), moments, spec, scn, pd_fn) -> GM`` with ``moments`` =
@@ -118,6 +120,7 @@ class LandmarkSpec:
     p_detect_param: str = ""
     threshold_param: str = ""
     merge_param: str = "merge"
+    learns_pd: bool = False
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
     extent: Callable[["Scenario"], np.ndarray | None] = point_extent
@@ -139,6 +142,16 @@ class LandmarkSpec:
     def p_detect(self, scn: "Scenario") -> float:
         """The filter's detection probability inside the FOV (``filter.<p_detect_param>``)."""
         return float(getattr(scn.filter, self.p_detect_param))
+
+    def pd_beta_prior(self, scn: "Scenario") -> tuple[float, float] | None:
+        """Birth Beta ``(s0, t0)`` of this type's detection probability (mean ``filter.<p_detect_param>``,
+        pseudo-count ``filter.pd_beta_count``), or None where the type's ``p_D`` is fixed
+        (``filter.pd_model = "fixed"``, or a type that does not ``learns_pd``)."""
+        if scn.filter.pd_model != "beta" or not self.learns_pd:
+            return None
+        from .detection import prior_beta
+
+        return prior_beta(self.p_detect(scn), float(scn.filter.pd_beta_count))
 
     def merge_gate(self, scn: "Scenario") -> float:
         """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
@@ -178,10 +191,15 @@ def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.nd
                 scn: "Scenario", pd_fn: PdFn) -> GM:
     """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
     step's measurements (:func:`mmslam.slam.birth.birth_from_moments`; a 7-D VS birth gets the
-    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``)."""
+    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``),
+    with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one."""
     fp = scn.filter
-    return birth_from_moments(states, *moments, spec.code, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
+    born = birth_from_moments(states, *moments, spec.code, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
                               fp.vs_birth_turn_std)
+    prior = spec.pd_beta_prior(scn)
+    if prior is not None:
+        born.pd_beta = np.broadcast_to(np.asarray(prior, float), born.w.shape + (2,)).copy()
+    return born
 
 
 def vs_extent(scn: "Scenario") -> np.ndarray | None:
@@ -357,11 +375,11 @@ BS_SPEC = LandmarkSpec(
 VA_SPEC = LandmarkSpec(
     name="VA", code=int(LandmarkType.VA), geometry=Bounce.MIRROR, state_dim=3, range_gated=False,
     description="virtual anchor (VA)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
-    reduce_fused=reduce_fused_va, merge_param="merge_va")
+    reduce_fused=reduce_fused_va, merge_param="merge_va", learns_pd=True)
 SP_SPEC = LandmarkSpec(
     name="SP", code=int(LandmarkType.SP), geometry=Bounce.SCATTER, state_dim=3, range_gated=True,
     description="scattering point (SP)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
-    reduce_fused=reduce_fused_static)
+    reduce_fused=reduce_fused_static, learns_pd=True)
 VS_SPEC = LandmarkSpec(
     name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
     description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,

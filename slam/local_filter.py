@@ -44,12 +44,11 @@ from .variants import VariantSpec, get_variant
 
 def _broadcast_gm(g: GM, n: int) -> GM:
     """A single mixture (batch ``()``) copied to every one of ``n`` particles (batch ``(n,)``)."""
-    return GM(np.repeat(g.w[None], n, 0), np.repeat(g.m[None], n, 0), np.repeat(g.P[None], n, 0),
-              np.repeat(g.mask[None], n, 0))
+    return g.take((None,)).take(np.zeros(n, int))
 
 
 def _take(g: GM, idx: np.ndarray) -> GM:
-    return GM(g.w[idx], g.m[idx], g.P[idx], g.mask[idx])
+    return g.take(idx)
 
 
 @dataclass

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .detection import beta_moment_match
 from .gm import GM, compact, empty, symmetrize
 from .linalg import cholesky, forward_solve
 
@@ -69,7 +70,8 @@ def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarra
 
 @nb.njit(cache=True)
 def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
-                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray) -> int:
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray,
+                 out_ab: np.ndarray) -> int:
     """Greedy Mahalanobis merging of one mixture (Vo & Ma 2006, Table II, step 2).
 
     Take the highest-weight remaining component ``j`` (the first on ties); its cluster is every
@@ -83,6 +85,8 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
             the components to merge (the others are ignored).
         out_w, out_m, out_P: ``(Q,)``, ``(Q, d)``, ``(Q, d, d)`` outputs; slot ``k`` holds cluster
             ``k`` (clusters in the order of their heads' weights).
+        ab, out_ab: ``(Q, 2)`` Beta detection parameters ``(s, t)`` and the clusters' moment match
+            (:func:`mmslam.slam.detection.beta_moment_match`), or ``(Q, 0)`` (none).
 
     Returns:
         The number of clusters ``K``, or ``-1`` if a kept covariance is singular / indefinite.
@@ -130,24 +134,29 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
             members[n] = i
             n += 1
         out_w[K] = moment_match(w, m, P, members[:n], j, out_m[K], out_P[K])
+        if ab.shape[1]:
+            beta_moment_match(w, ab, members[:n], out_ab[K])
         K += 1
 
 
 @nb.njit(cache=True)
 def _merge_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
-                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, count: np.ndarray) -> int:
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, count: np.ndarray, ab: np.ndarray,
+                 out_ab: np.ndarray) -> int:
     """:func:`greedy_merge` of every mixture ``n`` of a flat batch; the first singular ``n`` or -1."""
     for n in range(w.shape[0]):
-        count[n] = greedy_merge(w[n], m[n], P[n], keep[n], merge, out_w[n], out_m[n], out_P[n])
+        count[n] = greedy_merge(w[n], m[n], P[n], keep[n], merge, out_w[n], out_m[n], out_P[n], ab[n], out_ab[n])
         if count[n] < 0:
             return n
     return -1
 
 
-def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
+                ab: np.ndarray | None = None):
     """:func:`greedy_merge` of a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``K <= Q``
-    slots (``K`` = the largest number of clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I).
+    slots (``K`` = the largest number of clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I);
+    with Beta detection parameters ``ab (N, Q, 2)`` also their cluster moment match ``(N, K, 2)``
+    (dead slots (1, 1)) as a fifth item.
 
     Raises FloatingPointError if a kept covariance is singular or not positive definite.
     """
@@ -156,17 +165,23 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, m
     out_m = np.zeros((n, q, d))
     out_P = np.zeros((n, q, d, d))
     count = np.zeros(n, np.int64)
+    ab_in = np.ones((n, q, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float).reshape(n, q, 2)
+    out_ab = np.ones((n, q, ab_in.shape[2]))
     if n and q:
         bad = _merge_batch(np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(m, dtype=float),
                            np.ascontiguousarray(P, dtype=float), np.ascontiguousarray(keep, dtype=bool),
-                           float(merge), out_w, out_m, out_P, count)
+                           float(merge), out_w, out_m, out_P, count, ab_in, out_ab)
         if bad >= 0:
             raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
     k = int(count.max(initial=0))
     mask = np.arange(k)[None, :] < count[:, None]
     out_P = out_P[:, :k]
     out_P[~mask] = np.eye(d)
-    return out_w[:, :k], out_m[:, :k], out_P, mask
+    if ab is None:
+        return out_w[:, :k], out_m[:, :k], out_P, mask
+    out_ab = out_ab[:, :k]
+    out_ab[~mask] = 1.0
+    return out_w[:, :k], out_m[:, :k], out_P, mask, out_ab
 
 
 def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
@@ -206,16 +221,18 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     B = g.batch_shape
     keep = _live(g, prune, max_trace, pos_dims)
     # prune first, then trim the slots to the largest surviving count so merging sees no dead slots
-    g = compact(GM(np.where(keep, g.w, 0.0), g.m, g.P, keep))
+    g = compact(GM(np.where(keep, g.w, 0.0), g.m, g.P, keep, g.pd_beta))
     keep = g.mask
     q, d = g.capacity, g.dim
     if q == 0:
         return compact(g, cap) if fixed_capacity else g
     n = int(np.prod(B, dtype=int))
-    w, m, P, mask = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d),
-                                keep.reshape(n, q), merge)
+    res = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d), keep.reshape(n, q),
+                      merge, None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2))
+    w, m, P, mask = res[:4]
     k = w.shape[-1]
-    out = GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)))
+    out = GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)),
+             None if g.pd_beta is None else res[4].reshape(B + (k, 2)))
     if fixed_capacity:
         out = compact(out, cap)
     else:
@@ -227,12 +244,15 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
 
 @nb.njit(cache=True)
 def _merge_pairs(w: np.ndarray, m: np.ndarray, P: np.ndarray, pairs: np.ndarray,
-                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray) -> None:
-    """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``."""
+                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray, out_ab: np.ndarray) -> None:
+    """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``
+    (Beta parameters ``ab (Q, 2)``: :func:`~mmslam.slam.detection.beta_moment_match`; ``(Q, 0)``: none)."""
     d = m.shape[1]
     for k in range(pairs.shape[0]):
         i, j = pairs[k, 0], pairs[k, 1]
         out_w[i] = moment_match(w, m, P, pairs[k], i, out_m[i], out_P[i])
+        if ab.shape[1]:
+            beta_moment_match(w, ab, pairs[k], out_ab[i])
         out_w[j] = 0.0
         for a in range(d):
             out_m[j, a] = 0.0
@@ -264,8 +284,12 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
     out = g.copy()
     if pairs.shape[0] == 0:
         return out
-    _merge_pairs(g.w, np.ascontiguousarray(g.m), np.ascontiguousarray(g.P), pairs, out.w, out.m, out.P)
+    ab = np.ones((g.capacity, 0)) if g.pd_beta is None else np.ascontiguousarray(g.pd_beta)
+    out_ab = np.ones((g.capacity, 0)) if out.pd_beta is None else out.pd_beta
+    _merge_pairs(g.w, np.ascontiguousarray(g.m), np.ascontiguousarray(g.P), pairs, out.w, out.m, out.P, ab, out_ab)
     out.mask[pairs[:, 1]] = False
+    if out.pd_beta is not None:
+        out.pd_beta[pairs[:, 1]] = 1.0
     out.check("after merge_pairs")
     return out
 
@@ -307,13 +331,15 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     d = g.dim
     sel = keep.reshape(-1)
     if not sel.any():
-        return empty((), 0, d)
+        return empty((), 0, d, g.pd_beta is not None)
     w = (g.w * pw[:, None]).reshape(-1)[sel]
     m = g.m.reshape(-1, d)[sel]
     P = g.P.reshape(-1, d, d)[sel]
-    ow, om, oP, omask = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge)
+    ab = None if g.pd_beta is None else g.pd_beta.reshape(-1, 2)[sel][None]
+    res = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge, ab)
+    ow, om, oP, omask = res[:4]
     omask &= ow >= prune
-    out = GM(ow[0], om[0], oP[0], omask[0])
+    out = GM(ow[0], om[0], oP[0], omask[0], None if ab is None else res[4][0])
     out = compact(out, min(cap, int(out.count())))
     out.w = np.where(out.mask, out.w, 0.0)
     out.P = symmetrize(out.P)

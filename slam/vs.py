@@ -85,7 +85,7 @@ def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
     P_new = np.broadcast_to(np.eye(VS_DIM), g.P.shape).copy()
     P_new[idx] = P_pred
     w_new = np.where(live, g.w * p_survival, 0.0)
-    out = GM(w_new, m_new, P_new, live.copy())
+    out = GM(w_new, m_new, P_new, live.copy(), g.pd_beta)
     out.check("after VS prediction")
     return out
 

@@ -1,0 +1,128 @@
+"""A detection probability per Gaussian, learnt from its own detection history (Beta-Gaussian PHD).
+
+``filter.pd_model = "beta"`` (off by default: ``"fixed"``): each component of a map of a type
+with :attr:`~mmslam.slam.landmarks.LandmarkSpec.learns_pd` carries the parameters ``(s, t)`` of a
+Beta distribution of its own detection probability inside the FOV (``GM.pd_beta``, shape
+``(*B, Q, 2)``), as in the Beta-Gaussian mixture PHD filter of Mahler, Vo & Vo, "CPHD filtering
+with unknown clutter rate and detection profile", IEEE TSP 59(8), 2011 (Sec. IV). The equations,
+for one Gaussian of weight ``w`` and Beta ``(s, t)`` with the FOV gate ``g`` (1 inside, 0 outside
+the type's range gate; :meth:`~mmslam.slam.landmarks.LandmarkSpec.fov_radius`):
+
+- detection probability used by the correction: ``p_D = g E[p_D] = g s / (s + t)``
+  (:func:`expected_pd`);
+- missed-detection term (inside the FOV): weight ``(1 - E[p_D]) w = t / (s + t) w`` and
+  ``Beta(s, t + 1)``; outside the FOV ``p_D = 0``: weight ``w`` and ``Beta(s, t)`` unchanged
+  (:func:`missed_beta`);
+- detection term of ``z_j``: weight ``E[p_D] w N(z_j) / psi(z_j)`` and ``Beta(s + 1, t)``
+  (:func:`detected_beta`);
+- birth: the prior ``Beta(n0 p_D,type, n0 (1 - p_D,type))`` (mean ``filter.p_detect_<type>``, the
+  fixed model's value; pseudo-count ``n0 = filter.pd_beta_count``, :func:`prior_beta`);
+- prediction: unchanged (the Gaussian's survival ``p_S`` does not touch its detection history);
+- merging (reduction, averaged map, fused map): the cluster's Beta is the moment match of the
+  weighted Beta mixture (:func:`beta_moment_match`): mean ``mu = sum w_i mu_i / W``, variance
+  ``v = sum w_i (v_i + (mu_i - mu)^2) / W``, and ``s + t = mu (1 - mu) / v - 1``.
+
+The products ``E[p_D] w`` and ``(1 - E[p_D]) w`` are exact: ``int p Beta(p; s, t) dp = s / (s + t)``
+and ``(1 - p) Beta(p; s, t) = t / (s + t) Beta(p; s, t + 1)``.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+
+def prior_beta(p_detect: float, count: float) -> tuple[float, float]:
+    """Birth prior ``(s0, t0) = (n0 p_D, n0 (1 - p_D))`` of mean ``p_detect`` and pseudo-count ``count``.
+
+    Raises ValueError unless ``0 < p_detect < 1`` and ``count > 0`` (a Beta needs ``s, t > 0``).
+    """
+    if not (0.0 < p_detect < 1.0) or not count > 0.0:
+        raise ValueError(f"a Beta detection prior needs 0 < p_detect < 1 and a count > 0, got {p_detect}, {count}")
+    return count * p_detect, count * (1.0 - p_detect)
+
+
+def expected_pd(gate_pd: np.ndarray, pd_beta: np.ndarray) -> np.ndarray:
+    """``p_D = E[p_D] = s / (s + t)`` where the FOV gate passes (``gate_pd > 0``), else 0.
+
+    ``gate_pd (...)``: the fixed model's ``p_D`` (only its sign is used); ``pd_beta (..., 2)``.
+    """
+    s, t = pd_beta[..., 0], pd_beta[..., 1]
+    return np.where(gate_pd > 0.0, s / (s + t), 0.0)
+
+
+@nb.njit(cache=True)
+def missed_beta(s: float, t: float, in_fov: bool) -> tuple[float, float]:
+    """Beta of a missed-detection component: ``(s, t + 1)`` inside the FOV, ``(s, t)`` outside."""
+    return (s, t + 1.0) if in_fov else (s, t)
+
+
+@nb.njit(cache=True)
+def detected_beta(s: float, t: float) -> tuple[float, float]:
+    """Beta of a component updated by a measurement: ``(s + 1, t)``."""
+    return s + 1.0, t
+
+
+@nb.njit(cache=True)
+def beta_moment_match(w: np.ndarray, ab: np.ndarray, members: np.ndarray, out: np.ndarray) -> None:
+    """Moment match of the weighted Beta mixture ``sum_i w_i Beta(s_i, t_i)`` over ``members``.
+
+    ``w (Q,)``, ``ab (Q, 2)`` the ``(s, t)`` of each slot, ``members (K,)``; writes ``out (2,)``.
+    One member: its ``(s, t)`` exactly. Otherwise mean ``mu = sum w_i mu_i / W`` with
+    ``mu_i = s_i / (s_i + t_i)``, variance ``v = sum w_i (v_i + (mu_i - mu)^2) / W`` with
+    ``v_i = mu_i (1 - mu_i) / (s_i + t_i + 1)``, and ``s = mu n``, ``t = (1 - mu) n`` with
+    ``n = mu (1 - mu) / v - 1`` (> 0: a mixture of Betas on [0, 1] has ``v < mu (1 - mu)``).
+    """
+    if members.shape[0] == 1:
+        out[0] = ab[members[0], 0]
+        out[1] = ab[members[0], 1]
+        return
+    W = 0.0
+    for i in members:
+        W += w[i]
+    equal = not W > 0.0  # an all-zero-weight cluster: equal weights
+    if equal:
+        W = float(members.shape[0])
+    mu = 0.0
+    for i in members:
+        mu += (1.0 if equal else w[i]) * ab[i, 0] / (ab[i, 0] + ab[i, 1])
+    mu /= W
+    v = 0.0
+    for i in members:
+        n_i = ab[i, 0] + ab[i, 1]
+        mu_i = ab[i, 0] / n_i
+        v += (1.0 if equal else w[i]) * (mu_i * (1.0 - mu_i) / (n_i + 1.0) + (mu_i - mu) * (mu_i - mu))
+    v /= W
+    n = mu * (1.0 - mu) / v - 1.0 if v > 0.0 else 1e12
+    out[0] = mu * n
+    out[1] = (1.0 - mu) * n
+
+
+def corrected_pd_beta(pd_beta: np.ndarray, det_index: np.ndarray, src: np.ndarray, live: np.ndarray,
+                      Q: int, J: int) -> np.ndarray:
+    """Beta of each corrected component (:func:`mmslam.slam.gmphd.corrected_gm`), ``(P, K, 2)``.
+
+    ``pd_beta (P, Q, 2)`` predicted; ``det_index (P, Q)`` >= 0 where the Gaussian was inside the
+    FOV (``p_D > 0``); ``src (P, K)`` the corrected slot's source in the dense layout (``q`` for the
+    missed detection of Gaussian ``q``, ``Q + q J + j`` for its update by ``z_j``); ``live (P, K)``.
+    Missed: :func:`missed_beta`; detected: :func:`detected_beta`; dead slots (1, 1).
+    """
+    out = np.ones(src.shape + (2,))
+    _corrected_pd_beta(pd_beta, det_index, src, live, Q, J, out)
+    return out
+
+
+@nb.njit(cache=True)
+def _corrected_pd_beta(pd_beta: np.ndarray, det_index: np.ndarray, src: np.ndarray, live: np.ndarray,
+                       Q: int, J: int, out: np.ndarray) -> None:
+    for p in range(src.shape[0]):
+        for k in range(src.shape[1]):
+            if not live[p, k]:
+                continue
+            slot = src[p, k]
+            if slot < Q:
+                s, t = missed_beta(pd_beta[p, slot, 0], pd_beta[p, slot, 1], det_index[p, slot] >= 0)
+            else:
+                q = (slot - Q) // J
+                s, t = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
+            out[p, k, 0] = s
+            out[p, k, 1] = t
