@@ -194,6 +194,13 @@ class FilterParams:
     pd_beta_count: float = param(2.0, "pd_model beta: pseudo-count s0 + t0 of a birth's Beta prior, whose mean "
                                  "is p_detect_<type> (s0 = count p_detect, t0 = count (1 - p_detect)); small: "
                                  "a Gaussian's own history soon dominates", "", lo=0.0, lo_open=True, hi=1e6)
+    pd_beta_forget: float = param(1.0, "pd_model beta: each prediction multiplies a Gaussian's Beta (s, t) by "
+                                  "this factor (mean kept, old detections fade; 1: a static detection "
+                                  "profile)", "", lo=0.0, lo_open=True, hi=1.0)
+    pd_beta_downlink: str = param("keep", "pd_model beta: the Beta of each Gaussian of the fused map a vehicle "
+                                  "receives: keep (the BS's pooled history) or prior (the birth prior: "
+                                  "visibility is learnt per vehicle, from its own detections)",
+                                  choices=("keep", "prior"))
     vs_extent_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of where on a car body a VS path bounces, about the car's antenna position "
         "[horizontal (each axis), vertical]: diag(h^2, h^2, v^2) is added to the scatter point in the VS "

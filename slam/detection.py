@@ -18,9 +18,8 @@ the type's range gate; :meth:`~mmslam.slam.landmarks.LandmarkSpec.fov_radius`):
 - birth: the prior ``Beta(n0 p_D,type, n0 (1 - p_D,type))`` (mean ``filter.p_detect_<type>``, the
   fixed model's value; pseudo-count ``n0 = filter.pd_beta_count``, :func:`prior_beta`);
 - prediction: unchanged (the Gaussian's survival ``p_S`` does not touch its detection history);
-- merging (reduction, averaged map, fused map): the cluster's Beta is the moment match of the
-  weighted Beta mixture (:func:`beta_moment_match`): mean ``mu = sum w_i mu_i / W``, variance
-  ``v = sum w_i (v_i + (mu_i - mu)^2) / W``, and ``s + t = mu (1 - mu) / v - 1``.
+- merging (reduction, averaged map, fused map): the cluster's Beta is the weight average of the
+  members' ``(s, t)`` (:func:`beta_pool`).
 
 The products ``E[p_D] w`` and ``(1 - E[p_D]) w`` are exact: ``int p Beta(p; s, t) dp = s / (s + t)``
 and ``(1 - p) Beta(p; s, t) = t / (s + t) Beta(p; s, t + 1)``.
@@ -39,6 +38,16 @@ def prior_beta(p_detect: float, count: float) -> tuple[float, float]:
     if not (0.0 < p_detect < 1.0) or not count > 0.0:
         raise ValueError(f"a Beta detection prior needs 0 < p_detect < 1 and a count > 0, got {p_detect}, {count}")
     return count * p_detect, count * (1.0 - p_detect)
+
+
+def predict_beta(pd_beta: np.ndarray, forget: float) -> np.ndarray:
+    """Prediction of the Beta from k-1 to k: ``(s, t) -> (f s, f t)``, ``f = forget`` in (0, 1].
+
+    The mean ``s / (s + t)`` is kept and the pseudo-count shrinks (the variance grows), so old
+    evidence fades with weight ``f^age`` (a landmark's visibility changes as the vehicle moves);
+    ``f = 1``: no forgetting (Mahler, Vo & Vo's static detection profile).
+    """
+    return pd_beta if forget == 1.0 else pd_beta * forget
 
 
 def expected_pd(gate_pd: np.ndarray, pd_beta: np.ndarray) -> np.ndarray:
@@ -63,38 +72,30 @@ def detected_beta(s: float, t: float) -> tuple[float, float]:
 
 
 @nb.njit(cache=True)
-def beta_moment_match(w: np.ndarray, ab: np.ndarray, members: np.ndarray, out: np.ndarray) -> None:
-    """Moment match of the weighted Beta mixture ``sum_i w_i Beta(s_i, t_i)`` over ``members``.
+def beta_pool(w: np.ndarray, ab: np.ndarray, members: np.ndarray, out: np.ndarray) -> None:
+    """Beta of a merged cluster: the weight average of the members' ``(s, t)``.
 
-    ``w (Q,)``, ``ab (Q, 2)`` the ``(s, t)`` of each slot, ``members (K,)``; writes ``out (2,)``.
-    One member: its ``(s, t)`` exactly. Otherwise mean ``mu = sum w_i mu_i / W`` with
-    ``mu_i = s_i / (s_i + t_i)``, variance ``v = sum w_i (v_i + (mu_i - mu)^2) / W`` with
-    ``v_i = mu_i (1 - mu_i) / (s_i + t_i + 1)``, and ``s = mu n``, ``t = (1 - mu) n`` with
-    ``n = mu (1 - mu) / v - 1`` (> 0: a mixture of Betas on [0, 1] has ``v < mu (1 - mu)``).
+    ``w (Q,)``, ``ab (Q, 2)`` the ``(s, t)`` of each slot, ``members (K,)``; writes ``out (2,)``:
+    ``s = sum w_i s_i / W``, ``t = sum w_i t_i / W`` (``W = sum w_i``; equal weights if ``W = 0``).
+    This is the normalised geometric pool ``prod_i Beta(p; s_i, t_i)^(w_i / W)`` (a Beta again)
+    and keeps the pseudo-counts: the missed ``(s, t + 1)`` and detected ``(s + 1, t)`` copies of
+    one Gaussian merge to ``(s + a, t + 1 - a)``, ``a`` the detected share of the weight, one
+    step of evidence. (A moment match of the Beta mixture would give back about ``(s, t)`` there,
+    and no Gaussian would learn.)
     """
-    if members.shape[0] == 1:
-        out[0] = ab[members[0], 0]
-        out[1] = ab[members[0], 1]
-        return
     W = 0.0
     for i in members:
         W += w[i]
-    equal = not W > 0.0  # an all-zero-weight cluster: equal weights
-    if equal:
-        W = float(members.shape[0])
-    mu = 0.0
+    equal = not W > 0.0
+    s = 0.0
+    t = 0.0
     for i in members:
-        mu += (1.0 if equal else w[i]) * ab[i, 0] / (ab[i, 0] + ab[i, 1])
-    mu /= W
-    v = 0.0
-    for i in members:
-        n_i = ab[i, 0] + ab[i, 1]
-        mu_i = ab[i, 0] / n_i
-        v += (1.0 if equal else w[i]) * (mu_i * (1.0 - mu_i) / (n_i + 1.0) + (mu_i - mu) * (mu_i - mu))
-    v /= W
-    n = mu * (1.0 - mu) / v - 1.0 if v > 0.0 else 1e12
-    out[0] = mu * n
-    out[1] = (1.0 - mu) * n
+        wi = 1.0 if equal else w[i]
+        s += wi * ab[i, 0]
+        t += wi * ab[i, 1]
+    n = float(members.shape[0]) if equal else W
+    out[0] = s / n
+    out[1] = t / n
 
 
 def corrected_pd_beta(pd_beta: np.ndarray, det_index: np.ndarray, src: np.ndarray, live: np.ndarray,

@@ -167,8 +167,13 @@ class LandmarkSpec:
 
 # ====================================================================== the types' functions
 def predict_static_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
-    """Static landmarks: weights times ``p_S`` (eq. 4), then the births appended."""
+    """Static landmarks: weights times ``p_S`` (eq. 4; a Beta detection history fades by
+    ``filter.pd_beta_forget``, :func:`mmslam.slam.detection.predict_beta`), then the births appended."""
     g = predict_static(g, scn.filter.p_survival)
+    if g.pd_beta is not None:
+        from .detection import predict_beta
+
+        g.pd_beta = predict_beta(g.pd_beta, float(scn.filter.pd_beta_forget))
     return g if born is None else concat(g, born)
 
 

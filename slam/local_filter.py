@@ -223,4 +223,7 @@ class LocalFilter:
             sp = self.specs[t]
             if sp.remove_ego is not None and ego is not None and self.variant.downlink_ego_removal and g.capacity:
                 g = sp.remove_ego(g, ego, self.scn)
+            if g.pd_beta is not None and self.fp.pd_beta_downlink == "prior":
+                g = g.copy()
+                g.pd_beta[...] = sp.pd_beta_prior(self.scn)
             self.maps[t] = _broadcast_gm(g, self.P)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .detection import beta_moment_match
+from .detection import beta_pool
 from .gm import GM, compact, empty, symmetrize
 from .linalg import cholesky, forward_solve
 
@@ -86,7 +86,7 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
         out_w, out_m, out_P: ``(Q,)``, ``(Q, d)``, ``(Q, d, d)`` outputs; slot ``k`` holds cluster
             ``k`` (clusters in the order of their heads' weights).
         ab, out_ab: ``(Q, 2)`` Beta detection parameters ``(s, t)`` and the clusters' moment match
-            (:func:`mmslam.slam.detection.beta_moment_match`), or ``(Q, 0)`` (none).
+            (:func:`mmslam.slam.detection.beta_pool`), or ``(Q, 0)`` (none).
 
     Returns:
         The number of clusters ``K``, or ``-1`` if a kept covariance is singular / indefinite.
@@ -135,7 +135,7 @@ def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, 
             n += 1
         out_w[K] = moment_match(w, m, P, members[:n], j, out_m[K], out_P[K])
         if ab.shape[1]:
-            beta_moment_match(w, ab, members[:n], out_ab[K])
+            beta_pool(w, ab, members[:n], out_ab[K])
         K += 1
 
 
@@ -246,13 +246,13 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
 def _merge_pairs(w: np.ndarray, m: np.ndarray, P: np.ndarray, pairs: np.ndarray,
                  out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray, out_ab: np.ndarray) -> None:
     """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``
-    (Beta parameters ``ab (Q, 2)``: :func:`~mmslam.slam.detection.beta_moment_match`; ``(Q, 0)``: none)."""
+    (Beta parameters ``ab (Q, 2)``: :func:`~mmslam.slam.detection.beta_pool`; ``(Q, 0)``: none)."""
     d = m.shape[1]
     for k in range(pairs.shape[0]):
         i, j = pairs[k, 0], pairs[k, 1]
         out_w[i] = moment_match(w, m, P, pairs[k], i, out_m[i], out_P[i])
         if ab.shape[1]:
-            beta_moment_match(w, ab, pairs[k], out_ab[i])
+            beta_pool(w, ab, pairs[k], out_ab[i])
         out_w[j] = 0.0
         for a in range(d):
             out_m[j, a] = 0.0
