@@ -193,7 +193,7 @@ class FilterParams:
                           "Vo 2011); docs/equations.md", choices=("fixed", "beta"))
     pd_beta_count: float = param(2.0, "pd_model beta: pseudo-count s0 + t0 of a birth's Beta prior, whose mean "
                                  "is p_detect_<type> (s0 = count p_detect, t0 = count (1 - p_detect)); small: "
-                                 "a Gaussian's own history soon dominates", "", lo=0.0, lo_open=True, hi=1e6)
+                                 "a Gaussian's own history soon dominates", "", lo=0.0, lo_open=True, hi=1e12)
     pd_beta_forget: float = param(1.0, "pd_model beta: each prediction multiplies a Gaussian's Beta (s, t) by "
                                   "this factor (mean kept, old detections fade; 1: a static detection "
                                   "profile)", "", lo=0.0, lo_open=True, hi=1.0)
