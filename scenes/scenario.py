@@ -587,6 +587,11 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
 
     sensor = _params(src, "sensor", SensorParams, data.get("sensor"))
     filt = _params(src, "filter", FilterParams, data.get("filter"))
+    if filt.pd_model == "beta":  # the Beta prior's mean is p_detect_<type> of the types that learn it (VA, SP)
+        for key in ("p_detect_va", "p_detect_sp"):
+            if not 0.0 < getattr(filt, key) < 1.0:
+                raise _err(src, f"filter.{key}", f"pd_model = \"beta\" needs 0 < {key} < 1 (the mean of the "
+                           f"Beta prior), got {getattr(filt, key)}")
     fusion = _params(src, "fusion", FusionParams, data.get("fusion"))
     if not (isinstance(data.get("fusion"), dict) and "start" in data["fusion"]):
         # default schedule: vehicle i first talks to the BS at step 5 + i (paper: 5 and 6)

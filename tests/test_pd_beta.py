@@ -148,3 +148,11 @@ def test_a_beta_of_huge_count_is_the_fixed_model(paper6):
     np.testing.assert_allclose(a.vehicles["x"], b.vehicles["x"], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(a.metrics["gospa"], b.metrics["gospa"], rtol=1e-6, atol=1e-6)
     assert not np.allclose(a.metrics["gospa"], c.metrics["gospa"])  # a learnt p_D changes the maps
+
+
+def test_a_beta_prior_of_mean_one_is_a_one_line_config_error():
+    from mmslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="filter.p_detect_sp.*0 < p_detect_sp < 1"):
+        with_overrides(load_preset("paper"), ["filter.pd_model=beta", "filter.p_detect_sp=1.0"])
+    with_overrides(load_preset("paper"), ["filter.pd_model=fixed", "filter.p_detect_sp=1.0"])  # fine when fixed
