@@ -40,3 +40,9 @@ def test_custom_numba_cache_dir_left_alone(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
     assert slam_pkg._invalidate_stale_kernels(pkg) is False
     assert not (pkg / "__pycache__").exists()
+
+
+def test_every_slam_module_with_a_numba_kernel_is_a_kernel_source():
+    pkg = Path(slam_pkg.__file__).parent
+    with_kernels = {p.name for p in pkg.glob("*.py") if "@nb.njit" in p.read_text()}
+    assert with_kernels == set(slam_pkg.KERNEL_SOURCES)
