@@ -150,13 +150,13 @@ class FilterParams:
     p_survival: float = param(0.99, "landmark survival probability per step", "", probability=True)
     birth_weight: float = param(1.5e-5, "weight of each birth Gaussian", "", lo=0.0, lo_open=True, hi=1.0)
     prune: float = param(1e-4, "prune Gaussians of weight below this", "", lo=0.0, hi=1.0)
-    merge: float = param(49.0, "merge gate U (squared Mahalanobis distance) in the reduction of SP and VS "
-                         "maps (VA maps: merge_va)", "",
+    merge: float = param(49.0, "merge gate U (squared Mahalanobis distance) in the reduction of the maps "
+                         "(VA maps: merge_va when that is set)", "",
                          lo=0.0, hi=1e6)
-    merge_va: float = param(49.0, "merge gate U of the VA maps (local reduction, averaged map, fused map); "
-                            "filter.merge is the gate of the other types. Lower it where distinct VAs lie "
-                            "closer than the VA position uncertainty allows U = 49 to tell apart (canyon: "
-                            "two image sources 1.53 m apart)", "", lo=0.0, hi=1e6)
+    merge_va: float = param(-1.0, "merge gate U of the VA maps (local reduction, averaged map, fused map); "
+                            "negative (the default): the same as filter.merge. Set it where distinct VAs lie "
+                            "closer than the VA position uncertainty lets U = 49 tell apart (canyon: two "
+                            "image sources 1.53 m apart, merge_va = 4)", "", lo=-1.0, hi=1e6)
     max_gaussians: int = param(50, "at most this many Gaussians per type and particle", "", lo=1, hi=10_000)
     max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this", "m^2",
                              lo=0.0, lo_open=True, hi=1e9)

@@ -155,8 +155,8 @@ class LandmarkSpec:
 
     def merge_gate(self, scn: "Scenario") -> float:
         """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
-        (``filter.<merge_param>``)."""
-        return float(getattr(scn.filter, self.merge_param))
+        (``filter.<merge_param>``; a negative value means ``filter.merge``)."""
+        return merge_gate(scn, self.merge_param)
 
     def threshold(self, scn: "Scenario") -> float:
         """Estimate threshold on a component's weight (``filter.<threshold_param>``)."""
@@ -245,11 +245,19 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
     return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
 
 
+def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
+    """The merge gate ``filter.<merge_param>``; a negative value (e.g. ``merge_va``'s default) means
+    ``filter.merge``, so an override of ``filter.merge`` reaches every type that does not set its own."""
+    v = float(getattr(scn.filter, merge_param))
+    return float(scn.filter.merge) if v < 0 else v
+
+
 def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", merge_param: str = "merge") -> GM:
-    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``)."""
+    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``,
+    :func:`merge_gate`)."""
     fp, fu = scn.filter, scn.fusion
     if fused.capacity:
-        fused = prune_merge(fused, fu.average_prune, float(getattr(fp, merge_param)), fp.max_gaussians,
+        fused = prune_merge(fused, fu.average_prune, merge_gate(scn, merge_param), fp.max_gaussians,
                             fp.max_trace, pos_dims=3)
     return fused
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import FusionCenter, LocalFilter
 from mmslam.slam.gm import GM, empty
-from mmslam.slam.landmarks import landmark_type
+from mmslam.slam.landmarks import landmark_type, merge_gate
 from mmslam.slam.measurement import SP, VA, VS
 
 # Two VAs 1.53 m apart in y (canyon's image sources of the facades y = 9.57 and y = 10.34), each with
@@ -35,7 +35,18 @@ def test_merge_gate_is_merge_va_for_vas_and_merge_for_the_others():
     scn = _scn(merge=49.0, merge_va=4.0)
     assert landmark_type(VA).merge_gate(scn) == 4.0
     assert landmark_type(SP).merge_gate(scn) == landmark_type(VS).merge_gate(scn) == 49.0
-    assert load_preset("paper").filter.merge_va == load_preset("paper").filter.merge == 49.0  # paper unchanged
+    paper = load_preset("paper")
+    assert paper.filter.merge == 49.0 and landmark_type(VA).merge_gate(paper) == 49.0  # paper unchanged
+
+
+def test_unset_merge_va_follows_filter_merge():
+    """merge_va's default (negative) means filter.merge: an override of filter.merge (TOML, --set, a
+    grid) still reaches the VA maps, locally and in the fused-map reduction, as before merge_va existed."""
+    scn = with_overrides(load_preset("paper"), ["filter.merge=4"])
+    assert scn.filter.merge_va < 0
+    assert landmark_type(VA).merge_gate(scn) == landmark_type(SP).merge_gate(scn) == 4.0
+    assert merge_gate(scn, "merge_va") == 4.0
+    assert merge_gate(with_overrides(scn, ["filter.merge_va=9"]), "merge_va") == 9.0
 
 
 @pytest.mark.parametrize("merge_va, n_va", [(4.0, 2), (49.0, 1)])
