@@ -23,35 +23,58 @@ KERNEL_SOURCES = ("birth.py", "ckf.py", "detection.py", "dynamics.py", "gmphd.py
 _STAMP = "mmslam-kernels.sha256"
 
 
-def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
-    """Delete the cached numba kernels of ``slam/__pycache__`` when any kernel source changed.
+def kernel_cache_dirs(pkg: Path = Path(__file__).parent) -> list[Path]:
+    """Where numba may keep the compiled kernels of ``pkg``'s modules (numba's own locator rules).
 
-    Compares a SHA-256 of :data:`KERNEL_SOURCES` (plus ``mmslam/model.py``) with the stamp written
-    next to the cache; on a mismatch removes every ``*.nbi`` / ``*.nbc`` there and writes the new
-    stamp (atomically). A read-only install or a ``NUMBA_CACHE_DIR`` elsewhere is left alone.
-    Returns True if cached kernels were removed.
+    ``pkg/__pycache__`` (the default), ``$NUMBA_CACHE_DIR/<dir>_<sha1 of the directory path>`` when
+    that variable is set, and the user-wide cache ``$XDG_CACHE_HOME/numba/<same>`` (``~/.cache``)
+    that numba falls back to when ``__pycache__`` is not writable (a read-only install).
     """
-    cache = pkg / "__pycache__"
+    src_dir = os.path.dirname(os.path.abspath(pkg / "ckf.py"))
+    sub = f"{os.path.split(src_dir)[-1]}_{hashlib.sha1(src_dir.encode()).hexdigest()}"
+    dirs = [pkg / "__pycache__"]
     if os.environ.get("NUMBA_CACHE_DIR"):
-        return False
+        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]) / sub)
+    dirs.append(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub)
+    return dirs
+
+
+def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
+    """Delete the cached numba kernels of ``pkg`` wherever they are when any kernel source changed.
+
+    Compares a SHA-256 of :data:`KERNEL_SOURCES` (plus ``mmslam/model.py``) with the stamp kept in
+    each of :func:`kernel_cache_dirs` that exists (``__pycache__`` is always checked); on a mismatch
+    removes every ``*.nbi`` / ``*.nbc`` there and writes the new stamp (atomically). A folder that
+    cannot be written is skipped. Returns True if cached kernels were removed.
+
+    Not covered: a process that imported the old sources and compiles a kernel after the edit.
+    """
     try:
         h = hashlib.sha256()
         for src in [pkg / name for name in KERNEL_SOURCES] + [Path(_model.__file__)]:
             h.update(src.read_bytes())
-        digest = h.hexdigest()
-        stamp = cache / _STAMP
-        if stamp.is_file() and stamp.read_text().strip() == digest:
-            return False
-        cache.mkdir(exist_ok=True)
-        stale = list(cache.glob("*.nbi")) + list(cache.glob("*.nbc"))
-        for p in stale:
-            p.unlink(missing_ok=True)
-        tmp = cache / f".{_STAMP}.{os.getpid()}"
-        tmp.write_text(digest + "\n")
-        os.replace(tmp, stamp)
-        return bool(stale)
-    except OSError:  # read-only install: numba uses its own user cache there
+    except OSError:
         return False
+    digest = h.hexdigest()
+    removed = False
+    for i, cache in enumerate(kernel_cache_dirs(pkg)):
+        if i and not cache.is_dir():
+            continue
+        try:
+            stamp = cache / _STAMP
+            if stamp.is_file() and stamp.read_text().strip() == digest:
+                continue
+            cache.mkdir(parents=True, exist_ok=True)
+            stale = list(cache.glob("*.nbi")) + list(cache.glob("*.nbc"))
+            for p in stale:
+                p.unlink(missing_ok=True)
+            tmp = cache / f".{_STAMP}.{os.getpid()}"
+            tmp.write_text(digest + "\n")
+            os.replace(tmp, stamp)
+            removed = removed or bool(stale)
+        except OSError:  # read-only folder: numba does not write there either
+            continue
+    return removed
 
 
 _invalidate_stale_kernels()

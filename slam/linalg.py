@@ -9,8 +9,8 @@ own compiled loops. :func:`safe_cholesky` is the NumPy entry point (any batch sh
 Numerical contract (tested against LAPACK / SciPy in ``tests/test_kernels_reference.py``): the
 results equal LAPACK's to ``1e-9`` relative (normwise), not bit for bit.
 
-numba's on-disk cache is invalidated per source file: a kernel in another module that calls these
-keeps its compiled copy after an edit here until ``slam/__pycache__/*.nb[ic]`` is deleted.
+numba's on-disk cache is invalidated per source file only; :mod:`mmslam.slam` (``__init__``) drops the
+cached kernels of every module when any kernel source, this one included, changes.
 """
 from __future__ import annotations
 

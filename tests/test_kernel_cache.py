@@ -19,6 +19,7 @@ def _copy_pkg(tmp_path: Path) -> Path:
 
 def test_stale_kernels_removed_only_after_a_source_change(tmp_path, monkeypatch):
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     pkg = _copy_pkg(tmp_path)
     cache = pkg / "__pycache__"
     slam_pkg._invalidate_stale_kernels(pkg)  # first call: writes the stamp
@@ -35,11 +36,29 @@ def test_stale_kernels_removed_only_after_a_source_change(tmp_path, monkeypatch)
     assert slam_pkg._invalidate_stale_kernels(pkg) is False  # the new stamp is kept
 
 
-def test_custom_numba_cache_dir_left_alone(tmp_path, monkeypatch):
+def test_numba_cache_dir_and_user_cache_checked_too(tmp_path, monkeypatch):
+    """With NUMBA_CACHE_DIR set (or the user-wide fallback of a read-only install) numba keeps the
+    kernels in <dir>/<folder>_<sha1 of the folder path>: the same rule, the same invalidation."""
+    from numba.core.caching import _CacheLocator
+
     pkg = _copy_pkg(tmp_path)
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
-    assert slam_pkg._invalidate_stale_kernels(pkg) is False
-    assert not (pkg / "__pycache__").exists()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba-cache"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    sub = _CacheLocator.get_suitable_cache_subpath(str(pkg / "ckf.py"))  # numba's own rule
+    dirs = slam_pkg.kernel_cache_dirs(pkg)
+    assert dirs == [pkg / "__pycache__", tmp_path / "numba-cache" / sub, tmp_path / "xdg" / "numba" / sub]
+    for d in dirs[1:]:
+        d.mkdir(parents=True)
+        (d / "ckf.innovate-1.py311.nbi").write_bytes(b"index")
+    slam_pkg._invalidate_stale_kernels(pkg)  # no stamp yet: stale
+    assert not any(list(d.glob("*.nbi")) for d in dirs)
+    for d in dirs[1:]:
+        (d / "ckf.innovate-1.py311.nbi").write_bytes(b"index")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False  # stamps match: kept
+    with open(pkg / "linalg.py", "a") as f:
+        f.write("\n# edited\n")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is True
+    assert not any(list(d.glob("*.nbi")) for d in dirs)
 
 
 def test_every_slam_module_with_a_numba_kernel_is_a_kernel_source():
