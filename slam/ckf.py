@@ -240,6 +240,9 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
         R = R[None]
     elif R.shape != (J, MEAS_DIM, MEAS_DIM):
         raise ValueError(f"R has shape {R.shape}; expected (5, 5) or ({J}, 5, 5)")
+    if d < 3 or P.shape != (n, d, d) or np.shape(states) != (n, 7) or np.shape(bs) != (3,):
+        raise ValueError(f"{stage}: shapes m {m.shape}, P {P.shape}, states {np.shape(states)}, bs {np.shape(bs)}; "
+                         f"expected (N, d >= 3), (N, d, d), (N, 7), (3,)")
     if not (np.isfinite(m).all() and np.isfinite(P).all()):
         raise FloatingPointError(f"non-finite covariance in {stage}")
     ext = np.zeros((3, 3)) if extent is None else np.asarray(extent, float).reshape(3, 3)

@@ -72,7 +72,7 @@ def truth_keys(paths: dict[str, np.ndarray]) -> np.ndarray:
     typ = np.asarray(paths["type"])
     out = ids.astype(object)
     for spec in mapped_types():
-        if spec.geometry is not Bounce.MIRROR:
+        if spec.geometry != Bounce.MIRROR:
             continue
         va = np.nonzero(typ == spec.code)[0]
         if va.size:

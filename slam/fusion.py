@@ -53,7 +53,7 @@ def msm_distance(m1: np.ndarray, P1: np.ndarray, m2: np.ndarray, P2: np.ndarray)
 
 
 def in_accumulated_fov(points: np.ndarray, vehicle_positions: np.ndarray, radius: float) -> np.ndarray:
-    """Whether points lie in a vehicle's accumulated FOV (paper footnote to eq. (prevMFave)).
+    """Whether points lie in a vehicle's accumulated FOV (paper footnote to eq. (7)).
 
     With ``p_D`` constant inside the range gate and 0 outside, the accumulated FOV since the
     last upload is the union of balls of radius ``radius`` (m) around the vehicle positions
@@ -189,7 +189,7 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
 
 def _ego_match(m: np.ndarray, P: np.ndarray, ego_mean: np.ndarray, ego_cov: np.ndarray,
                threshold: float) -> np.ndarray:
-    """``c_q`` of eq. (Pro_aveVSPHD): position-marginal MSM distance to the ego Gaussian ``< threshold``."""
+    """``c_q`` of eq. (12): position-marginal MSM distance to the ego Gaussian ``< threshold``."""
     return msm_distance(m[:, POS], P[:, POS, POS], ego_mean[None, POS], ego_cov[None, POS, POS])[:, 0] < threshold
 
 
@@ -223,7 +223,7 @@ def remove_ego(vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: flo
 
 
 def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: float) -> GM:
-    """``F'_AA`` placing the ego vehicle in its averaged VS map (paper eq. (Pro_aveVSPHD)).
+    """``F'_AA`` placing the ego vehicle in its averaged VS map (paper eqs. (11)-(14)).
 
     ``c_q = 1`` iff the MSM distance between the position marginals of component ``q`` and of
     the ego Gaussian is ``< threshold`` (``T_MD^L``). Components with ``c_q = 1`` get
@@ -249,7 +249,7 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
 
 def predict_bs_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray, n_steps: int,
                   dither: np.ndarray | None = None) -> GM:
-    """Predict the BS's fused VS map ``n_steps`` steps without birth (eq. (Pro_PredPHDatBS)).
+    """Predict the BS's fused VS map ``n_steps`` steps without birth (paper eq. (15)).
 
     ``n_steps`` applications of :func:`mmslam.slam.vs.predict_vs` (weights ``* p_S`` each step,
     CT mean, ``J P J^T + diag(q_std^2)``). No dithering by default: dithering is the local
@@ -265,7 +265,7 @@ def predict_bs_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray, n_step
 
 def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel: float,
             beta_inside_fov: float, with_pairs: bool = False) -> GM | tuple[GM, np.ndarray]:
-    """``F'_AA`` at the BS for the VS map (paper eq. (pro_ULMF), (CompAFW)).
+    """``F'_AA`` at the BS for the VS map (paper eqs. (16)-(20)).
 
     Proximity: ``C[q1, q2] = 1`` iff the MSM distance of the position marginals (dims 0:3) is
     ``< t_pos`` (``T_MD^L``) and that of the velocity marginals (dims 3:6) is ``< t_vel``

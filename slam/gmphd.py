@@ -36,7 +36,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             ) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
-    Paper eq. (5) (prevCorrPHD; with the VS map, eq. (10), propCorrPHD): for each particle ``p``
+    Paper eq. (5) (with the VS map, eq. (10)): for each particle ``p``
     with vehicle state ``s_p`` and each map type ``t`` (predicted intensity ``D_t``),
 
         ``D_t^+(x) = (1 - p_D(x)) D_t(x) + sum_j p_D(x) N(z_j; h_t(s_p, x), R) D_t(x) / psi(z_j)``,

@@ -310,8 +310,9 @@ def register_landmark_type(spec: LandmarkSpec, *, replace: bool = False) -> Land
     """Add ``spec`` to the registry (by name; its code must be new too). Returns it.
 
     Raises:
-        MmslamError: the name or code is taken (unless ``replace``), the code is ``OTHER``, or a
-            mapped type lacks its functions.
+        MmslamError: the name or code is taken (unless ``replace``), the code is ``OTHER`` or not an
+            integer, the geometry is not a :class:`~mmslam.model.Bounce`, or a mapped type has a DIRECT
+            geometry, fewer than 3 state components or lacks its functions.
     """
     if not replace and spec.name in _REGISTRY:
         raise MmslamError(f"landmark type {spec.name!r} is already registered; pick another name")
@@ -319,6 +320,17 @@ def register_landmark_type(spec: LandmarkSpec, *, replace: bool = False) -> Land
     if spec.code in taken or spec.code == OTHER or spec.code < 0:
         raise MmslamError(f"landmark type {spec.name!r}: code {spec.code} is taken "
                           f"({taken.get(spec.code, 'OTHER')}); pick an unused code >= 0")
+    if not isinstance(spec.code, (int, np.integer)) or isinstance(spec.code, bool):
+        raise MmslamError(f"landmark type {spec.name!r}: code {spec.code!r} must be an integer")
+    try:
+        geometry = Bounce(spec.geometry)
+    except ValueError:
+        raise MmslamError(f"landmark type {spec.name!r}: geometry {spec.geometry!r} is not a path geometry; "
+                          f"use one of {', '.join(b.name for b in Bounce)} (mmslam.model.Bounce)") from None
+    if spec.mapped and (geometry == Bounce.DIRECT or spec.state_dim < 3):
+        raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs a MIRROR or SCATTER geometry and "
+                          f"a state of at least 3 components (position first), got {geometry.name}, "
+                          f"state_dim {spec.state_dim}")
     if spec.mapped and None in (spec.predict, spec.birth, spec.fuse, spec.reduce_fused):
         raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs predict, birth, fuse and reduce_fused")
     _REGISTRY[spec.name] = spec

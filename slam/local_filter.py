@@ -193,7 +193,7 @@ class LocalFilter:
         (ignored on the first call). The measurements are kept for the next step's births.
         ``R_z``: ``(J, 5, 5)`` per-measurement covariances for the correction (births keep ``R``).
         """
-        Z = np.asarray(Z, float).reshape(-1, 5)
+        Z = np.array(Z, dtype=float).reshape(-1, 5)  # a copy: kept for the next step's births
         if not np.isfinite(Z).all():
             raise FloatingPointError("non-finite measurement passed to the filter")
         self._k += 1

@@ -130,6 +130,14 @@ def _broadcast(loop, v: np.ndarray, lm: np.ndarray | None, lm_type: int, bs: np.
     geo = geometry_of(lm_type)
     v = np.asarray(v, dtype=float)
     b = np.asarray(bs, dtype=float)
+    need = 7 if loop is _measure_loop else 3
+    if v.ndim == 0 or v.shape[-1] < need:
+        raise ValueError(f"vehicle array of shape {v.shape}: expected (..., {need}) "
+                         f"({'states [x, y, z, heading, speed, turn rate, bias]' if need == 7 else 'positions'})")
+    if lm is None and geo != _DIRECT:
+        raise ValueError(f"landmark type {lm_type}: landmark positions (..., 3) are required (only the BS has none)")
+    if b.shape[-1:] != (3,) or (lm is not None and np.shape(lm)[-1:] != (3,)):
+        raise ValueError(f"BS {b.shape} / landmark {np.shape(lm)} arrays: expected (..., 3) positions")
     x = b if geo == _DIRECT or lm is None else np.asarray(lm, dtype=float)
     shape = np.broadcast_shapes(v.shape[:-1], x.shape[:-1], b.shape[:-1])
     out = np.empty(shape + (5,))

@@ -47,7 +47,7 @@ def _ekf_predict(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, m_out
 
 def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
                dither: np.ndarray | None) -> GM:
-    """Predict a batch of VS Gaussian mixtures one step (paper eq. (Pro_PredPHD), no birth).
+    """Predict a batch of VS Gaussian mixtures one step (paper eq. (9), no birth).
 
     For every live component: ``m' = vs_ct(m, dt)``, ``P' = J P J^T + Q + T_d`` with
     ``J = d vs_ct / d t`` at ``m``, ``Q = diag(q_std^2)`` (process noise) and ``T_d =

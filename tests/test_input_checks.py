@@ -1,0 +1,67 @@
+"""Bad input to the public kernel-level API gives an error naming the problem (numba does not
+bounds-check: without these checks a wrong shape read past an array and returned a number)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mmslam.errors import MmslamError
+from mmslam.model import SP, VA, Bounce
+from mmslam.scenes.scenario import load_preset
+from mmslam.slam import landmarks as L
+from mmslam.slam.ckf import innovate
+from mmslam.slam.local_filter import LocalFilter
+from mmslam.slam.measurement import channel_params, measure
+
+BS_POS = np.array([0.0, 0.0, 10.0])
+STATE = np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5])
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(geometry=7), "not a path geometry"),
+    (dict(geometry=Bounce.DIRECT), "MIRROR or SCATTER"),
+    (dict(state_dim=2), "at least 3"),
+    (dict(code=9.5), "must be an integer"),
+])
+def test_register_rejects_a_spec_the_kernels_cannot_run(change, match):
+    spec = dataclasses.replace(L.landmark_type(SP), **{"name": "BAD", "code": 11, **change})
+    with pytest.raises(MmslamError, match=match):
+        L.register_landmark_type(spec)
+    assert "BAD" not in [t.name for t in L.landmark_types()]
+
+
+def test_measurement_model_rejects_wrong_shapes():
+    with pytest.raises(ValueError, match="landmark positions"):
+        channel_params(STATE[:3], None, SP, BS_POS)  # was: the BS silently used as the scatter point
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., 7\)"):
+        measure(STATE[:3], np.array([30.0, 0.0, 2.0]), SP, BS_POS)  # was: read s[3], s[6] past the end
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., 3\)"):
+        channel_params(STATE[:3], np.array([30.0, 0.0]), VA, BS_POS)
+    # the valid call still works and agrees with the hand-computed TOA of a single bounce
+    lm = np.array([30.0, 0.0, 2.0])
+    toa = channel_params(STATE[:3], lm, SP, BS_POS)[0]
+    assert toa == pytest.approx(np.linalg.norm(lm - BS_POS) + np.linalg.norm(lm - STATE[:3]), rel=1e-12)
+
+
+def test_innovate_rejects_wrong_shapes():
+    m, P = np.zeros((2, 3)) + 30.0, np.broadcast_to(np.eye(3), (2, 3, 3)).copy()
+    Z, R = np.zeros((1, 5)), np.eye(5)
+    with pytest.raises(ValueError, match="expected"):
+        innovate(m, P, np.zeros((2, 3)), int(Bounce.SCATTER), BS_POS, Z, R, "test")  # states (N, 3)
+    with pytest.raises(ValueError, match="expected"):
+        innovate(m[:, :2], P[:, :2, :2], np.zeros((2, 7)), int(Bounce.SCATTER), BS_POS, Z, R, "test")  # d = 2
+
+
+def test_step_keeps_its_own_copy_of_the_measurements():
+    """The measurements are kept for the next step's births: a caller reusing its buffer must not
+    change them."""
+    scn = load_preset("paper")
+    f = LocalFilter(scn, "baseline", 5, STATE, np.diag([0.1, 1e-4, 1e-4, 1e-4, 1e-4]), 1e-3,
+                    lambda u, x, t: np.full(np.shape(u)[:-1], 0.9), np.random.default_rng(0))
+    Z = measure(STATE, np.array([[30.0, 0.0, 2.0], [10.0, 30.0, 3.0]]), SP, scn.bs_array)
+    f.step(Z)
+    kept = Z.copy()
+    Z[:] = 0.0
+    np.testing.assert_array_equal(f._prev_Z, kept)
