@@ -27,8 +27,9 @@ from mmslam.raytrace.trace import make_source, trace_scenario
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import run_filter
 from mmslam.slam.sensor import LinkBudget, simulate_measurements
+from mmslam.model import TYPE_NAMES
 
-TYPES = {0: "BS", 1: "VA", 2: "SP", 3: "VS"}
+TYPES = {c: n for c, n in TYPE_NAMES.items() if n != "OTHER"}
 
 
 def detection_stats(scn, cache, link, seed=0):

@@ -15,7 +15,7 @@ MAX_EXPORT_BYTES = 8 << 30
 """Largest ``mmslam export`` response (bytes): a typo in --subcarriers must not exhaust memory."""
 from mmslam.limits import MAX_CHUNK_STEPS, MAX_SAMPLES, MAX_SEED, MAX_STEPS, check_int, span
 
-_TYPE_LABELS = ("BS", "VA", "SP", "VS", "OTHER")
+from mmslam.raytrace.schema import TYPE_LABELS as _TYPE_LABELS
 _TYPE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:gray")
 
 

@@ -28,10 +28,12 @@ from typing import Protocol
 
 import numpy as np
 
+from mmslam.model import LandmarkType
+
 SCHEMA_VERSION = 2
 
-TYPE_LABELS: tuple[str, ...] = ("BS", "VA", "SP", "VS", "OTHER")
-"""Landmark type labels; code = index (matches :mod:`mmslam.slam.measurement` BS=0 .. OTHER=4)."""
+TYPE_LABELS: tuple[str, ...] = tuple(t.name for t in LandmarkType)
+"""Landmark type labels; code = index (:class:`mmslam.model.LandmarkType`, BS=0 .. OTHER=4)."""
 
 INTERACTION_LABELS: tuple[str, ...] = ("none", "specular", "diffuse", "refraction", "diffraction")
 """Interaction type labels; code = index. Sionna's InteractionType bits 0/1/2/4/8 map to 0..4."""

@@ -24,12 +24,30 @@ import numba as nb
 import numpy as np
 
 from .linalg import back_solve, cholesky, forward_solve, safe_cholesky
-from .measurement import MEAS_DIM, measure_point, wrap
+from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, measure_point, wrap
 
 _LOG_2PI = math.log(2.0 * math.pi)
-_IS_AZIMUTH = np.array([c in (1, 3) for c in range(MEAS_DIM)])  # AZIMUTH_COMPONENTS
+_IS_AZIMUTH = np.array([c in AZIMUTH_COMPONENTS for c in range(MEAS_DIM)])
 OK, BAD_POSITION_COV, BAD_INNOVATION_COV = 0, 1, 2
 """Return codes of :func:`ckf_update`."""
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def gaussian_loglik(z: np.ndarray, zhat: np.ndarray, LS: np.ndarray, half_logdet: float, y: np.ndarray) -> float:
+    """``log N(z; zhat, S)`` of one measurement ``z (5,)`` (paper eqs. (5), (10): the likelihood ``g``).
+
+    ``S = LS LS^T`` with ``LS (5, 5)`` its lower Cholesky factor and ``half_logdet = sum log diag LS``;
+    the azimuth residuals are wrapped to ``(-pi, pi]``. ``y (5,)`` receives the whitened residual
+    ``LS^-1 (z - zhat)`` (the Kalman mean update uses it). Units: as the measurement (m, rad).
+    """
+    for a in range(MEAS_DIM):
+        res = z[a] - zhat[a]
+        y[a] = wrap(res) if _IS_AZIMUTH[a] else res
+    forward_solve(LS, y, y)
+    q = 0.0
+    for a in range(MEAS_DIM):
+        q += y[a] * y[a]
+    return -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -136,14 +154,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 P_post[r, k, i] = t
         j0, j1 = (0, J) if R.shape[0] == 1 else (r, r + 1)
         for j in range(j0, j1):
-            for a in range(MEAS_DIM):
-                res = Z[j, a] - zhat[a]
-                y[a] = wrap(res) if _IS_AZIMUTH[a] else res
-            forward_solve(LS, y, y)
-            q = 0.0
-            for a in range(MEAS_DIM):
-                q += y[a] * y[a]
-            loglik[j] = -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+            loglik[j] = gaussian_loglik(Z[j], zhat, LS, half_logdet, y)
             for i in range(d):
                 t = m[i]
                 for a in range(MEAS_DIM):

@@ -20,14 +20,12 @@ from typing import Callable
 import numba as nb
 import numpy as np
 
-from .ckf import Innovation, innovate
+from .ckf import Innovation, gaussian_loglik, innovate
 from .detection import corrected_pd_beta, expected_pd
 from .gm import GM
-from .linalg import forward_solve, safe_cholesky
-from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point, wrap
+from .linalg import safe_cholesky
+from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point
 
-_LOG_2PI = math.log(2.0 * math.pi)
-_IS_AZIMUTH = np.array([c in (1, 3) for c in range(MEAS_DIM)])  # AZIMUTH_COMPONENTS
 
 
 def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -167,14 +165,8 @@ def _bs_loglik(states: np.ndarray, Z: np.ndarray, L: np.ndarray, b: np.ndarray, 
             Lj = L[j if L.shape[0] > 1 else 0]
             half_logdet = 0.0
             for a in range(MEAS_DIM):
-                res = Z[j, a] - zhat[a]
-                y[a] = wrap(res) if _IS_AZIMUTH[a] else res
                 half_logdet += math.log(Lj[a, a])
-            forward_solve(Lj, y, y)
-            q = 0.0
-            for a in range(MEAS_DIM):
-                q += y[a] * y[a]
-            out[p, j] = -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+            out[p, j] = gaussian_loglik(Z[j], zhat, Lj, half_logdet, y)
 
 
 def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
