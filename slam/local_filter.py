@@ -141,9 +141,11 @@ class LocalFilter:
         the predicted mass plus ``J`` for some particle; :func:`~mmslam.slam.gmphd.check_phd_mass`).
         """
         J = Z.shape[0]
-        if not self.update or J == 0:
+        if not self.update:
             return
-        R = self.R if R_z is None else np.asarray(R_z, float).reshape(J, 5, 5)
+        # J = 0 still corrects: every detectable Gaussian was missed, w <- (1 - p_D) w (eq. (5) with
+        # an empty set); the particle weights are unchanged (an empty product)
+        R = self.R if R_z is None or J == 0 else np.asarray(R_z, float).reshape(J, 5, 5)
         p_bs = self.pd_fn(self.s[:, 0:3], np.broadcast_to(self.bs, (self.P, 3)), BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k)
