@@ -10,6 +10,9 @@ A measurement is ``z = [TOA (m, incl. clock bias), AOD az, AOD el, AOA az (body 
 (rad): :data:`MEAS_DIM` components, the azimuths (:data:`AZIMUTH_COMPONENTS`) live on the circle.
 
 Global frame: x east, y north, z up, metres; angles in radians.
+
+The vehicle motion model (paper eq. (1), :func:`vehicle_ct`) lives here too: the scenes' true
+trajectories and the filter's particles use the same one.
 """
 from __future__ import annotations
 
@@ -78,3 +81,46 @@ def mirror_point(p: np.ndarray, plane_point: np.ndarray, normal: np.ndarray) -> 
     n = n / np.linalg.norm(n, axis=-1, keepdims=True)
     d = np.sum((np.asarray(p, float) - plane_point) * n, axis=-1, keepdims=True)
     return p - 2.0 * d * n
+
+
+def _sinc_terms(w: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(sin(w dt)/w, (1 - cos(w dt))/w)`` with their limits ``(dt, 0)`` as ``w -> 0``.
+
+    Uses second-order series for ``|w dt| < 1e-4`` so the result is smooth and exact to
+    double precision around zero.
+    """
+    w = np.asarray(w, dtype=float)
+    wt = w * dt
+    small = np.abs(wt) < 1e-4
+    w_safe = np.where(small, 1.0, w)
+    a = np.where(small, dt * (1.0 - wt**2 / 6.0), np.sin(wt) / w_safe)
+    b = np.where(small, dt * (wt / 2.0 - wt**3 / 24.0), (1.0 - np.cos(wt)) / w_safe)
+    return a, b
+
+
+def vehicle_ct(s: np.ndarray, dt: float) -> np.ndarray:
+    """Noise-free polar coordinated-turn transition of vehicle states.
+
+    Args:
+        s: ``(..., 7)`` states ``[x, y, z, alpha, zeta, xi, B]`` (global frame).
+        dt: time step in seconds.
+
+    Returns:
+        ``(..., 7)`` next states: ``x' = x + (zeta/xi)(sin(alpha + xi dt) - sin alpha)``,
+        ``y' = y + (zeta/xi)(cos alpha - cos(alpha + xi dt))``, ``alpha' = alpha + xi dt``;
+        ``z, zeta, xi, B`` unchanged (noise is added by the caller).
+    """
+    s = np.asarray(s, dtype=float)
+    x, y, z, a, v, w, b = np.moveaxis(s, -1, 0)
+    sa, ca = np.sin(a), np.cos(a)
+    # (sin(a + w dt) - sin a)/w = ca * sin(w dt)/w - sa * (1 - cos(w dt))/w, likewise for cos.
+    s1, c1 = _sinc_terms(w, dt)
+    out = np.empty_like(s)
+    out[..., 0] = x + v * (ca * s1 - sa * c1)
+    out[..., 1] = y + v * (sa * s1 + ca * c1)
+    out[..., 2] = z
+    out[..., 3] = a + w * dt
+    out[..., 4] = v
+    out[..., 5] = w
+    out[..., 6] = b
+    return out

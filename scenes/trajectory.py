@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmslam.scenes.scenario import Scenario, Vehicle
-from mmslam.model import wrap_angle
-from mmslam.slam.dynamics import vehicle_ct
+from mmslam.model import vehicle_ct, wrap_angle
 
 
 def _ct_trajectory(v: Vehicle, steps: int, dt: float, rng: np.random.Generator | None,

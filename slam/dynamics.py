@@ -3,7 +3,8 @@
 Global frame: x east, y north, z up, metres; angles in radians; time in seconds.
 
 Vehicle state ``s = [x, y, z, alpha, zeta, xi, B]`` (position m, heading rad, speed m/s,
-turn rate rad/s, clock bias m): polar coordinated turn, :func:`vehicle_ct`.
+turn rate rad/s, clock bias m): polar coordinated turn, :func:`mmslam.model.vehicle_ct` (in the
+neutral model module: the scenes' true trajectories use it too).
 
 VS (vehicle scatterer) state ``t = [x, y, z, vx, vy, vz, xi]``: Cartesian coordinated turn with
 unknown turn rate (Li & Jilkov 2003, sec. V-B), :func:`vs_ct` and its Jacobian :func:`vs_ct_jacobian`.
@@ -15,56 +16,10 @@ import math
 import numba as nb
 import numpy as np
 
-from mmslam.model import wrap_angle  # noqa: F401  (re-exported: the filter's angle convention)
-
-# Below this |xi * dt| the turn-rate formulas switch to their series expansion (no 0/0).
-_SMALL = 1e-9
+from mmslam.model import vehicle_ct, wrap_angle  # noqa: F401  (re-exported: the vehicle model, the angle convention)
 
 VEHICLE_DIM = 7
 VS_DIM = 7
-
-
-def _sinc_terms(w: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(sin(w dt)/w, (1 - cos(w dt))/w)`` with their limits ``(dt, 0)`` as ``w -> 0``.
-
-    Uses second-order series for ``|w dt| < 1e-4`` so the result is smooth and exact to
-    double precision around zero.
-    """
-    w = np.asarray(w, dtype=float)
-    wt = w * dt
-    small = np.abs(wt) < 1e-4
-    w_safe = np.where(small, 1.0, w)
-    a = np.where(small, dt * (1.0 - wt**2 / 6.0), np.sin(wt) / w_safe)
-    b = np.where(small, dt * (wt / 2.0 - wt**3 / 24.0), (1.0 - np.cos(wt)) / w_safe)
-    return a, b
-
-
-def vehicle_ct(s: np.ndarray, dt: float) -> np.ndarray:
-    """Noise-free polar coordinated-turn transition of vehicle states.
-
-    Args:
-        s: ``(..., 7)`` states ``[x, y, z, alpha, zeta, xi, B]`` (global frame).
-        dt: time step in seconds.
-
-    Returns:
-        ``(..., 7)`` next states: ``x' = x + (zeta/xi)(sin(alpha + xi dt) - sin alpha)``,
-        ``y' = y + (zeta/xi)(cos alpha - cos(alpha + xi dt))``, ``alpha' = alpha + xi dt``;
-        ``z, zeta, xi, B`` unchanged (noise is added by the caller).
-    """
-    s = np.asarray(s, dtype=float)
-    x, y, z, a, v, w, b = np.moveaxis(s, -1, 0)
-    sa, ca = np.sin(a), np.cos(a)
-    # (sin(a + w dt) - sin a)/w = ca * sin(w dt)/w - sa * (1 - cos(w dt))/w, likewise for cos.
-    s1, c1 = _sinc_terms(w, dt)
-    out = np.empty_like(s)
-    out[..., 0] = x + v * (ca * s1 - sa * c1)
-    out[..., 1] = y + v * (sa * s1 + ca * c1)
-    out[..., 2] = z
-    out[..., 3] = a + w * dt
-    out[..., 4] = v
-    out[..., 5] = w
-    out[..., 6] = b
-    return out
 
 
 @nb.njit(cache=True, error_model="numpy")
