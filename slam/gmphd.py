@@ -10,6 +10,13 @@ cubature Kalman filter step of :func:`mmslam.slam.ckf.ckf_update` (6 cubature po
 position marginal for every map type; a 7-D VS Gaussian ``[x, y, z, vx, vy, vz, xi]`` is
 corrected in velocity and turn rate through the cross-covariance). The known BS is a single
 fixed landmark (weight 1, no map): it only adds ``p_D N(z; h(s_p, b), R)`` to ``psi(z)``.
+
+The loops over particles, Gaussians and measurements are compiled (numba ``njit``,
+``cache=True``), one kernel per stage and map type: :func:`type_terms` (the CKF of every
+detectable Gaussian, compiled once per path geometry like :data:`mmslam.slam.ckf._CKF_BATCH`, since
+a kernel inlining :func:`~mmslam.slam.ckf.ckf_update` for every geometry takes ~18 s to compile),
+:func:`_logsumexp_slots` / :func:`log_psi` and :func:`corrected_gm`. Only ``pd_fn`` (NumPy) and
+the error messages run in Python.
 """
 from __future__ import annotations
 
@@ -20,8 +27,8 @@ from typing import Callable
 import numba as nb
 import numpy as np
 
-from .ckf import Innovation, gaussian_loglik, innovate
-from .detection import corrected_pd_beta, expected_pd
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, OK, Innovation, ckf_update, gaussian_loglik, workspace
+from .detection import detected_beta, expected_pd, missed_beta
 from .gm import GM
 from .linalg import safe_cholesky
 from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point
@@ -34,26 +41,31 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             ) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
-    Paper eq. (5) (with the VS map, eq. (10)): for each particle ``p``
-    with vehicle state ``s_p`` and each map type ``t`` (predicted intensity ``D_t``),
+    For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
+    intensity ``D_t``, a Gaussian mixture), paper eq. (5) (the static maps; the VS map, eq. (10),
+    has the same form):
 
-        ``D_t^+(x) = (1 - p_D(x)) D_t(x) + sum_j p_D(x) N(z_j; h_t(s_p, x), R) D_t(x) / psi(z_j)``,
-        ``psi(z_j) = c(z_j) + p_D,BS N(z_j; h(s_p, b), R) + sum_t int p_D N(z_j; h_t(s_p, x), R) D_t(x) dx``,
-
-    and eq. (6), the particle weight: the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
-    weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md), i.e. the
-    caller adds ``log psi(z).sum(1)`` to the log-weights.
+        ``D_t^+(x) = (1 - p_D(x)) D_t(x) + sum_j p_D(x) N(z_j; h_t(s_p, x), R_j) D_t(x) / psi(z_j)``,
+        ``psi(z_j) = c(z_j) + p_D,BS N(z_j; h(s_p, b), R_j) + sum_t int p_D N(z_j; h_t(s_p, x), R_j) D_t(x) dx``.
 
     Steps:
 
-    1. detection probabilities ``p_D`` at the Gaussian means (``pd_fn``); a Gaussian with
-       ``p_D = 0`` gets no innovation and keeps its whole weight as missed detection;
-    2. innovations: CKF update of every detectable Gaussian by every measurement
-       (:func:`mmslam.slam.ckf.innovate`; :func:`type_terms`), and the BS term (:func:`bs_logterm`);
-    3. ``log psi(z_j)`` per particle (:func:`log_psi`, log-sum-exp over clutter, BS and all types);
-    4. corrected components: ``(1 - p_D) w`` with the predicted moments and
-       ``p_D w N(z_j) / psi(z_j)`` with the updated moments, pruned at ``prune`` (:func:`corrected_gm`);
+    1. detection probabilities ``p_D`` at the Gaussian means (``pd_fn``, NumPy, once per type);
+       with a Beta model (``g.pd_beta``) ``E[p_D] = s / (s + t)`` inside the FOV;
+    2. per particle, type and live Gaussian with ``p_D > 0``: the CKF update by every measurement
+       (:func:`mmslam.slam.ckf.ckf_update`) and ``log(p_D w N(z_j; zhat, S))``
+       (:func:`type_terms`); the BS term ``log(p_D,BS N(z_j; h(s_p, b), R_j))`` (:func:`bs_logterm`);
+       a Gaussian with ``p_D = 0`` gets no update and keeps its whole weight as missed detection;
+    3. ``log psi(z_j)`` per particle: log-sum-exp over clutter, BS and every Gaussian of every type
+       (:func:`log_psi`);
+    4. the corrected components of eq. (5): ``(1 - p_D) w`` with the predicted moments and
+       ``p_D w N(z_j) / psi(z_j)`` with the CKF posterior, those below ``prune`` never materialised
+       (:func:`corrected_gm`; Beta model: missed ``(s, t + 1)``, detected ``(s + 1, t)``);
     5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`).
+
+    The particle weight, eq. (6): the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
+    weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md), i.e. the
+    caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
@@ -73,9 +85,10 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance, ``psi(z) = 0``, or a
             broken PHD-mass invariant.
+        ValueError: ``R`` of another shape.
     """
     J = Z.shape[0]
-    bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 1.-2. (BS)
+    bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
     terms = [type_terms(g, t, states, Z, R, bs, pd_fn, extents.get(t)) for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -90,6 +103,16 @@ def predict_static(g: GM, p_survival: float) -> GM:
     """Static landmark prediction (identity dynamics): weights times ``p_survival`` (a Beta detection
     history ``pd_beta`` is kept as it is)."""
     return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta)
+
+
+def _per_measurement_cov(R: np.ndarray, J: int) -> np.ndarray:
+    """``R`` as a C-contiguous ``(1, 5, 5)`` (one covariance for all) or ``(J, 5, 5)`` array; ValueError else."""
+    R = np.asarray(R, float)
+    if R.shape == (MEAS_DIM, MEAS_DIM):
+        R = R[None]
+    elif R.shape != (J, MEAS_DIM, MEAS_DIM):
+        raise ValueError(f"R has shape {R.shape}; expected (5, 5) or ({J}, 5, 5)")
+    return np.ascontiguousarray(R)
 
 
 @dataclass
@@ -110,20 +133,25 @@ class TypeCorrection:
     det_index: np.ndarray
 
 
+_NON_FINITE = -1
+"""Return code of the :func:`type_terms` kernels: a non-finite covariance in the map."""
+
+
 def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None) -> TypeCorrection:
-    """Detection terms of one map type (batched over particles, Gaussians and measurements).
+    """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
-    Only the live Gaussians with ``p_D > 0`` (inside the FOV) go through the CKF innovation
-    (:func:`mmslam.slam.ckf.innovate`, flattened over particles x Gaussians); the others keep
-    ``logq = -inf`` and their full weight as missed detection, exactly as the dense formula
-    gives with ``p_D = 0``.
+    Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
+    (:func:`mmslam.slam.ckf.ckf_update`, in the kernel of the type's geometry; numbered ``n`` in
+    particle-major order, ``det_index``); the others keep ``logq = -inf`` and their full weight as
+    missed detection, exactly as the dense formula gives with ``p_D = 0``.
 
     Args:
         g: predicted map of this type, batch ``(P,)``, ``Q`` slots, dim 3 (VA/SP) or 7 (VS).
         states: ``(P, 7)`` particle vehicle states.
-        Z: ``(J, 5)`` measurements of this vehicle and step.
+        Z: ``(J, 5)`` measurements of this vehicle and step; R: ``(5, 5)`` or ``(J, 5, 5)``.
+        bs: ``(3,)`` BS position (m).
         pd_fn: ``pd_fn(vehicle_pos (P, Q, 3), lm_pos (P, Q, 3), lm_type) -> (P, Q)`` detection
             probability evaluated at the Gaussian means; with ``g.pd_beta`` (``filter.pd_model =
             "beta"``) only its FOV gate (``> 0``) is used and ``p_D = s / (s + t)`` of each
@@ -131,27 +159,107 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         extent: ``(3, 3)`` scatter-point covariance of an extended landmark (VS: a car body), see
             :func:`mmslam.slam.ckf.ckf_update`; None for point landmarks.
 
+    Returns:
+        The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
+        of the map, its ``inn`` the posteriors of the ``N`` detectable Gaussians: ``loglik (N, J)``,
+        ``m_post (N, J, d)``, ``P_post (N, 1 or J, d, d)``.
+
     Raises:
         FloatingPointError: a non-finite mean or covariance in the map (also outside the FOV),
             or a covariance that is not positive definite.
+        ValueError: ``R`` of another shape.
     """
     stage = f"{_tname(lm_type)} correction"
-    if not (np.isfinite(g.m).all() and np.isfinite(g.P).all()):  # masked slots hold 0 / I
+    if not np.isfinite(g.m).all():  # masked slots hold 0 / I; the covariances are checked in the kernel
         raise FloatingPointError(f"non-finite mean or covariance in {stage}")
-    P_, Q = g.w.shape
     J = Z.shape[0]
+    R = _per_measurement_cov(R, J)
+    c = np.ascontiguousarray
+    g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta)
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
         pd = expected_pd(pd, g.pd_beta)
-    pd = np.where(g.mask, pd, 0.0)
-    det = pd > 0.0
-    pidx, qidx = np.nonzero(det)
-    det_index = np.full((P_, Q), -1)
-    det_index[pidx, qidx] = np.arange(pidx.size)
-    inn = innovate(g.m[pidx, qidx], g.P[pidx, qidx], states[pidx], geometry_of(lm_type), bs, Z, R, stage, extent)
-    logq = np.full((P_, Q, J), -np.inf)
-    logq[pidx, qidx] = np.log(pd[pidx, qidx] * g.w[pidx, qidx])[:, None] + inn.loglik
-    return TypeCorrection(g, lm_type, logq, (1.0 - pd) * g.w, inn, det_index)
+    pd = c(np.broadcast_to(pd, g.w.shape), dtype=float)
+    ext = np.zeros((3, 3)) if extent is None else c(np.asarray(extent, float).reshape(3, 3))
+    code, det_index, logq, missed_w, loglik, m_post, P_post = _TYPE_TERMS[geometry_of(lm_type)](
+        g.mask, g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
+        c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R)
+    if code == _NON_FINITE:
+        raise FloatingPointError(f"non-finite mean or covariance in {stage}")
+    if code == BAD_POSITION_COV:
+        raise FloatingPointError(f"covariance not positive definite in {stage}")
+    if code == BAD_INNOVATION_COV:
+        raise FloatingPointError(f"covariance not positive definite in {stage} (innovation covariance)")
+    return TypeCorrection(g, lm_type, logq, missed_w, Innovation(loglik, m_post, P_post), det_index)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _type_terms_loop(geometry: int, mask: np.ndarray, w: np.ndarray, pd: np.ndarray, m: np.ndarray,
+                     P: np.ndarray, states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray,
+                     R: np.ndarray) -> tuple:
+    """The loop of :func:`type_terms`: returns ``(code, det_index, logq, missed_w, loglik, m_post, P_post)``.
+
+    ``code``: ``OK``, ``_NON_FINITE`` (some covariance, live or not) or the failure of
+    :func:`~mmslam.slam.ckf.ckf_update`. For each particle ``p`` and Gaussian ``q``: ``p_D = pd``
+    where live, else 0; missed weight ``(1 - p_D) w``; if ``p_D > 0``, the CKF update ``n`` and
+    ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``.
+    """
+    Pn, Q, d = m.shape
+    J = Z.shape[0]
+    det_index = np.full((Pn, Q), -1, np.int64)
+    missed_w = np.empty((Pn, Q))
+    logq = np.full((Pn, Q, J), -np.inf)
+    n = 0
+    for p in range(Pn):
+        for q in range(Q):
+            for i in range(d):
+                for k in range(d):
+                    if not np.isfinite(P[p, q, i, k]):
+                        return (_NON_FINITE, det_index, logq, missed_w, np.empty((0, J)), np.empty((0, J, d)),
+                                np.empty((0, R.shape[0], d, d)))
+            pdq = pd[p, q] if mask[p, q] else 0.0
+            missed_w[p, q] = (1.0 - pdq) * w[p, q]
+            if pdq > 0.0:
+                det_index[p, q] = n
+                n += 1
+    loglik = np.empty((n, J))
+    m_post = np.empty((n, J, d))
+    P_post = np.empty((n, R.shape[0], d, d))
+    work = workspace(d)
+    for p in range(Pn):
+        for q in range(Q):
+            k = det_index[p, q]
+            if k < 0:
+                continue
+            code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, Z, R, loglik[k], m_post[k],
+                              P_post[k], work)
+            if code != OK:
+                return code, det_index, logq, missed_w, loglik, m_post, P_post
+            lw = math.log(pd[p, q] * w[p, q])
+            for j in range(J):
+                logq[p, q, j] = lw + loglik[k, j]
+    return OK, det_index, logq, missed_w, loglik, m_post, P_post
+
+
+# One kernel per path geometry (the Bounce code a constant: ckf_update inlined once per kernel),
+# compiled only when a map of that geometry is first corrected; see mmslam.slam.ckf._CKF_BATCH.
+@nb.njit(cache=True, error_model="numpy")
+def _type_terms_direct(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
+    return _type_terms_loop(0, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.DIRECT
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _type_terms_mirror(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
+    return _type_terms_loop(1, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.MIRROR
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _type_terms_scatter(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
+    return _type_terms_loop(2, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.SCATTER
+
+
+_TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)
+"""The :func:`type_terms` kernel of each :class:`mmslam.model.Bounce` code."""
 
 
 @nb.njit(cache=True)
@@ -192,44 +300,150 @@ def log_psi(terms: list[TypeCorrection], bs_term: np.ndarray | None, log_clutter
             shape: tuple[int, int]) -> np.ndarray:
     """``log psi(z_j) = log(c(z) + sum_types sum_q q + BS term)``, shape ``(P, J)`` (log-sum-exp).
 
+    The sum over the Gaussians of each type is :func:`_logsumexp_slots`; then the parts (clutter,
+    BS, types) are combined by a stable log-sum-exp (their maximum factored out).
+
     Raises FloatingPointError if some ``psi(z)`` is zero or non-finite (e.g. no clutter and no
     landmark can explain a measurement).
     """
-    parts = [np.full(shape, float(log_clutter))]
+    parts = [_logsumexp_slots(t.logq) for t in terms if t.logq.shape[1]]
     if bs_term is not None:
-        parts.append(bs_term)
-    for t in terms:
-        if t.logq.shape[1]:
-            parts.append(_logsumexp_slots(t.logq))
-    stacked = np.stack(parts, axis=0)
-    mx = stacked.max(axis=0)
-    if not np.isfinite(mx).all() or np.isnan(stacked).any():
+        parts.insert(0, np.asarray(bs_term, float))
+    out = np.empty(shape)
+    if not _log_psi_parts(float(log_clutter), np.stack(parts) if parts else np.empty((0,) + tuple(shape)), out):
         raise FloatingPointError("psi(z) is zero or non-finite in the PHD correction "
                                  "(no clutter and no landmark explains a measurement)")
-    return mx + np.log(np.exp(stacked - mx).sum(axis=0))
+    return out
+
+
+@nb.njit(cache=True)
+def _log_psi_parts(log_clutter: float, parts: np.ndarray, out: np.ndarray) -> bool:
+    """``out = log(exp(log_clutter) + sum_i exp(parts[i]))`` of ``parts (n, P, J)``, ``out (P, J)``.
+
+    The same arithmetic as NumPy's ``mx + log(sum(exp(stacked - mx)))`` over the stacked parts
+    (clutter first). False if some maximum is not finite or some part is NaN.
+    """
+    n, Pn, J = parts.shape
+    ok = True
+    for p in range(Pn):
+        for j in range(J):
+            mx = log_clutter
+            nan = False
+            for i in range(n):
+                v = parts[i, p, j]
+                nan = nan or np.isnan(v)
+                mx = v if v > mx else mx
+            if nan or not np.isfinite(mx):
+                ok = False
+                continue
+            s = 0.0 + math.exp(log_clutter - mx)
+            for i in range(n):
+                s += math.exp(parts[i, p, j] - mx)
+            out[p, j] = mx + math.log(s)
+    return ok
 
 
 def _logsumexp_slots(logq: np.ndarray) -> np.ndarray:
     """``log sum_q exp(logq[:, q, :])`` of ``logq (P, Q, J)`` -> ``(P, J)`` (``-inf`` if all are).
 
-    For ``J > 1`` the slots are moved to the front into a fresh buffer so that the max and the
-    sum run over contiguous ``(P, J)`` slabs. ``logq`` is never written: the caller
-    (:func:`corrected_gm`) reads it again. ``np.ascontiguousarray`` must not be used here, since
-    it returns a *view* when ``P == 1`` or ``Q == 1`` and the in-place exp below then rewrote
-    ``logq`` (landmark weights of ~1/clutter intensity on city scenes).
+    Compiled (:func:`_lse_slots_kernel`); ``logq`` is never written (the caller,
+    :func:`corrected_gm`, reads it again). Bit for bit NumPy's ``max`` / ``exp`` / ``sum(axis=1)``
+    (pairwise summation for ``J = 1``, where NumPy's sum runs along the slots).
     """
-    if logq.shape[2] == 1:
-        mx = logq.max(axis=1)
-        safe = np.where(np.isfinite(mx), mx, 0.0)
-        with np.errstate(divide="ignore"):
-            return safe + np.log(np.exp(logq - safe[:, None, :]).sum(axis=1))
-    t = logq.transpose(1, 0, 2).copy()  # (Q, P, J), always a new array
-    mx = t.max(axis=0)
-    safe = np.where(np.isfinite(mx), mx, 0.0)
-    t -= safe
-    np.exp(t, out=t)
-    with np.errstate(divide="ignore"):
-        return safe + np.log(t.sum(axis=0))
+    P_, Q, J = logq.shape
+    out = np.empty((P_, J))
+    _lse_slots_kernel(np.ascontiguousarray(logq, dtype=float), out)
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _pairwise_block(a: np.ndarray, lo: int, n: int) -> float:
+    """``sum(a[lo:lo + n])``, ``n <= 128``, in NumPy's order: sequential below 8 terms, else 8 partial sums."""
+    if n < 8:
+        r = 0.0
+        for i in range(lo, lo + n):
+            r += a[i]
+        return r
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _pairwise_sum(a: np.ndarray) -> float:
+    """``sum(a)`` in NumPy's order (``pairwise_sum`` of its ``add.reduce``): blocks of at most 128
+    terms (:func:`_pairwise_block`), above that the sum of the two halves (split at a multiple of 8).
+
+    The recursion runs on an explicit stack (numba's on-disk cache of a self-recursive function is
+    not reliable)."""
+    n = a.shape[0]
+    if n <= 128:
+        return _pairwise_block(a, 0, n)
+    f_lo = np.empty(64, np.int64)  # frames (lo, n, stage): stage 0 -> left half, 1 -> right, 2 -> add
+    f_n = np.empty(64, np.int64)
+    f_stage = np.empty(64, np.int64)
+    vals = np.empty(64)
+    f_lo[0], f_n[0], f_stage[0] = 0, n, 0
+    top, vt = 1, 0
+    while top > 0:
+        lo, m, stage = f_lo[top - 1], f_n[top - 1], f_stage[top - 1]
+        if m <= 128:
+            vals[vt] = _pairwise_block(a, lo, m)
+            vt += 1
+            top -= 1
+            continue
+        m2 = m // 2
+        m2 -= m2 % 8
+        if stage == 2:
+            vals[vt - 2] = vals[vt - 2] + vals[vt - 1]
+            vt -= 1
+            top -= 1
+            continue
+        f_stage[top - 1] = stage + 1
+        f_lo[top], f_n[top], f_stage[top] = (lo, m2, 0) if stage == 0 else (lo + m2, m - m2, 0)
+        top += 1
+    return vals[0]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lse_slots_kernel(logq: np.ndarray, out: np.ndarray) -> None:
+    """``out[p, j] = m + log sum_q exp(logq[p, q, j] - m)``, ``m`` the slot maximum (0 if not finite)."""
+    Pn, Q, J = logq.shape
+    e = np.empty(Q)
+    for p in range(Pn):
+        for j in range(J):
+            mx = -np.inf
+            for q in range(Q):
+                v = logq[p, q, j]
+                if v > mx or np.isnan(v):
+                    mx = v
+                    if np.isnan(v):
+                        break
+            safe = mx if np.isfinite(mx) else 0.0
+            if J == 1:  # NumPy sums along the contiguous slot axis: pairwise
+                for q in range(Q):
+                    e[q] = math.exp(logq[p, q, j] - safe)
+                s = _pairwise_sum(e)
+            else:  # NumPy adds slot after slot
+                s = 0.0
+                for q in range(Q):
+                    s += math.exp(logq[p, q, j] - safe)
+            out[p, j] = safe + math.log(s)
 
 
 def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: float | None = None) -> GM:
@@ -247,27 +461,22 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     the largest surviving count. This avoids building the ``(P, Q J, d, d)`` arrays.
 
     A map with Beta detection parameters (``g.pd_beta``) gets them updated per component
-    (:func:`mmslam.slam.detection.corrected_pd_beta`: missed ``(s, t + 1)`` inside the FOV,
-    detected ``(s + 1, t)``).
+    (:func:`mmslam.slam.detection.missed_beta`: ``(s, t + 1)`` inside the FOV, ``(s, t)``
+    outside; :func:`~mmslam.slam.detection.detected_beta`: ``(s + 1, t)``; dead slots (1, 1)).
+
+    Raises:
+        FloatingPointError: a non-finite weight, mean or covariance of a corrected component.
     """
     g, inn = t.g, t.inn
-    P_, Q, d = g.m.shape
-    J = Z.shape[0]
-    dense = prune is None
-    args = (g.mask, t.missed_w, t.logq, logpsi, g.m, g.P, t.det_index, inn.m_post, inn.P_post,
-            0.0 if dense else float(prune), dense)
-    K = Q * (1 + J)
-    if not dense:  # a first pass counts the kept components
-        none = (np.zeros((0, 0)), np.zeros((0, 0, d)), np.zeros((0, 0, d, d)), np.zeros((0, 0), bool),
-                np.zeros((0, 0), np.int64))
-        K = int(_corrected_components(*args, True, *none).max(initial=0))
-    w, m, Pc, live = np.zeros((P_, K)), np.zeros((P_, K, d)), np.empty((P_, K, d, d)), np.zeros((P_, K), bool)
-    src = np.zeros((P_, K), np.int64)
-    Pc[...] = np.eye(d)
-    _corrected_components(*args, False, w, m, Pc, live, src)
-    pd_beta = None if g.pd_beta is None else corrected_pd_beta(g.pd_beta, t.det_index, src, live, Q, J)
-    out = GM(w, m, Pc, live, pd_beta)
-    if not np.isfinite(out.w.sum() + out.m.sum() + out.P.sum()):  # masked slots are 0 / I
+    c = np.ascontiguousarray
+    beta = g.pd_beta is not None
+    w, m, Pc, live, pd_beta, finite = _corrected_components(
+        c(g.mask, dtype=bool), c(t.missed_w, dtype=float), c(t.logq, dtype=float), c(logpsi, dtype=float),
+        c(g.m, dtype=float), c(g.P, dtype=float), c(t.det_index, dtype=np.int64), inn.m_post, inn.P_post,
+        c(g.pd_beta, dtype=float) if beta else np.ones((0, 0, 2)), beta, 0.0 if prune is None else float(prune),
+        prune is None)
+    out = GM(w, m, Pc, live, pd_beta if beta else None)
+    if not finite:
         out.check(f"after the {_tname(t.lm_type)} correction")
         raise FloatingPointError(f"non-finite values after the {_tname(t.lm_type)} correction")
     return out
@@ -276,28 +485,44 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
 @nb.njit(cache=True, error_model="numpy")
 def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarray, lpsi: np.ndarray,
                           m: np.ndarray, P: np.ndarray, det_index: np.ndarray, m_post: np.ndarray,
-                          P_post: np.ndarray, prune: float, dense: bool, count_only: bool,
-                          out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray,
-                          out_src: np.ndarray) -> np.ndarray:
+                          P_post: np.ndarray, pd_beta: np.ndarray, beta: bool, prune: float, dense: bool
+                          ) -> tuple:
     """The components of paper eq. (5) for each particle ``p`` (see :func:`corrected_gm`).
 
     Missed detections ``(1 - p_D) w`` with the predicted moments (slots ``q``), then one updated
     Gaussian per ``(q, j)``: weight ``exp(logq - log psi(z_j)) = p_D w N(z_j) / psi(z_j)``, moments
     from the innovation (``det_index[p, q] >= 0``) or the predicted ones (``p_D = 0``). ``dense``:
     every live slot at its fixed place ``q`` / ``Q + q J + j``; else only weights ``>= prune``,
-    compacted in that order; ``out_src`` gets each written component's dense slot (its source).
-    Returns the number of components of each particle (``count_only``: nothing is written).
+    compacted in that order (a first pass counts them). Returns ``(w, m, P, mask, pd_beta,
+    finite)``: dead slots hold 0 / I / (1, 1); ``finite`` is False if a written value is not.
     """
     Pn, Q, d = m.shape
     J = logq.shape[2]
     log_prune = math.log(prune) if prune > 0.0 else -np.inf
-    counts = np.zeros(Pn, np.int64)
+    K = Q * (1 + J)
+    if not dense:
+        K = 0
+        for p in range(Pn):
+            k = 0
+            for q in range(Q):
+                if mask[p, q]:
+                    k += missed_w[p, q] >= prune
+                    for j in range(J):
+                        k += logq[p, q, j] - lpsi[p, j] >= log_prune
+            K = max(K, k)
+    out_w = np.zeros((Pn, K))
+    out_m = np.zeros((Pn, K, d))
+    out_P = np.empty((Pn, K, d, d))
+    out_mask = np.zeros((Pn, K), np.bool_)
+    out_beta = np.ones((Pn if beta else 0, K, 2))
+    finite = True
     for p in range(Pn):
         k = 0
         for slot in range(Q * (1 + J)):
             q = slot if slot < Q else (slot - Q) // J
             if not mask[p, q]:
                 continue
+            j = 0
             if slot < Q:
                 wk = missed_w[p, q]
                 if not (dense or wk >= prune):
@@ -308,21 +533,35 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
                 if not (dense or logw >= log_prune):  # the prune test in the log domain: exp only when kept
                     continue
                 wk = math.exp(logw)
-            if not count_only:
-                at = slot if dense else k
-                out_w[p, at] = wk
-                out_mask[p, at] = True
-                out_src[p, at] = slot
-                n = det_index[p, q]
-                if slot >= Q and n >= 0:
-                    out_m[p, at] = m_post[n, j]
-                    out_P[p, at] = P_post[n, j if P_post.shape[1] > 1 else 0]
+            at = slot if dense else k
+            out_w[p, at] = wk
+            out_mask[p, at] = True
+            n = det_index[p, q]
+            updated = slot >= Q and n >= 0
+            src_m = m_post[n, j] if updated else m[p, q]
+            src_P = P_post[n, j if P_post.shape[1] > 1 else 0] if updated else P[p, q]
+            ok = np.isfinite(wk)
+            for i in range(d):
+                out_m[p, at, i] = src_m[i]
+                ok = ok and np.isfinite(src_m[i])
+                for e in range(d):
+                    out_P[p, at, i, e] = src_P[i, e]
+                    ok = ok and np.isfinite(src_P[i, e])
+            finite = finite and ok
+            if beta:
+                if slot < Q:
+                    s, tt = missed_beta(pd_beta[p, q, 0], pd_beta[p, q, 1], n >= 0)
                 else:
-                    out_m[p, at] = m[p, q]
-                    out_P[p, at] = P[p, q]
+                    s, tt = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
+                out_beta[p, at, 0] = s
+                out_beta[p, at, 1] = tt
             k += 1
-        counts[p] = k
-    return counts
+        for at in range(K):  # dead slots: identity covariance
+            if not out_mask[p, at]:
+                for i in range(d):
+                    for e in range(d):
+                        out_P[p, at, i, e] = 1.0 if i == e else 0.0
+    return out_w, out_m, out_P, out_mask, out_beta, finite
 
 
 PHD_MASS_RTOL = 1e-9
