@@ -348,12 +348,18 @@ def _logsumexp_slots(logq: np.ndarray) -> np.ndarray:
 
     Compiled (:func:`_lse_slots_kernel`); ``logq`` is never written (the caller,
     :func:`corrected_gm`, reads it again). Bit for bit NumPy's ``max`` / ``exp`` / ``sum(axis=1)``
-    (pairwise summation for ``J = 1``, where NumPy's sum runs along the slots).
+    (pairwise summation for ``J = 1``, where NumPy's sum runs along the slots); the terms whose
+    ``exp`` underflows to 0 (most: the measurements a Gaussian does not explain) skip the ``exp``.
     """
     P_, Q, J = logq.shape
     out = np.empty((P_, J))
     _lse_slots_kernel(np.ascontiguousarray(logq, dtype=float), out)
     return out
+
+
+_EXP_UNDERFLOW = -746.0
+"""``exp(x)`` is exactly 0 below this (``e^-746 < 2^-1075``, half the smallest subnormal): such
+terms of a sum are skipped without calling ``exp`` (also ``-inf``, the undetectable slots)."""
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -425,25 +431,32 @@ def _lse_slots_kernel(logq: np.ndarray, out: np.ndarray) -> None:
     """``out[p, j] = m + log sum_q exp(logq[p, q, j] - m)``, ``m`` the slot maximum (0 if not finite)."""
     Pn, Q, J = logq.shape
     e = np.empty(Q)
+    mx = np.empty(J)
+    s = np.empty(J)
     for p in range(Pn):
-        for j in range(J):
-            mx = -np.inf
-            for q in range(Q):
+        mx[:] = -np.inf
+        for q in range(Q):
+            for j in range(J):
                 v = logq[p, q, j]
-                if v > mx or np.isnan(v):
-                    mx = v
-                    if np.isnan(v):
-                        break
-            safe = mx if np.isfinite(mx) else 0.0
-            if J == 1:  # NumPy sums along the contiguous slot axis: pairwise
-                for q in range(Q):
-                    e[q] = math.exp(logq[p, q, j] - safe)
-                s = _pairwise_sum(e)
-            else:  # NumPy adds slot after slot
-                s = 0.0
-                for q in range(Q):
-                    s += math.exp(logq[p, q, j] - safe)
-            out[p, j] = safe + math.log(s)
+                if v > mx[j] or np.isnan(v):  # NaN propagates, as in NumPy's max
+                    mx[j] = v
+        for j in range(J):
+            if not np.isfinite(mx[j]):
+                mx[j] = 0.0
+        if J == 1:  # NumPy sums along the contiguous slot axis: pairwise
+            for q in range(Q):
+                x = logq[p, q, 0] - mx[0]
+                e[q] = 0.0 if x < _EXP_UNDERFLOW else math.exp(x)
+            s[0] = _pairwise_sum(e)
+        else:  # NumPy adds slot after slot
+            s[:] = 0.0
+            for q in range(Q):
+                for j in range(J):
+                    x = logq[p, q, j] - mx[j]
+                    if not x < _EXP_UNDERFLOW:  # adding an exact 0 changes nothing: no exp
+                        s[j] += math.exp(x)
+        for j in range(J):
+            out[p, j] = mx[j] + math.log(s[j])
 
 
 def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: float | None = None) -> GM:
@@ -516,52 +529,57 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
     out_mask = np.zeros((Pn, K), np.bool_)
     out_beta = np.ones((Pn if beta else 0, K, 2))
     finite = True
+    jr = P_post.shape[1] > 1  # one posterior covariance per measurement
     for p in range(Pn):
         k = 0
-        for slot in range(Q * (1 + J)):
-            q = slot if slot < Q else (slot - Q) // J
+        for q in range(Q):  # missed detections, predicted moments
+            if not mask[p, q] or not (dense or missed_w[p, q] >= prune):
+                continue
+            at = q if dense else k
+            finite &= _put(out_w, out_m, out_P, out_mask, p, at, missed_w[p, q], m[p, q], P[p, q])
+            if beta:
+                out_beta[p, at, 0], out_beta[p, at, 1] = missed_beta(pd_beta[p, q, 0], pd_beta[p, q, 1],
+                                                                     det_index[p, q] >= 0)
+            k += 1
+        for q in range(Q):  # detections of z_j, CKF posterior (predicted moments and weight 0 if p_D = 0)
             if not mask[p, q]:
                 continue
-            j = 0
-            if slot < Q:
-                wk = missed_w[p, q]
-                if not (dense or wk >= prune):
-                    continue
-            else:
-                j = (slot - Q) % J
+            n = det_index[p, q]
+            for j in range(J):
                 logw = logq[p, q, j] - lpsi[p, j]
                 if not (dense or logw >= log_prune):  # the prune test in the log domain: exp only when kept
                     continue
-                wk = math.exp(logw)
-            at = slot if dense else k
-            out_w[p, at] = wk
-            out_mask[p, at] = True
-            n = det_index[p, q]
-            updated = slot >= Q and n >= 0
-            src_m = m_post[n, j] if updated else m[p, q]
-            src_P = P_post[n, j if P_post.shape[1] > 1 else 0] if updated else P[p, q]
-            ok = np.isfinite(wk)
-            for i in range(d):
-                out_m[p, at, i] = src_m[i]
-                ok = ok and np.isfinite(src_m[i])
-                for e in range(d):
-                    out_P[p, at, i, e] = src_P[i, e]
-                    ok = ok and np.isfinite(src_P[i, e])
-            finite = finite and ok
-            if beta:
-                if slot < Q:
-                    s, tt = missed_beta(pd_beta[p, q, 0], pd_beta[p, q, 1], n >= 0)
+                at = Q + q * J + j if dense else k
+                if n >= 0:
+                    finite &= _put(out_w, out_m, out_P, out_mask, p, at, math.exp(logw), m_post[n, j],
+                                   P_post[n, j if jr else 0])
                 else:
-                    s, tt = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
-                out_beta[p, at, 0] = s
-                out_beta[p, at, 1] = tt
-            k += 1
+                    finite &= _put(out_w, out_m, out_P, out_mask, p, at, math.exp(logw), m[p, q], P[p, q])
+                if beta:
+                    out_beta[p, at, 0], out_beta[p, at, 1] = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
+                k += 1
         for at in range(K):  # dead slots: identity covariance
             if not out_mask[p, at]:
                 for i in range(d):
                     for e in range(d):
                         out_P[p, at, i, e] = 1.0 if i == e else 0.0
     return out_w, out_m, out_P, out_mask, out_beta, finite
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _put(out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray, p: int, at: int,
+         w: float, m: np.ndarray, P: np.ndarray) -> bool:
+    """Write component ``(w, m, P)`` at slot ``at`` of particle ``p``; False if a value is not finite."""
+    out_w[p, at] = w
+    out_mask[p, at] = True
+    ok = np.isfinite(w)
+    for i in range(m.shape[0]):
+        out_m[p, at, i] = m[i]
+        ok = ok and np.isfinite(m[i])
+        for e in range(m.shape[0]):
+            out_P[p, at, i, e] = P[i, e]
+            ok = ok and np.isfinite(P[i, e])
+    return ok
 
 
 PHD_MASS_RTOL = 1e-9
