@@ -136,6 +136,10 @@ class TypeCorrection:
 _NON_FINITE = -1
 """Return code of the :func:`type_terms` kernels: a non-finite covariance in the map."""
 
+_EXP_UNDERFLOW = -746.0
+"""``exp(x)`` is exactly 0 below this (``e^-746 < 2^-1075``, half the smallest subnormal): such
+terms of a sum are skipped without calling ``exp`` (also ``-inf``, the undetectable slots)."""
+
 
 def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
@@ -267,14 +271,15 @@ def _bs_loglik(states: np.ndarray, Z: np.ndarray, L: np.ndarray, b: np.ndarray, 
     """``out[p, j] = log N(z_j; h(s_p, b), R_j)`` (line of sight), ``R_j = L_j L_j^T`` (``L (1 or J, 5, 5)``)."""
     zhat = np.empty(MEAS_DIM)
     y = np.empty(MEAS_DIM)
+    half_logdet = np.zeros(L.shape[0])
+    for r in range(L.shape[0]):
+        for a in range(MEAS_DIM):
+            half_logdet[r] += math.log(L[r, a, a])
     for p in range(states.shape[0]):
         zhat[0], zhat[1], zhat[2], zhat[3], zhat[4] = measure_point(0, states[p], b, b)  # Bounce.DIRECT
         for j in range(Z.shape[0]):
-            Lj = L[j if L.shape[0] > 1 else 0]
-            half_logdet = 0.0
-            for a in range(MEAS_DIM):
-                half_logdet += math.log(Lj[a, a])
-            out[p, j] = gaussian_loglik(Z[j], zhat, Lj, half_logdet, y)
+            r = j if L.shape[0] > 1 else 0
+            out[p, j] = gaussian_loglik(Z[j], zhat, L[r], half_logdet[r], y)
 
 
 def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -336,9 +341,12 @@ def _log_psi_parts(log_clutter: float, parts: np.ndarray, out: np.ndarray) -> bo
             if nan or not np.isfinite(mx):
                 ok = False
                 continue
-            s = 0.0 + math.exp(log_clutter - mx)
+            x = log_clutter - mx
+            s = 0.0 + (0.0 if x < _EXP_UNDERFLOW else math.exp(x))
             for i in range(n):
-                s += math.exp(parts[i, p, j] - mx)
+                x = parts[i, p, j] - mx
+                if not x < _EXP_UNDERFLOW:  # adding an exact 0 changes nothing: no exp
+                    s += math.exp(x)
             out[p, j] = mx + math.log(s)
     return ok
 
@@ -355,11 +363,6 @@ def _logsumexp_slots(logq: np.ndarray) -> np.ndarray:
     out = np.empty((P_, J))
     _lse_slots_kernel(np.ascontiguousarray(logq, dtype=float), out)
     return out
-
-
-_EXP_UNDERFLOW = -746.0
-"""``exp(x)`` is exactly 0 below this (``e^-746 < 2^-1075``, half the smallest subnormal): such
-terms of a sum are skipped without calling ``exp`` (also ``-inf``, the undetectable slots)."""
 
 
 @nb.njit(cache=True, error_model="numpy")
