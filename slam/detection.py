@@ -14,7 +14,8 @@ the type's range gate; :meth:`~mmslam.slam.landmarks.LandmarkSpec.fov_radius`):
   ``Beta(s, t + 1)``; outside the FOV ``p_D = 0``: weight ``w`` and ``Beta(s, t)`` unchanged
   (:func:`missed_beta`);
 - detection term of ``z_j``: weight ``E[p_D] w N(z_j) / psi(z_j)`` and ``Beta(s + 1, t)``
-  (:func:`detected_beta`);
+  (:func:`detected_beta`; both called per component inside the correction kernel of
+  :func:`mmslam.slam.gmphd.corrected_gm`);
 - birth: the prior ``Beta(n0 p_D,type, n0 (1 - p_D,type))`` (mean ``filter.p_detect_<type>``, the
   fixed model's value; pseudo-count ``n0 = filter.pd_beta_count``, :func:`prior_beta`);
 - prediction: unchanged (the Gaussian's survival ``p_S`` does not touch its detection history);
@@ -96,34 +97,3 @@ def beta_pool(w: np.ndarray, ab: np.ndarray, members: np.ndarray, out: np.ndarra
     n = float(members.shape[0]) if equal else W
     out[0] = s / n
     out[1] = t / n
-
-
-def corrected_pd_beta(pd_beta: np.ndarray, det_index: np.ndarray, src: np.ndarray, live: np.ndarray,
-                      Q: int, J: int) -> np.ndarray:
-    """Beta of each corrected component (:func:`mmslam.slam.gmphd.corrected_gm`), ``(P, K, 2)``.
-
-    ``pd_beta (P, Q, 2)`` predicted; ``det_index (P, Q)`` >= 0 where the Gaussian was inside the
-    FOV (``p_D > 0``); ``src (P, K)`` the corrected slot's source in the dense layout (``q`` for the
-    missed detection of Gaussian ``q``, ``Q + q J + j`` for its update by ``z_j``); ``live (P, K)``.
-    Missed: :func:`missed_beta`; detected: :func:`detected_beta`; dead slots (1, 1).
-    """
-    out = np.ones(src.shape + (2,))
-    _corrected_pd_beta(pd_beta, det_index, src, live, Q, J, out)
-    return out
-
-
-@nb.njit(cache=True)
-def _corrected_pd_beta(pd_beta: np.ndarray, det_index: np.ndarray, src: np.ndarray, live: np.ndarray,
-                       Q: int, J: int, out: np.ndarray) -> None:
-    for p in range(src.shape[0]):
-        for k in range(src.shape[1]):
-            if not live[p, k]:
-                continue
-            slot = src[p, k]
-            if slot < Q:
-                s, t = missed_beta(pd_beta[p, slot, 0], pd_beta[p, slot, 1], det_index[p, slot] >= 0)
-            else:
-                q = (slot - Q) // J
-                s, t = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
-            out[p, k, 0] = s
-            out[p, k, 1] = t

@@ -253,6 +253,27 @@ def test_logsumexp_slots_equals_direct_form(Q, J):
     np.testing.assert_array_equal(_logsumexp_slots(lq), ref)
 
 
+@pytest.mark.parametrize("Q,J", [(129, 1), (300, 1), (1000, 1), (300, 3)])
+def test_logsumexp_slots_equals_direct_form_on_long_slot_axes(Q, J):
+    """Bit for bit NumPy's max / exp / sum also where its sum splits the slots into halves
+    (J = 1, more than 128 terms), with terms ~800 below the maximum whose exp underflows to 0
+    (the kernel skips them) and with rows of one finite slot."""
+    from mmslam.slam.gmphd import _logsumexp_slots
+
+    rng = np.random.default_rng(Q + J)
+    lq = rng.normal(size=(6, Q, J)) * 30.0
+    lq[rng.random(lq.shape) < 0.3] -= 800.0
+    lq[rng.random(lq.shape) < 0.2] = -np.inf
+    lq[1] = -np.inf
+    lq[1, Q // 2] = -3.0
+    mx = lq.max(axis=1)
+    safe = np.where(np.isfinite(mx), mx, 0.0)
+    with np.errstate(divide="ignore"):
+        ref = safe + np.log(np.exp(lq - safe[:, None, :]).sum(axis=1))
+    np.testing.assert_array_equal(_logsumexp_slots(lq), ref)
+    np.testing.assert_array_equal(ref[1], -3.0)
+
+
 @pytest.mark.parametrize("shape", [(1, 3, 4), (5, 1, 2), (1, 1, 3), (4, 3, 2), (3, 2, 1), (1, 1, 1)])
 def test_logsumexp_slots_equals_reference_and_leaves_its_input_alone(shape):
     """Regression: P == 1 or Q == 1 with J >= 2 made the slot-first copy a view of ``logq`` and
