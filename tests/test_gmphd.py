@@ -354,3 +354,104 @@ def test_per_measurement_R_equal_to_the_shared_R_gives_the_shared_innovation(lm_
     assert not np.allclose(wide.loglik[:, 1], shared.loglik[:, 1])
     bs_shared = bs_logterm(st, Z, R, bs, np.full(4, 0.9))
     np.testing.assert_allclose(bs_logterm(st, Z, np.stack([R] * 3), bs, np.full(4, 0.9)), bs_shared, rtol=1e-12)
+
+
+@pytest.mark.parametrize("prune", [None, 1e-3])
+def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_innovations(prune):
+    """gmphd.correct (the compiled type kernels) against a per-Gaussian reference built on
+    ckf.innovate (its own compiled batch) and scipy's logsumexp: one R_j per measurement, a VS
+    extent (car body), Beta detection parameters (E[p_D] = s / (s + t); missed (s, t + 1) in the
+    FOV, (s, t) outside; detected (s + 1, t)), a Gaussian outside the FOV and a dead slot; dense
+    layout and pruned (the dense components of weight >= prune, in order)."""
+    from scipy.special import logsumexp
+
+    from mmslam.slam.gmphd import correct
+
+    rng = np.random.default_rng(11)
+    P_, J = 3, 3
+    s = np.c_[rng.uniform(10, 30, (P_, 2)), np.zeros(P_), rng.uniform(-1, 1, P_), np.full(P_, 10.0),
+              np.zeros(P_), rng.uniform(0, 3, P_)]
+    far = 400.0  # beyond the range gate of pd_fn below
+    maps, truth = {}, {}
+    for t, d, Q in ((VA, 3, 3), (VS, 7, 2)):
+        lm = np.c_[rng.uniform(30, 60, (P_, Q, 2)), rng.uniform(0, 4, (P_, Q, 1))]
+        m = np.concatenate([lm + rng.normal(0, 0.5, lm.shape), rng.normal(0, 1, (P_, Q, d - 3))], -1)
+        m[0, 0, :2] = far
+        A = rng.normal(size=(P_, Q, d, d)) * 0.2
+        P = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(d)
+        mask = np.ones((P_, Q), bool)
+        mask[1, Q - 1] = False
+        w = np.where(mask, rng.uniform(0.2, 1.0, (P_, Q)), 0.0)
+        P[~mask] = np.eye(d)
+        m[~mask] = 0.0
+        beta = np.where(mask[..., None], rng.uniform(1.0, 5.0, (P_, Q, 2)), 1.0)
+        maps[t] = GM(w, m, P, mask, beta)
+        truth[t] = lm[0, 1]
+    Z = np.stack([measure(s[0], truth[VA], VA, BS_POS), measure(s[0], truth[VS], VS, BS_POS),
+                  measure(s[0], np.array([45.0, 20.0, 1.0]), VA, BS_POS)])
+    Rz = np.stack([R, 2.0 * R, 0.5 * R])
+    ext = {VS: np.diag([1.0, 0.5, 0.09]), VA: None}
+    lc = np.log(1e-5)
+    p_bs = np.full(P_, 0.9)
+
+    def pd_fn(u, x, t):
+        return np.where(np.linalg.norm(x - u, axis=-1) < 200.0, 0.8, 0.0)
+
+    out, lpsi = correct(maps, s, Z, Rz, BS_POS, pd_fn, p_bs, lc, prune, ext, 3)
+    # reference: every live Gaussian with p_D > 0 on its own through ckf.innovate
+    ref = {}
+    for t, g in maps.items():
+        Q, d = g.capacity, g.dim
+        logq = np.full((P_, Q, J), -np.inf)
+        post = {}
+        for p in range(P_):
+            for q in range(Q):
+                sp, tp = g.pd_beta[p, q]
+                inside = g.mask[p, q] and np.linalg.norm(g.m[p, q, :3] - s[p, :3]) < 200.0
+                if inside:
+                    inn = innovate(g.m[p, q][None], g.P[p, q][None], s[p][None], geometry_of(t), BS_POS, Z, Rz,
+                                   "ref", ext[t])
+                    logq[p, q] = np.log(sp / (sp + tp) * g.w[p, q]) + inn.loglik[0]
+                    post[p, q] = inn
+        ref[t] = (logq, post)
+    assert (0, 0) not in ref[VA][1] and (1, 2) not in ref[VA][1]  # outside the FOV, dead slot
+    bs_t = bs_logterm(s, Z, Rz, BS_POS, p_bs)
+    ref_lpsi = np.array([[logsumexp([lc, bs_t[p, j]] + [ref[t][0][p, q, j] for t in maps
+                                                        for q in range(maps[t].capacity)])
+                          for j in range(J)] for p in range(P_)])
+    np.testing.assert_allclose(lpsi, ref_lpsi, rtol=1e-12)
+    for t, g in maps.items():
+        Q, d = g.capacity, g.dim
+        logq, post = ref[t]
+        o = out[t]
+        for p in range(P_):
+            comps = []  # (w, m, P, beta) in the dense slot order
+            for q in range(Q):
+                if g.mask[p, q]:
+                    sp, tp = g.pd_beta[p, q]
+                    det = (p, q) in post
+                    pd = sp / (sp + tp) if det else 0.0
+                    comps.append(((1 - pd) * g.w[p, q], g.m[p, q], g.P[p, q], (sp, tp + 1) if det else (sp, tp)))
+            for q in range(Q):
+                if g.mask[p, q]:
+                    sp, tp = g.pd_beta[p, q]
+                    for j in range(J):
+                        wj = np.exp(logq[p, q, j] - ref_lpsi[p, j])
+                        if (p, q) in post:
+                            comps.append((wj, post[p, q].m_post[0, j], post[p, q].P_post[0, j], (sp + 1, tp)))
+                        else:
+                            comps.append((0.0, g.m[p, q], g.P[p, q], (sp + 1, tp)))
+            if prune is None:
+                assert o.capacity == Q * (1 + J)
+                live = np.nonzero(o.mask[p])[0]
+                assert len(live) == len(comps) == g.mask[p].sum() * (1 + J)
+            else:
+                comps = [c for c in comps if c[0] >= prune]
+                live = np.arange(len(comps))
+                assert o.mask[p].sum() == len(comps) and o.mask[p, :len(comps)].all()
+            np.testing.assert_allclose(o.w[p, live], [c[0] for c in comps], rtol=1e-9, atol=1e-300)
+            np.testing.assert_allclose(o.m[p, live], [c[1] for c in comps], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(o.P[p, live], [c[2] for c in comps], rtol=1e-12, atol=1e-12)
+            np.testing.assert_array_equal(o.pd_beta[p, live], [c[3] for c in comps])
+            dead = ~o.mask[p]
+            assert np.all(o.w[p, dead] == 0.0) and np.all(o.P[p, dead] == np.eye(d)) and np.all(o.pd_beta[p, dead] == 1.0)
