@@ -133,9 +133,6 @@ class TypeCorrection:
     det_index: np.ndarray
 
 
-_NON_FINITE = -1
-"""Return code of the :func:`type_terms` kernels: a non-finite covariance in the map."""
-
 _EXP_UNDERFLOW = -746.0
 """``exp(x)`` is exactly 0 below this (``e^-746 < 2^-1075``, half the smallest subnormal): such
 terms of a sum are skipped without calling ``exp`` (also ``-inf``, the undetectable slots)."""
@@ -185,11 +182,15 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         pd = expected_pd(pd, g.pd_beta)
     pd = c(np.broadcast_to(pd, g.w.shape), dtype=float)
     ext = np.zeros((3, 3)) if extent is None else c(np.asarray(extent, float).reshape(3, 3))
-    code, det_index, logq, missed_w, loglik, m_post, P_post = _TYPE_TERMS[geometry_of(lm_type)](
-        g.mask, g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
-        c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R)
-    if code == _NON_FINITE:
+    P_, Q, d = g.m.shape
+    det_index, missed_w, logq = np.empty((P_, Q), np.int64), np.empty((P_, Q)), np.empty((P_, Q, J))
+    if not _detection_slots(g.mask, g.w, pd, g.P, det_index, missed_w, logq):
         raise FloatingPointError(f"non-finite mean or covariance in {stage}")
+    n = int(det_index.max(initial=-1)) + 1  # the Gaussians with a CKF update
+    loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
+    code = _TYPE_TERMS[geometry_of(lm_type)](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
+                                             c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
+                                             loglik, m_post, P_post)
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {stage}")
     if code == BAD_INNOVATION_COV:
@@ -197,69 +198,78 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     return TypeCorrection(g, lm_type, logq, missed_w, Innovation(loglik, m_post, P_post), det_index)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def _type_terms_loop(geometry: int, mask: np.ndarray, w: np.ndarray, pd: np.ndarray, m: np.ndarray,
-                     P: np.ndarray, states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray,
-                     R: np.ndarray) -> tuple:
-    """The loop of :func:`type_terms`: returns ``(code, det_index, logq, missed_w, loglik, m_post, P_post)``.
+@nb.njit(cache=True, error_model="numpy")
+def _detection_slots(mask: np.ndarray, w: np.ndarray, pd: np.ndarray, P: np.ndarray, det_index: np.ndarray,
+                     missed_w: np.ndarray, logq: np.ndarray) -> bool:
+    """The geometry-free part of :func:`type_terms`; False if some covariance (live or not) is not finite.
 
-    ``code``: ``OK``, ``_NON_FINITE`` (some covariance, live or not) or the failure of
-    :func:`~mmslam.slam.ckf.ckf_update`. For each particle ``p`` and Gaussian ``q``: ``p_D = pd``
-    where live, else 0; missed weight ``(1 - p_D) w``; if ``p_D > 0``, the CKF update ``n`` and
-    ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``.
+    For each particle ``p`` and Gaussian ``q``: ``p_D = pd`` where live, else 0; missed weight
+    ``missed_w = (1 - p_D) w``; ``det_index[p, q]``: the number ``n`` of its CKF update if
+    ``p_D > 0`` (particle-major order), else -1; ``logq = -inf`` (the detectable Gaussians' terms
+    are written by :func:`_type_terms_loop`).
     """
-    Pn, Q, d = m.shape
-    J = Z.shape[0]
-    det_index = np.full((Pn, Q), -1, np.int64)
-    missed_w = np.empty((Pn, Q))
-    logq = np.full((Pn, Q, J), -np.inf)
-    n = 0
+    Pn, Q, d = P.shape[:3]
     for p in range(Pn):
         for q in range(Q):
             for i in range(d):
                 for k in range(d):
                     if not np.isfinite(P[p, q, i, k]):
-                        return (_NON_FINITE, det_index, logq, missed_w, np.empty((0, J)), np.empty((0, J, d)),
-                                np.empty((0, R.shape[0], d, d)))
+                        return False
+    n = 0
+    for p in range(Pn):
+        for q in range(Q):
             pdq = pd[p, q] if mask[p, q] else 0.0
             missed_w[p, q] = (1.0 - pdq) * w[p, q]
-            if pdq > 0.0:
-                det_index[p, q] = n
-                n += 1
-    loglik = np.empty((n, J))
-    m_post = np.empty((n, J, d))
-    P_post = np.empty((n, R.shape[0], d, d))
+            det_index[p, q] = n if pdq > 0.0 else -1
+            n += pdq > 0.0
+            for j in range(logq.shape[2]):
+                logq[p, q, j] = -np.inf
+    return True
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray, P: np.ndarray,
+                     states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+                     det_index: np.ndarray, logq: np.ndarray, loglik: np.ndarray, m_post: np.ndarray,
+                     P_post: np.ndarray) -> int:
+    """The CKF loop of :func:`type_terms` (after :func:`_detection_slots`); returns ``OK`` or the
+    failure code of :func:`~mmslam.slam.ckf.ckf_update`.
+
+    For each particle ``p`` and Gaussian ``q`` with ``n = det_index[p, q] >= 0``: the CKF update
+    into ``loglik[n]``, ``m_post[n]``, ``P_post[n]`` and ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``.
+    """
+    Pn, Q, d = m.shape
     work = workspace(d)
     for p in range(Pn):
         for q in range(Q):
-            k = det_index[p, q]
-            if k < 0:
+            n = det_index[p, q]
+            if n < 0:
                 continue
-            code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, Z, R, loglik[k], m_post[k],
-                              P_post[k], work)
+            code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, Z, R, loglik[n], m_post[n],
+                              P_post[n], work)
             if code != OK:
-                return code, det_index, logq, missed_w, loglik, m_post, P_post
+                return code
             lw = math.log(pd[p, q] * w[p, q])
-            for j in range(J):
-                logq[p, q, j] = lw + loglik[k, j]
-    return OK, det_index, logq, missed_w, loglik, m_post, P_post
+            for j in range(Z.shape[0]):
+                logq[p, q, j] = lw + loglik[n, j]
+    return OK
 
 
 # One kernel per path geometry (the Bounce code a constant: ckf_update inlined once per kernel),
 # compiled only when a map of that geometry is first corrected; see mmslam.slam.ckf._CKF_BATCH.
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_direct(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
-    return _type_terms_loop(0, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.DIRECT
+def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
+    return _type_terms_loop(0, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.DIRECT
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_mirror(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
-    return _type_terms_loop(1, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.MIRROR
+def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
+    return _type_terms_loop(1, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.MIRROR
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_scatter(mask, w, pd, m, P, states, b, extent, Z, R):  # noqa: ANN001, ANN202
-    return _type_terms_loop(2, mask, w, pd, m, P, states, b, extent, Z, R)  # Bounce.SCATTER
+def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
+    return _type_terms_loop(2, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.SCATTER
 
 
 _TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)
