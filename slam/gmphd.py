@@ -31,7 +31,7 @@ from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, OK, Innovation, ckf_updat
 from .detection import detected_beta, expected_pd, missed_beta
 from .gm import GM
 from .linalg import safe_cholesky
-from .measurement import BS, MEAS_DIM, TYPE_NAMES, geometry_of, measure_point
+from .measurement import MEAS_DIM, TYPE_NAMES, geometry_of, measure_point
 
 
 
