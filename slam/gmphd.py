@@ -58,14 +58,13 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
        a Gaussian with ``p_D = 0`` gets no update and keeps its whole weight as missed detection;
     3. ``log psi(z_j)`` per particle: log-sum-exp over clutter, BS and every Gaussian of every type
        (:func:`log_psi`);
-    4. the corrected components of eq. (5): ``(1 - p_D) w`` with the predicted moments and
-       ``p_D w N(z_j) / psi(z_j)`` with the CKF posterior, those below ``prune`` never materialised
-       (:func:`corrected_gm`; Beta model: missed ``(s, t + 1)``, detected ``(s + 1, t)``);
-    5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`).
-
-    The particle weight, eq. (6): the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
-    weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md), i.e. the
-    caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights.
+    4. the corrected components, the two terms of ``D_t^+``: ``(1 - p_D) w`` with the predicted
+       moments and ``p_D w N(z_j) / psi(z_j)`` with the CKF posterior, those below ``prune`` never
+       materialised (:func:`corrected_gm`; Beta model: missed ``(s, t + 1)``, detected ``(s + 1, t)``);
+    5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`);
+    6. the particle weight, eq. (6): the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
+       weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md): the
+       caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
