@@ -167,7 +167,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     Raises:
         FloatingPointError: a non-finite mean or covariance in the map (also outside the FOV),
             or a covariance that is not positive definite.
-        ValueError: ``R`` of another shape.
+        ValueError: ``R`` or an array of the map, ``states`` or ``bs`` of another shape.
     """
     stage = f"{_tname(lm_type)} correction"
     if not np.isfinite(g.m).all():  # masked slots hold 0 / I; the covariances are checked in the kernel
@@ -176,12 +176,16 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     R = _per_measurement_cov(R, J)
     c = np.ascontiguousarray
     g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta)
+    P_, Q, d = g.m.shape
+    if (d < 3 or g.P.shape != (P_, Q, d, d) or g.w.shape != (P_, Q) or g.mask.shape != (P_, Q)
+            or np.shape(states) != (P_, 7) or np.shape(bs) != (3,)):
+        raise ValueError(f"{stage}: shapes w {g.w.shape}, m {g.m.shape}, P {g.P.shape}, states {np.shape(states)}, "
+                         f"bs {np.shape(bs)}; expected (P, Q), (P, Q, d >= 3), (P, Q, d, d), (P, 7), (3,)")
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
         pd = expected_pd(pd, g.pd_beta)
     pd = c(np.broadcast_to(pd, g.w.shape), dtype=float)
     ext = np.zeros((3, 3)) if extent is None else c(np.asarray(extent, float).reshape(3, 3))
-    P_, Q, d = g.m.shape
     det_index, missed_w, logq = np.empty((P_, Q), np.int64), np.empty((P_, Q)), np.empty((P_, Q, J))
     if not _detection_slots(g.mask, g.w, pd, g.P, det_index, missed_w, logq):
         raise FloatingPointError(f"non-finite mean or covariance in {stage}")

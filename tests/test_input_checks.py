@@ -54,6 +54,32 @@ def test_innovate_rejects_wrong_shapes():
         innovate(m[:, :2], P[:, :2, :2], np.zeros((2, 7)), int(Bounce.SCATTER), BS_POS, Z, R, "test")  # d = 2
 
 
+def test_type_terms_rejects_wrong_shapes_before_its_kernel():
+    """The compiled correction reads states[p] and P[p, q] unchecked: a mismatched shape is a
+    ValueError naming the stage, never an out-of-bounds read (particle count, state length, d = 2,
+    covariance shape, one R per measurement)."""
+    from mmslam.slam.gm import GM
+    from mmslam.slam.gmphd import type_terms
+
+    def pd_fn(u, x, t):
+        return np.full(np.shape(u)[:-1], 0.9)
+
+    P_, Q = 2, 3
+    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
+           np.ones((P_, Q), bool))
+    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    assert type_terms(g, SP, s, Z, R, BS_POS, pd_fn).logq.shape == (P_, Q, 2)
+    for states in (np.zeros((P_ + 1, 7)), np.zeros((1, 7)), np.zeros((P_, 3))):
+        with pytest.raises(ValueError, match="SP correction: shapes .* expected"):
+            type_terms(g, SP, states, Z, R, BS_POS, pd_fn)
+    bad = [GM(g.w, g.m[..., :2], g.P[..., :2, :2], g.mask), GM(g.w, g.m, g.P[:, :2], g.mask)]
+    for b in bad:
+        with pytest.raises(ValueError, match="SP correction: shapes .* expected"):
+            type_terms(b, SP, s, Z, R, BS_POS, pd_fn)
+    with pytest.raises(ValueError, match=r"R has shape \(3, 5, 5\); expected \(5, 5\) or \(2, 5, 5\)"):
+        type_terms(g, SP, s, Z, np.stack([R] * 3), BS_POS, pd_fn)
+
+
 def test_step_keeps_its_own_copy_of_the_measurements():
     """The measurements are kept for the next step's births: a caller reusing its buffer must not
     change them."""
