@@ -1,15 +1,18 @@
 """Gaussian-mixture reduction: pruning, greedy Mahalanobis merging and capping.
 
-Two public functions, both pure and batched over leading axes:
+Public functions, all pure:
 
 - :func:`prune_merge`: Vo & Ma 2006 ("The Gaussian mixture probability hypothesis density
-  filter"), Table II, applied to every mixture of a batch at once (e.g. the ``P`` particle maps).
+  filter"), Table II, applied to every mixture of a batch at once (e.g. the ``P`` particle maps);
 - :func:`average_map`: the particle-weighted average map PHD of the paper's eq. (7),
   ``sum_p w_p D^p``, reduced in the spirit of Mullane et al. 2011, Table IV;
 - :func:`merge_pairs`: moment matching of given pairs (the fused VS map).
 
-All three use one merge written for one mixture (:func:`greedy_merge`, :func:`moment_match`;
-numba ``njit``, ``cache=True``), run over the batch's mixtures.
+The equations are written once, for one mixture (numba ``njit``, ``cache=True``):
+:func:`survivors` (Table II, step 1), :func:`greedy_clusters` (step 2, the clusters),
+:func:`moment_match` (step 2, one cluster's moments) and :func:`cluster_order` (step 3, the
+largest ``cap``). :func:`_plan_batch` and :func:`_write_batch` run them over every mixture of a
+batch with the scratch arrays allocated once per batch, not per mixture.
 
 Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, covariances
 ``(*B, Q, d, d)``, mask ``(*B, Q)``. Means are in the global frame (m; VS also m/s and rad/s).
@@ -20,17 +23,67 @@ import numba as nb
 import numpy as np
 
 from .detection import beta_pool
-from .gm import GM, compact, empty, symmetrize
+from .gm import GM
 from .linalg import cholesky, forward_solve
 
+_OK, _NONFINITE, _SINGULAR = -1, -2, -3
+"""Status codes of the batch kernels (``>= 0``: index of a mixture whose output is not finite)."""
 
-def _live(g: GM, prune: float, max_trace: float | None, pos_dims: int) -> np.ndarray:
-    """Mask of components that survive pruning: live, ``w >= prune``, position trace small."""
-    keep = g.mask & (g.w >= prune)
-    if max_trace is not None:
-        tr = np.trace(g.P[..., :pos_dims, :pos_dims], axis1=-2, axis2=-1)
-        keep &= tr <= max_trace
-    return keep
+
+@nb.njit(cache=True)
+def finite_gaussian(w: float, m: np.ndarray, P: np.ndarray) -> bool:
+    """True if the weight ``w``, mean ``m (d,)`` and covariance ``P (d, d)`` are all finite."""
+    x = w * 0.0  # NaN once a NaN or infinite value enters, else 0
+    for a in range(m.shape[0]):
+        x += m[a] * 0.0
+        for b in range(m.shape[0]):
+            x += P[a, b] * 0.0
+    return x == 0.0
+
+
+@nb.njit(cache=True)
+def live_finite(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> bool:
+    """True if every live component (``mask (Q,)``) of one mixture is finite (:func:`finite_gaussian`;
+    ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``)."""
+    for i in range(w.shape[0]):
+        if mask[i] and not finite_gaussian(w[i], m[i], P[i]):
+            return False
+    return True
+
+
+@nb.njit(cache=True)
+def survivors(w: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float, max_trace: float, pos_dims: int,
+              out: np.ndarray) -> int:
+    """Vo & Ma 2006, Table II, step 1, for one mixture: the components that survive pruning.
+
+    Survivor ``i``: ``mask[i]``, ``w[i] >= prune`` and ``trace(P[i, :pos_dims, :pos_dims]) <=
+    max_trace`` (m^2; ``inf`` for no limit). ``w (Q,)``, ``P (Q, d, d)``, ``mask (Q,)``. Their slot
+    indices are written, in slot order, to ``out[:n]``; returns ``n``.
+    """
+    n = 0
+    k = min(pos_dims, P.shape[1])
+    for i in range(w.shape[0]):
+        if mask[i] and w[i] >= prune:
+            tr = 0.0
+            for a in range(k):
+                tr += P[i, a, a]
+            if tr <= max_trace:
+                out[n] = i
+                n += 1
+    return n
+
+
+@nb.njit(cache=True)
+def sort_descending(key: np.ndarray, idx: np.ndarray, n: int) -> None:
+    """Stable sort of ``idx[:n]`` by descending ``key[idx]`` in place (insertion sort: ``n`` is small;
+    equal keys keep their order, as ``np.argsort(-key, kind="stable")``)."""
+    for a in range(1, n):
+        v = idx[a]
+        b = a
+        while b > 0 and key[idx[b - 1]] < key[v]:
+            idx[b] = idx[b - 1]
+            b -= 1
+        idx[b] = v
 
 
 @nb.njit(cache=True)
@@ -39,165 +92,262 @@ def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarra
     """Moment match of the components ``members`` of one mixture (Vo & Ma 2006, Table II, step 2).
 
     ``W = sum w_i``, ``m = sum w_i m_i / W``, ``P = sum w_i (P_i + (m_i - m)(m_i - m)^T) / W``,
-    accumulated as offsets from the component ``ref`` (less cancellation far from the origin);
-    ``out_m (d,)`` and ``out_P (d, d)`` (exactly symmetric) are written, ``W`` is returned.
+    accumulated as offsets ``o_i = m_i - m_ref`` from the component ``ref`` (less cancellation far
+    from the origin): ``dbar = sum w_i o_i / W``, ``m = m_ref + dbar``,
+    ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m (d,)`` and ``out_P (d, d)``
+    (exactly symmetric) are written (they hold the sums meanwhile: no scratch), ``W`` is returned.
     Shapes: ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``; ``members (K,)`` slot indices.
     """
     d = m.shape[1]
     W = 0.0
-    dbar = np.zeros(d)
-    S = np.zeros((d, d))
-    off = np.empty(d)
+    out_m[:] = 0.0  # sum w_i o_i
+    out_P[:, :] = 0.0  # sum w_i (P_i + o_i o_i^T)
     for i in members:
         W += w[i]
         for a in range(d):
-            off[a] = m[i, a] - m[ref, a]
-            dbar[a] += w[i] * off[a]
-        for a in range(d):
+            oa = m[i, a] - m[ref, a]
+            out_m[a] += w[i] * oa
             for b in range(d):
-                S[a, b] += w[i] * (P[i, a, b] + off[a] * off[b])
+                out_P[a, b] += w[i] * (P[i, a, b] + oa * (m[i, b] - m[ref, b]))
     Wsafe = W if W > 0.0 else 1.0
     for a in range(d):
-        dbar[a] /= Wsafe
-        out_m[a] = m[ref, a] + dbar[a]
+        out_m[a] /= Wsafe  # dbar
     for a in range(d):
         for b in range(a + 1):
-            v = 0.5 * (S[a, b] + S[b, a]) / Wsafe - dbar[a] * dbar[b]
+            v = 0.5 * (out_P[a, b] + out_P[b, a]) / Wsafe - out_m[a] * out_m[b]
             out_P[a, b] = v
             out_P[b, a] = v
+    for a in range(d):
+        out_m[a] += m[ref, a]
     return W
 
 
 @nb.njit(cache=True)
-def greedy_merge(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
-                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray,
-                 out_ab: np.ndarray) -> int:
-    """Greedy Mahalanobis merging of one mixture (Vo & Ma 2006, Table II, step 2).
+def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray, n: int, merge: float,
+                    L: np.ndarray, r2: np.ndarray, D: np.ndarray, members: np.ndarray, heads: np.ndarray,
+                    starts: np.ndarray, W: np.ndarray) -> int:
+    """Greedy Mahalanobis clusters of one mixture (Vo & Ma 2006, Table II, step 2).
 
-    Take the highest-weight remaining component ``j`` (the first on ties); its cluster is every
-    remaining ``i`` with ``(m_i - m_j)^T P_i^-1 (m_i - m_j) <= merge`` (squared Mahalanobis
-    distance, dimensionless); write the cluster's :func:`moment_match` to the next output slot;
-    repeat until none remain. A Euclidean pre-gate skips the distance where
-    ``|m_i - m_j|^2 > merge trace(P_i)`` (then the distance exceeds ``merge``: exact).
+    Take the highest-weight remaining component ``j`` (the first in ``rem`` order on ties); its
+    cluster is every remaining ``i`` with ``(m_i - m_j)^T P_i^-1 (m_i - m_j) <= merge`` (squared
+    Mahalanobis distance, dimensionless); repeat until none remain. A Euclidean pre-gate skips the
+    distance where ``|m_i - m_j|^2 > merge trace(P_i)`` (then the distance exceeds ``merge``: exact).
 
     Args:
-        w: ``(Q,)`` weights; m: ``(Q, d)`` means; P: ``(Q, d, d)`` SPD covariances; keep: ``(Q,)``
-            the components to merge (the others are ignored).
-        out_w, out_m, out_P: ``(Q,)``, ``(Q, d)``, ``(Q, d, d)`` outputs; slot ``k`` holds cluster
-            ``k`` (clusters in the order of their heads' weights).
-        ab, out_ab: ``(Q, 2)`` Beta detection parameters ``(s, t)`` and the clusters' moment match
-            (:func:`mmslam.slam.detection.beta_pool`), or ``(Q, 0)`` (none).
+        w: ``(Q,)`` weights; m: ``(Q, d)`` means; P: ``(Q, d, d)`` SPD covariances.
+        rem: ``(>= n,)`` the slots to merge in ``rem[:n]``, in priority order (overwritten).
+        merge: the gate ``U``.
+        L, r2, D: scratch ``(Q, d, d)``, ``(Q,)``, ``(d,)`` (Cholesky factors, pre-gate radii).
+        members: ``(>= n,)`` receives the slots grouped by cluster (each cluster in ``rem`` order);
+            cluster ``k`` is ``members[starts[k]:starts[k + 1]]``, its head ``heads[k]``, its weight
+            ``W[k] = sum w_i`` (summed in that order). ``starts (>= n + 1,)``, ``heads``, ``W (>= n,)``.
 
     Returns:
-        The number of clusters ``K``, or ``-1`` if a kept covariance is singular / indefinite.
+        The number of clusters ``K`` (in the order of their heads' weights), or -1 if a covariance
+        to merge is singular or indefinite.
     """
-    q, d = m.shape
-    L = np.empty((q, d, d))  # P_i = L_i L_i^T: the distance is |L_i^-1 (m_i - m_j)|^2
-    r2 = np.empty(q)
-    for i in range(q):
-        if keep[i]:
-            if not cholesky(P[i], L[i], False):  # no jitter: a singular covariance is an error
-                return -1
-            tr = 0.0
-            for a in range(d):
-                tr += P[i, a, a]
-            r2[i] = merge * tr * (1.0 + 1e-9) + 1e-12
-    remaining = keep.copy()
-    members = np.empty(q, np.int64)
-    D = np.empty(d)
+    d = m.shape[1]
+    for t in range(n):
+        i = rem[t]
+        if not cholesky(P[i], L[i], False):  # no jitter: a singular covariance is an error
+            return -1
+        tr = 0.0
+        for a in range(d):
+            tr += P[i, a, a]
+        r2[i] = merge * tr * (1.0 + 1e-9) + 1e-12
     K = 0
-    while True:
-        j = -1
-        for i in range(q):
-            if remaining[i] and (j < 0 or w[i] > w[j]):
-                j = i
-        if j < 0:
-            return K
-        n = 0
-        for i in range(q):
-            if not remaining[i]:
-                continue
+    pos = 0
+    while n > 0:
+        jj = 0
+        for t in range(1, n):
+            if w[rem[t]] > w[rem[jj]]:
+                jj = t
+        j = rem[jj]
+        heads[K] = j
+        starts[K] = pos
+        Wk = 0.0
+        left = 0
+        for t in range(n):
+            i = rem[t]
             if i != j:  # the head always joins its own cluster
                 e2 = 0.0
                 for a in range(d):
                     D[a] = m[i, a] - m[j, a]
                     e2 += D[a] * D[a]
-                if e2 > r2[i]:
+                member = e2 <= r2[i]
+                if member:
+                    forward_solve(L[i], D, D)
+                    dist = 0.0
+                    for a in range(d):
+                        dist += D[a] * D[a]
+                    member = dist <= merge
+                if not member:
+                    rem[left] = i  # stays, in order (left <= t)
+                    left += 1
                     continue
-                forward_solve(L[i], D, D)
-                dist = 0.0
-                for a in range(d):
-                    dist += D[a] * D[a]
-                if not dist <= merge:
-                    continue
-            remaining[i] = False
-            members[n] = i
-            n += 1
-        out_w[K] = moment_match(w, m, P, members[:n], j, out_m[K], out_P[K])
-        if ab.shape[1]:
-            beta_pool(w, ab, members[:n], out_ab[K])
+            members[pos] = i
+            pos += 1
+            Wk += w[i]
+        W[K] = Wk
         K += 1
+        n = left
+    starts[K] = pos
+    return K
 
 
 @nb.njit(cache=True)
-def _merge_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
-                 out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, count: np.ndarray, ab: np.ndarray,
-                 out_ab: np.ndarray) -> int:
-    """:func:`greedy_merge` of every mixture ``n`` of a flat batch; the first singular ``n`` or -1."""
-    for n in range(w.shape[0]):
-        count[n] = greedy_merge(w[n], m[n], P[n], keep[n], merge, out_w[n], out_m[n], out_P[n], ab[n], out_ab[n])
-        if count[n] < 0:
-            return n
-    return -1
+def cluster_order(W: np.ndarray, K: int, min_weight: float, by_weight: bool, order: np.ndarray) -> int:
+    """Which clusters a reduction keeps, in output order (Vo & Ma 2006, Table II, step 3).
+
+    Clusters ``k < K`` with ``W[k] >= min_weight`` (``-inf``: all), by descending ``W`` (stable:
+    creation order on ties) if ``by_weight``, else in creation order. Writes ``order[:n]``,
+    returns ``n`` (the caller keeps the first ``cap``).
+    """
+    n = 0
+    for k in range(K):
+        if W[k] >= min_weight:
+            order[n] = k
+            n += 1
+    if by_weight:
+        sort_descending(W, order, n)
+    return n
+
+
+@nb.njit(cache=True)
+def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float,
+                max_trace: float, pos_dims: int, merge: float, min_weight: float, cap: int, sort_input: bool,
+                sort_output: bool, members: np.ndarray, heads: np.ndarray, starts: np.ndarray, order: np.ndarray,
+                count: np.ndarray) -> int:
+    """Clusters of every mixture ``n`` of a flat batch ``(N, Q, ...)``: :func:`survivors` of
+    ``w_prune`` (sorted by descending ``w`` if ``sort_input``: the slot order of a compacted
+    mixture), :func:`greedy_clusters` with weights ``w``, :func:`cluster_order` (``min_weight``,
+    ``sort_output``), at most ``cap``. Writes ``members, heads, order (N, Q)``, ``starts (N, Q + 1)``,
+    ``count (N,)`` (clusters kept).
+
+    Returns ``_OK``, ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
+    or ``_SINGULAR``.
+    """
+    N, q, d = m.shape
+    L = np.empty((q, d, d))
+    r2 = np.empty(q)
+    D = np.empty(d)
+    rem = np.empty(q, np.int64)
+    W = np.empty(q)
+    for n in range(N):
+        if not live_finite(w[n], m[n], P[n], mask[n]):
+            return _NONFINITE
+        ns = survivors(w_prune[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
+        if sort_input:
+            sort_descending(w[n], rem, ns)
+        K = greedy_clusters(w[n], m[n], P[n], rem, ns, merge, L, r2, D, members[n], heads[n], starts[n], W)
+        if K < 0:
+            return _SINGULAR
+        count[n] = min(cap, cluster_order(W, K, min_weight, sort_output, order[n]))
+    return _OK
+
+
+@nb.njit(cache=True)
+def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, members: np.ndarray,
+                 heads: np.ndarray, starts: np.ndarray, order: np.ndarray, count: np.ndarray, out_w: np.ndarray,
+                 out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray, out_ab: np.ndarray) -> int:
+    """The planned clusters (:func:`_plan_batch`) of every mixture ``n``: slot ``r < count[n]`` gets
+    the :func:`moment_match` of cluster ``order[n, r]`` (offsets from its head) and, with Beta
+    parameters ``ab (N, Q, 2)``, their :func:`~mmslam.slam.detection.beta_pool` (``(N, Q, 0)``:
+    none); the other slots ``w = 0``, ``m = 0``, ``P = I``, ``(s, t) = (1, 1)``, masked.
+
+    Returns ``_OK`` or the first ``n`` with a non-finite merged component.
+    """
+    d = m.shape[2]
+    for n in range(out_w.shape[0]):
+        for r in range(out_w.shape[1]):
+            if r < count[n]:
+                c = order[n, r]
+                mem = members[n, starts[n, c]:starts[n, c + 1]]
+                out_w[n, r] = moment_match(w[n], m[n], P[n], mem, heads[n, c], out_m[n, r], out_P[n, r])
+                if ab.shape[2]:
+                    beta_pool(w[n], ab[n], mem, out_ab[n, r])
+                out_mask[n, r] = True
+                if not finite_gaussian(out_w[n, r], out_m[n, r], out_P[n, r]):
+                    return n
+            else:
+                out_w[n, r] = 0.0
+                out_m[n, r] = 0.0
+                out_P[n, r] = 0.0
+                for a in range(d):
+                    out_P[n, r, a, a] = 1.0
+                out_mask[n, r] = False
+                out_ab[n, r] = 1.0
+    return _OK
+
+
+def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
+            ab: np.ndarray | None, prune: float, max_trace: float | None, pos_dims: int, merge: float,
+            min_weight: float, cap: int, sort_input: bool, sort_output: bool, stage: str,
+            capacity: int | None = None) -> tuple[np.ndarray, ...]:
+    """Reduce every mixture of a flat batch (:func:`_plan_batch`, :func:`_write_batch`).
+
+    ``w_prune, w (N, Q)``: the weights pruned and the weights merged; ``m (N, Q, d)``,
+    ``P (N, Q, d, d)``, ``mask (N, Q)``; ``ab (N, Q, 2)`` Beta parameters or None. The output has
+    ``capacity`` slots (default: the largest number of clusters kept): ``(w, m, P, mask, ab or None)``.
+
+    Raises FloatingPointError (naming ``stage``) for a non-finite live input or output component
+    or a singular / indefinite covariance to merge.
+    """
+    n, q, d = m.shape
+    w = np.ascontiguousarray(w, dtype=float)
+    m = np.ascontiguousarray(m, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    members, heads, order = (np.empty((n, q), np.int64) for _ in range(3))
+    starts = np.empty((n, q + 1), np.int64)
+    count = np.zeros(n, np.int64)
+    status = _plan_batch(np.ascontiguousarray(w_prune, dtype=float), w, m, P, np.ascontiguousarray(mask, dtype=bool),
+                         float(prune), np.inf if max_trace is None else float(max_trace), int(pos_dims),
+                         float(merge), float(min_weight), max(int(cap), 0), sort_input, sort_output, members, heads,
+                         starts, order, count)
+    if status == _NONFINITE:
+        raise FloatingPointError(f"non-finite Gaussian component in {stage} input")
+    if status == _SINGULAR:
+        raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
+    k = int(count.max(initial=0)) if capacity is None else capacity
+    ab_in = np.empty((n, q, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)
+    out = (np.empty((n, k)), np.empty((n, k, d)), np.empty((n, k, d, d)), np.empty((n, k), bool),
+           np.empty((n, k, ab_in.shape[2])))
+    if _write_batch(w, m, P, ab_in, members, heads, starts, order, count, *out) != _OK:
+        raise FloatingPointError(f"non-finite Gaussian component after {stage}")
+    return out[:4] + (None if ab is None else out[4],)
 
 
 def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
                 ab: np.ndarray | None = None):
-    """:func:`greedy_merge` of a flat batch ``(N, Q, ...)``; returns ``(w, m, P, mask)`` with ``K <= Q``
-    slots (``K`` = the largest number of clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I);
-    with Beta detection parameters ``ab (N, Q, 2)`` also their cluster moment match ``(N, K, 2)``
-    (dead slots (1, 1)) as a fifth item.
+    """:func:`greedy_clusters` and :func:`moment_match` of a flat batch ``(N, Q, ...)`` (no pruning,
+    sorting or cap); returns ``(w, m, P, mask)`` with ``K <= Q`` slots (``K`` = the largest number of
+    clusters; slot ``k`` holds cluster ``k``, dead slots 0 / I); with Beta detection parameters
+    ``ab (N, Q, 2)`` also their cluster pool ``(N, K, 2)`` (dead slots (1, 1)) as a fifth item.
 
     Raises FloatingPointError if a kept covariance is singular or not positive definite.
     """
-    n, q, d = m.shape
-    out_w = np.zeros((n, q))
-    out_m = np.zeros((n, q, d))
-    out_P = np.zeros((n, q, d, d))
-    count = np.zeros(n, np.int64)
-    ab_in = np.ones((n, q, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float).reshape(n, q, 2)
-    out_ab = np.ones((n, q, ab_in.shape[2]))
-    if n and q:
-        bad = _merge_batch(np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(m, dtype=float),
-                           np.ascontiguousarray(P, dtype=float), np.ascontiguousarray(keep, dtype=bool),
-                           float(merge), out_w, out_m, out_P, count, ab_in, out_ab)
-        if bad >= 0:
-            raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
-    k = int(count.max(initial=0))
-    mask = np.arange(k)[None, :] < count[:, None]
-    out_P = out_P[:, :k]
-    out_P[~mask] = np.eye(d)
-    if ab is None:
-        return out_w[:, :k], out_m[:, :k], out_P, mask
-    out_ab = out_ab[:, :k]
-    out_ab[~mask] = 1.0
-    return out_w[:, :k], out_m[:, :k], out_P, mask, out_ab
+    n, q, d = np.shape(m)
+    res = _reduce(w, w, m, P, keep, None if ab is None else np.reshape(ab, (n, q, 2)), -np.inf, None, d, merge,
+                  -np.inf, q, False, False, "merging")
+    return res[:4] if ab is None else res
 
 
 def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
                 pos_dims: int = 3, *, fixed_capacity: bool = False) -> GM:
     """Prune, merge and cap every mixture of a batch (Vo & Ma 2006, Table II).
 
-    Steps, for each mixture of the batch independently (vectorised over the batch):
+    Steps, for each mixture of the batch independently (one compiled pass over the batch):
 
     1. drop components with ``w < prune``, and, if ``max_trace`` is given, components whose
-       position covariance trace ``trace(P[:pos_dims, :pos_dims]) > max_trace`` (m^2);
+       position covariance trace ``trace(P[:pos_dims, :pos_dims]) > max_trace`` (m^2)
+       (:func:`survivors`); the others in descending weight order (stable);
     2. greedy merging: take the highest-weight remaining component ``j``; the cluster is every
        remaining ``i`` with ``(m_i - m_j)^T P_i^{-1} (m_i - m_j) <= merge`` (squared Mahalanobis
        distance over all ``d`` state dimensions, e.g. ``49 = 7^2``); replace the cluster by its
        moment match ``w = sum w_i``, ``m = sum w_i m_i / w``,
-       ``P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w``; repeat until none remain;
-    3. keep the ``cap`` largest merged components.
+       ``P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w``; repeat until none remain
+       (:func:`greedy_clusters`, :func:`moment_match`; Beta parameters: ``beta_pool``);
+    3. keep the ``cap`` largest merged components (:func:`cluster_order`).
 
     Args:
         g: batch of mixtures, batch shape ``B``, ``Q`` slots, dimension ``d``.
@@ -211,35 +361,22 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
 
     Returns:
         The reduced batch, batch shape ``B``, compacted (live components first, descending
-        weight), symmetrised covariances.
+        weight; dead slots ``w = 0``, ``m = 0``, ``P = I``), exactly symmetric covariances.
 
     Raises:
         FloatingPointError: a live component has a non-finite weight, mean or covariance, or a
             surviving covariance is singular.
     """
-    g.check("in prune_merge input")
-    B = g.batch_shape
-    keep = _live(g, prune, max_trace, pos_dims)
-    # prune first, then trim the slots to the largest surviving count so merging sees no dead slots
-    g = compact(GM(np.where(keep, g.w, 0.0), g.m, g.P, keep, g.pd_beta))
-    keep = g.mask
-    q, d = g.capacity, g.dim
-    if q == 0:
-        return compact(g, cap) if fixed_capacity else g
+    B, q, d = g.batch_shape, g.capacity, g.dim
     n = int(np.prod(B, dtype=int))
-    res = _merge_flat(g.w.reshape(n, q), g.m.reshape(n, q, d), g.P.reshape(n, q, d, d), keep.reshape(n, q),
-                      merge, None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2))
-    w, m, P, mask = res[:4]
+    w = g.w.reshape(n, q)
+    w, m, P, mask, ab = _reduce(w, w, g.m.reshape(n, q, d), g.P.reshape(n, q, d, d), g.mask.reshape(n, q),
+                                None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2), prune, max_trace, pos_dims,
+                                merge, -np.inf, cap, True, True, "prune_merge",
+                                max(int(cap), 0) if fixed_capacity else None)
     k = w.shape[-1]
-    out = GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)),
-             None if g.pd_beta is None else res[4].reshape(B + (k, 2)))
-    if fixed_capacity:
-        out = compact(out, cap)
-    else:
-        out = compact(out, min(cap, int(out.count().max(initial=0))))
-    # covariances are exactly symmetric already (symmetrised cluster moments, I in dead slots)
-    out.check("after prune_merge")
-    return out
+    return GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)),
+              None if ab is None else ab.reshape(B + (k, 2)))
 
 
 @nb.njit(cache=True)
@@ -325,23 +462,13 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
         raise ValueError(f"particle_weights shape {pw.shape} != batch shape {g.batch_shape}")
     if not np.all(np.isfinite(pw)) or np.any(pw < 0) or pw.sum() <= 0:
         raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
-    g.check("in average_map input")
     pw = pw / pw.sum()
-    keep = _live(g, prune, max_trace, pos_dims) & (pw[:, None] > 0)
-    d = g.dim
-    sel = keep.reshape(-1)
-    if not sel.any():
-        return empty((), 0, d, g.pd_beta is not None)
-    w = (g.w * pw[:, None]).reshape(-1)[sel]
-    m = g.m.reshape(-1, d)[sel]
-    P = g.P.reshape(-1, d, d)[sel]
-    ab = None if g.pd_beta is None else g.pd_beta.reshape(-1, 2)[sel][None]
-    res = _merge_flat(w[None], m[None], P[None], np.ones((1, w.size), bool), merge, ab)
-    ow, om, oP, omask = res[:4]
-    omask &= ow >= prune
-    out = GM(ow[0], om[0], oP[0], omask[0], None if ab is None else res[4][0])
-    out = compact(out, min(cap, int(out.count())))
-    out.w = np.where(out.mask, out.w, 0.0)
-    out.P = symmetrize(out.P)
-    out.check("after average_map")
-    return out
+    n, d = g.w.size, g.dim
+    # one mixture, the union of the particles' components (particle-major order): pruned on their
+    # own weights eta (NaN, never kept, in particles of weight 0), merged with the weights w_p eta
+    w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
+    w, m, P, mask, ab = _reduce(w_own, (g.w * pw[:, None]).reshape(1, n), g.m.reshape(1, n, d),
+                                g.P.reshape(1, n, d, d), g.mask.reshape(1, n),
+                                None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2), prune, max_trace,
+                                pos_dims, merge, prune, cap, False, True, "average_map")
+    return GM(w[0], m[0], P[0], mask[0], None if ab is None else ab[0])
