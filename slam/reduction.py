@@ -24,13 +24,19 @@ import numpy as np
 
 from .detection import beta_pool
 from .gm import GM
-from .linalg import cholesky, forward_solve
+from .linalg import _cholesky_once, forward_solve
+
+# linalg's Cholesky factor (no jitter: a singular covariance is an error; finiteness is checked
+# before) and forward solve, inlined into the per-component loops below: a call of a separately
+# compiled kernel per 3 x 3 matrix costs about as much as the factorisation itself
+_cholesky = nb.njit(inline="always", error_model="numpy")(_cholesky_once.py_func)
+_forward_solve = nb.njit(inline="always", error_model="numpy")(forward_solve.py_func)
 
 _OK, _NONFINITE, _SINGULAR = -1, -2, -3
 """Status codes of the batch kernels (``>= 0``: index of a mixture whose output is not finite)."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def finite_gaussian(w: float, m: np.ndarray, P: np.ndarray) -> bool:
     """True if the weight ``w``, mean ``m (d,)`` and covariance ``P (d, d)`` are all finite."""
     x = w * 0.0  # NaN once a NaN or infinite value enters, else 0
@@ -41,7 +47,7 @@ def finite_gaussian(w: float, m: np.ndarray, P: np.ndarray) -> bool:
     return x == 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def live_finite(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> bool:
     """True if every live component (``mask (Q,)``) of one mixture is finite (:func:`finite_gaussian`;
     ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``)."""
@@ -51,7 +57,7 @@ def live_finite(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def survivors(w: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float, max_trace: float, pos_dims: int,
               out: np.ndarray) -> int:
     """Vo & Ma 2006, Table II, step 1, for one mixture: the components that survive pruning.
@@ -73,7 +79,7 @@ def survivors(w: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float, max_
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def sort_descending(key: np.ndarray, idx: np.ndarray, n: int) -> None:
     """Stable sort of ``idx[:n]`` by descending ``key[idx]`` in place (insertion sort: ``n`` is small;
     equal keys keep their order, as ``np.argsort(-key, kind="stable")``)."""
@@ -86,7 +92,7 @@ def sort_descending(key: np.ndarray, idx: np.ndarray, n: int) -> None:
         idx[b] = v
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
                  out_m: np.ndarray, out_P: np.ndarray) -> float:
     """Moment match of the components ``members`` of one mixture (Vo & Ma 2006, Table II, step 2).
@@ -122,7 +128,7 @@ def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarra
     return W
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray, n: int, merge: float,
                     L: np.ndarray, r2: np.ndarray, D: np.ndarray, members: np.ndarray, heads: np.ndarray,
                     starts: np.ndarray, W: np.ndarray) -> int:
@@ -149,7 +155,7 @@ def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray
     d = m.shape[1]
     for t in range(n):
         i = rem[t]
-        if not cholesky(P[i], L[i], False):  # no jitter: a singular covariance is an error
+        if not _cholesky(P[i], L[i], 0.0):  # no jitter: a singular covariance is an error
             return -1
         tr = 0.0
         for a in range(d):
@@ -176,7 +182,7 @@ def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray
                     e2 += D[a] * D[a]
                 member = e2 <= r2[i]
                 if member:
-                    forward_solve(L[i], D, D)
+                    _forward_solve(L[i], D, D)
                     dist = 0.0
                     for a in range(d):
                         dist += D[a] * D[a]
@@ -195,7 +201,7 @@ def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray
     return K
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def cluster_order(W: np.ndarray, K: int, min_weight: float, by_weight: bool, order: np.ndarray) -> int:
     """Which clusters a reduction keeps, in output order (Vo & Ma 2006, Table II, step 3).
 
@@ -213,7 +219,7 @@ def cluster_order(W: np.ndarray, K: int, min_weight: float, by_weight: bool, ord
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float,
                 max_trace: float, pos_dims: int, merge: float, min_weight: float, cap: int, sort_input: bool,
                 sort_output: bool, members: np.ndarray, heads: np.ndarray, starts: np.ndarray, order: np.ndarray,
@@ -246,7 +252,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     return _OK
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, members: np.ndarray,
                  heads: np.ndarray, starts: np.ndarray, order: np.ndarray, count: np.ndarray, out_w: np.ndarray,
                  out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray, out_ab: np.ndarray) -> int:
@@ -379,7 +385,7 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
               None if ab is None else ab.reshape(B + (k, 2)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _merge_pairs(w: np.ndarray, m: np.ndarray, P: np.ndarray, pairs: np.ndarray,
                  out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray, out_ab: np.ndarray) -> None:
     """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``
