@@ -30,7 +30,7 @@ from .ckf import cubature_points
 from .gm import GM
 from .dynamics import VS_DIM
 from .measurement import SP, VA, geometry_of
-from .vs import vs_birth_covariance, vs_birth_mean
+from .vs import DEFAULT_TURN_MEAN, vs_birth_cov_point, vs_birth_mean_point
 
 
 _MIRROR, _SCATTER = int(Bounce.MIRROR), int(Bounce.SCATTER)
@@ -108,7 +108,7 @@ def invert_sp(state: np.ndarray, z: np.ndarray, bs: np.ndarray) -> tuple[np.ndar
     return _invert(SP, state, z, bs)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
     """Equal-weight moments of the images ``x (K, 3)`` of one measurement's cubature points.
 
@@ -201,6 +201,32 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     return birth_moments_by_kind(states, Z, R, (geo,), bs)[geo]
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, weight: float, moving: bool, vel_var: np.ndarray,
+            turn_std: float, turn_mean: float, w: np.ndarray, m: np.ndarray, P: np.ndarray) -> None:
+    """Birth Gaussians of every particle ``p`` and measurement ``j``: where ``ok[p, j]`` weight
+    ``weight`` at the position moments ``mean[p, j] (3,)``, ``cov[p, j] (3, 3)`` (``moving``: the 7-D
+    VS birth :func:`~mmslam.slam.vs.vs_birth_mean_point`, :func:`~mmslam.slam.vs.vs_birth_cov_point`),
+    else ``w = 0``, ``m = 0``, ``P = I``. Writes ``w (P, J)``, ``m (P, J, d)``, ``P (P, J, d, d)``."""
+    d = m.shape[2]
+    for p in range(ok.shape[0]):
+        for j in range(ok.shape[1]):
+            if not ok[p, j]:
+                w[p, j] = 0.0
+                m[p, j] = 0.0
+                P[p, j] = 0.0
+                for a in range(d):
+                    P[p, j, a, a] = 1.0
+                continue
+            w[p, j] = weight
+            if moving:
+                vs_birth_mean_point(mean[p, j], turn_mean, m[p, j])
+                vs_birth_cov_point(cov[p, j], vel_var, turn_std, P[p, j])
+            else:
+                m[p, j] = mean[p, j]
+                P[p, j] = cov[p, j]
+
+
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,
                        lm_type: int, birth_weight: float,
                        pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
@@ -209,7 +235,8 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
 
     The type's spec (:func:`mmslam.slam.landmarks.landmark_type`) decides: a range-gated type's
-    births need ``p_D > 0`` at their mean; a 7-D (moving, VS) type gets the velocity / turn-rate prior.
+    births need ``p_D > 0`` at their mean; a 7-D (moving, VS) type gets the velocity / turn-rate
+    prior (:func:`~mmslam.slam.vs.vs_birth_mean`, :func:`~mmslam.slam.vs.vs_birth_covariance`).
     """
     from .landmarks import landmark_type  # lazy: the registry module imports this one
 
@@ -217,15 +244,17 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     if spec.range_gated:  # e.g. not a VA: its image lies behind the wall
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
         ok = ok & (pd > 0.0)
-    mean = np.where(ok[..., None], mean, 0.0)
-    cov = np.where(ok[..., None, None], cov, np.eye(3))
-    if spec.state_dim == VS_DIM:
-        m7 = np.asarray(vs_birth_mean(mean), float)
-        c7 = np.asarray(vs_birth_covariance(cov, vs_velocity_var, vs_turn_std), float)
-        mean = np.where(ok[..., None], m7, 0.0)
-        cov = np.where(ok[..., None, None], c7, np.eye(7))
-    w = np.where(ok, birth_weight, 0.0)
-    return GM(w, mean, cov, ok)
+    moving = spec.state_dim == VS_DIM
+    vel_var = np.asarray(vs_velocity_var, dtype=float)
+    if moving and vel_var.shape != (3,):
+        raise ValueError(f"vel_var must have shape (3,), got {vel_var.shape}")
+    d = VS_DIM if moving else 3
+    shape = ok.shape
+    w, m, P = np.empty(shape), np.empty(shape + (d,)), np.empty(shape + (d, d))
+    _births(np.ascontiguousarray(mean, dtype=float), np.ascontiguousarray(cov, dtype=float),
+            np.ascontiguousarray(ok, dtype=bool), float(birth_weight), moving, vel_var, float(vs_turn_std),
+            DEFAULT_TURN_MEAN, w, m, P)
+    return GM(w, m, P, np.array(ok, dtype=bool))
 
 
 def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs: np.ndarray,

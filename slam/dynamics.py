@@ -22,7 +22,7 @@ VEHICLE_DIM = 7
 VS_DIM = 7
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def vs_ct_point(t: np.ndarray, dt: float, out: np.ndarray, F: np.ndarray) -> None:
     """Cartesian coordinated turn of one VS state and its Jacobian, paper eq. (2) without noise.
 

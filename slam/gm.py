@@ -89,12 +89,16 @@ def _beta_or_fill(g: GM, other: GM) -> np.ndarray | None:
     return np.ones(g.batch_shape + (0, 2))
 
 
+def concat_pd_beta(a: GM, b: GM) -> np.ndarray | None:
+    """The ``pd_beta`` of :func:`concat` ``(a, b)``: both joined on the component axis, or None."""
+    ba, bb = _beta_or_fill(a, b), _beta_or_fill(b, a)
+    return None if ba is None else np.concatenate([ba, bb], -2)
+
+
 def concat(a: GM, b: GM) -> GM:
     """Concatenate the component axis of two batches with the same batch shape and dim."""
-    ba, bb = _beta_or_fill(a, b), _beta_or_fill(b, a)
-    pd_beta = None if ba is None else np.concatenate([ba, bb], -2)
     return GM(np.concatenate([a.w, b.w], -1), np.concatenate([a.m, b.m], -2),
-              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1), pd_beta)
+              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1), concat_pd_beta(a, b))
 
 
 def compact(g: GM, capacity: int | None = None) -> GM:

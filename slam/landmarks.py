@@ -42,7 +42,7 @@ from mmslam.errors import MmslamError
 from mmslam.model import OTHER, Bounce, LandmarkType
 
 from .birth import birth_from_moments
-from .gm import GM, concat
+from .gm import GM, concat, concat_pd_beta
 from .gmphd import predict_static
 from .reduction import merge_pairs, prune_merge
 
@@ -179,17 +179,26 @@ def predict_static_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
 
 def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
     """VS map: coordinated turn (eq. 2 / 9) with process noise ``filter.vs_process_std``; dithering
-    ``filter.vs_dither`` on every Gaussian (scope ``all``) or on the births only (``newborn``)."""
-    from .vs import predict_vs
+    ``filter.vs_dither`` on every Gaussian (scope ``all``) or on the births only (``newborn``). The
+    predicted map and its predicted births are written side by side into one mixture."""
+    from .vs import predict_vs_into, process_noise
 
     fp = scn.filter
+    if born is None or not born.capacity:
+        born = None
+        if not g.capacity:
+            return g
     q, dither = np.asarray(fp.vs_process_std), np.asarray(fp.vs_dither)
-    old_dither = dither if fp.vs_dither_scope == "all" else None
-    if g.capacity:
-        g = predict_vs(g, scn.dt, fp.p_survival, q, old_dither)
-    if born is not None and born.capacity:
-        g = concat(g, predict_vs(born, scn.dt, fp.p_survival, q, dither))
-    return g
+    add_old = process_noise(q, dither if fp.vs_dither_scope == "all" else None)
+    qa, qb = g.capacity, 0 if born is None else born.capacity
+    shape = g.batch_shape + (qa + qb,)
+    out = GM(np.empty(shape), np.empty(shape + (g.dim,)), np.empty(shape + (g.dim, g.dim)), np.empty(shape, bool),
+             g.pd_beta if born is None else concat_pd_beta(g, born))
+    if qa:
+        predict_vs_into(g, scn.dt, fp.p_survival, add_old, out, 0)
+    if born is not None:
+        predict_vs_into(born, scn.dt, fp.p_survival, process_noise(q, dither), out, qa)
+    return out
 
 
 def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,

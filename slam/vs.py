@@ -12,60 +12,75 @@ import numba as nb
 import numpy as np
 
 from .dynamics import VS_DIM, vs_ct_point
-from .gm import GM, symmetrize
+from .gm import GM
 
 DEFAULT_TURN_MEAN = 0.0
 """Mean of the Gaussian birth turn rate (rad/s); see :func:`vs_birth_mean`."""
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def ekf_predict_point(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, m_out: np.ndarray,
+                      P_out: np.ndarray, F: np.ndarray, FP: np.ndarray) -> None:
+    """EKF prediction of one VS Gaussian ``N(m, P)`` (paper eq. (9)): ``m' = f(m)``,
+    ``P' = F P F^T + add`` (exactly symmetric), with ``f``, ``F`` from
+    :func:`~mmslam.slam.dynamics.vs_ct_point`. ``m, m_out (7,)``; ``P, add, P_out (7, 7)``;
+    ``F, FP (7, 7)`` scratch."""
+    vs_ct_point(m, dt, m_out, F)
+    for i in range(VS_DIM):
+        for k in range(VS_DIM):
+            t = 0.0
+            for a in range(VS_DIM):
+                t += F[i, a] * P[a, k]
+            FP[i, k] = t
+    for i in range(VS_DIM):
+        for k in range(i + 1):
+            t1 = 0.0
+            t2 = 0.0
+            for a in range(VS_DIM):
+                t1 += FP[i, a] * F[k, a]
+                t2 += FP[k, a] * F[i, a]
+            v = 0.5 * (t1 + t2) + 0.5 * (add[i, k] + add[k, i])
+            P_out[i, k] = v
+            P_out[k, i] = v
+
+
 @nb.njit(cache=True, error_model="numpy")
-def _ekf_predict(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, m_out: np.ndarray,
-                 P_out: np.ndarray) -> None:
-    """EKF prediction of each Gaussian ``N(m[n], P[n])`` (7-D VS): ``m' = f(m)``, ``P' = F P F^T + add``
-    (exactly symmetric), with ``f``, ``F`` from :func:`~mmslam.slam.dynamics.vs_ct_point`."""
+def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, dt: float, p_survival: float,
+                   add: np.ndarray, off: int, w_out: np.ndarray, m_out: np.ndarray, P_out: np.ndarray,
+                   mask_out: np.ndarray) -> bool:
+    """:func:`ekf_predict_point` and ``w' = p_survival w`` of every live slot ``(n, q)`` of a flat batch
+    ``(N, Q, ...)`` into output slot ``(n, off + q)``; dead slots ``w = 0``, ``m = 0``, ``P = I``.
+    Returns False if a live predicted component is not finite."""
     F = np.empty((VS_DIM, VS_DIM))
     FP = np.empty((VS_DIM, VS_DIM))
-    for n in range(m.shape[0]):
-        vs_ct_point(m[n], dt, m_out[n], F)
-        for i in range(VS_DIM):
-            for k in range(VS_DIM):
-                t = 0.0
-                for a in range(VS_DIM):
-                    t += F[i, a] * P[n, a, k]
-                FP[i, k] = t
-        for i in range(VS_DIM):
-            for k in range(i + 1):
-                t1 = 0.0
-                t2 = 0.0
-                for a in range(VS_DIM):
-                    t1 += FP[i, a] * F[k, a]
-                    t2 += FP[k, a] * F[i, a]
-                v = 0.5 * (t1 + t2) + 0.5 * (add[i, k] + add[k, i])
-                P_out[n, i, k] = v
-                P_out[n, k, i] = v
+    ok = True
+    for n in range(w.shape[0]):
+        for q in range(w.shape[1]):
+            r = off + q
+            mask_out[n, r] = mask[n, q]
+            if mask[n, q]:
+                w_out[n, r] = w[n, q] * p_survival
+                ekf_predict_point(m[n, q], P[n, q], dt, add, m_out[n, r], P_out[n, r], F, FP)
+                x = w_out[n, r] * 0.0  # NaN once a non-finite value enters
+                for i in range(VS_DIM):
+                    x += m_out[n, r, i] * 0.0
+                    for k in range(VS_DIM):
+                        x += P_out[n, r, i, k] * 0.0
+                ok = ok and x == 0.0
+            else:
+                w_out[n, r] = 0.0
+                m_out[n, r] = 0.0
+                P_out[n, r] = 0.0
+                for i in range(VS_DIM):
+                    P_out[n, r, i, i] = 1.0
+    return ok
 
 
-def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
-               dither: np.ndarray | None) -> GM:
-    """Predict a batch of VS Gaussian mixtures one step (paper eq. (9), no birth).
+def process_noise(q_std: np.ndarray, dither: np.ndarray | None) -> np.ndarray:
+    """``Q + T_d = diag(q_std^2) + diag(dither)`` ``(7, 7)``: the covariance added by :func:`predict_vs`.
 
-    For every live component: ``m' = vs_ct(m, dt)``, ``P' = J P J^T + Q + T_d`` with
-    ``J = d vs_ct / d t`` at ``m``, ``Q = diag(q_std^2)`` (process noise) and ``T_d =
-    diag(dither)`` (the paper's dithering covariance added at every prediction), and
-    ``w' = p_survival * w``. Masked slots stay ``w = 0, m = 0, P = I``.
-
-    Args:
-        g: batch of VS mixtures, any batch shape ``B``, ``Q`` slots, ``d = 7``.
-        dt: time step in s.
-        p_survival: survival probability ``P_S`` in [0, 1].
-        q_std: ``(7,)`` process-noise standard deviations (m, m, m, m/s, m/s, m/s, rad/s).
-        dither: ``(7,)`` dithering *variances* (diagonal of ``T_d``), or None for none.
-
-    Returns:
-        The predicted batch (same shapes), covariances symmetrised.
+    Raises ValueError unless ``q_std`` and ``dither`` (if given) have shape ``(7,)``.
     """
-    if g.dim != VS_DIM:
-        raise ValueError(f"predict_vs expects {VS_DIM}-D VS states, got dimension {g.dim}")
     q_std = np.asarray(q_std, dtype=float)
     if q_std.shape != (VS_DIM,):
         raise ValueError(f"q_std must have shape ({VS_DIM},), got {q_std.shape}")
@@ -75,25 +90,95 @@ def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
         if dither.shape != (VS_DIM,):
             raise ValueError(f"dither must have shape ({VS_DIM},), got {dither.shape}")
         add = add + np.diag(dither)
-    live = g.mask
-    idx = np.nonzero(live)  # only live components are propagated (masked slots: 0 / I)
-    m, P = np.ascontiguousarray(g.m[idx]), np.ascontiguousarray(g.P[idx])
-    m_pred, P_pred = np.empty_like(m), np.empty_like(P)
-    _ekf_predict(m, P, float(dt), add, m_pred, P_pred)
-    m_new = np.zeros_like(g.m)
-    m_new[idx] = m_pred
-    P_new = np.broadcast_to(np.eye(VS_DIM), g.P.shape).copy()
-    P_new[idx] = P_pred
-    w_new = np.where(live, g.w * p_survival, 0.0)
-    out = GM(w_new, m_new, P_new, live.copy(), g.pd_beta)
-    out.check("after VS prediction")
+    return add
+
+
+def predict_vs_into(g: GM, dt: float, p_survival: float, add: np.ndarray, out: GM, off: int) -> None:
+    """:func:`predict_vs` of ``g`` (batch ``B``, ``Q`` slots) written to the slots ``off .. off + Q`` of
+    ``out`` (batch ``B``, contiguous arrays; e.g. a predicted map and its births side by side);
+    ``add (7, 7)`` from :func:`process_noise`. ``out.pd_beta`` is not touched.
+
+    Raises FloatingPointError if a live predicted component is not finite.
+    """
+    if g.dim != VS_DIM:
+        raise ValueError(f"predict_vs expects {VS_DIM}-D VS states, got dimension {g.dim}")
+    B, q = g.batch_shape, g.capacity
+    n, k = int(np.prod(B, dtype=int)), out.capacity
+    if not _predict_batch(np.ascontiguousarray(g.w, dtype=float).reshape(n, q),
+                          np.ascontiguousarray(g.m, dtype=float).reshape(n, q, VS_DIM),
+                          np.ascontiguousarray(g.P, dtype=float).reshape(n, q, VS_DIM, VS_DIM),
+                          np.ascontiguousarray(g.mask, dtype=bool).reshape(n, q), float(dt), float(p_survival),
+                          add, int(off), out.w.reshape(n, k), out.m.reshape(n, k, VS_DIM),
+                          out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k)):
+        raise FloatingPointError("non-finite Gaussian component after VS prediction")
+
+
+def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
+               dither: np.ndarray | None) -> GM:
+    """Predict a batch of VS Gaussian mixtures one step (paper eq. (9), no birth).
+
+    For every live component: ``m' = vs_ct(m, dt)``, ``P' = J P J^T + Q + T_d`` with
+    ``J = d vs_ct / d t`` at ``m``, ``Q = diag(q_std^2)`` (process noise) and ``T_d =
+    diag(dither)`` (the paper's dithering covariance added at every prediction), and
+    ``w' = p_survival * w`` (:func:`ekf_predict_point`). Masked slots stay ``w = 0, m = 0, P = I``.
+
+    Args:
+        g: batch of VS mixtures, any batch shape ``B``, ``Q`` slots, ``d = 7``.
+        dt: time step in s.
+        p_survival: survival probability ``P_S`` in [0, 1].
+        q_std: ``(7,)`` process-noise standard deviations (m, m, m, m/s, m/s, m/s, rad/s).
+        dither: ``(7,)`` dithering *variances* (diagonal of ``T_d``), or None for none.
+
+    Returns:
+        The predicted batch (same shapes, the same ``pd_beta``), covariances exactly symmetric.
+    """
+    if g.dim != VS_DIM:
+        raise ValueError(f"predict_vs expects {VS_DIM}-D VS states, got dimension {g.dim}")
+    add = process_noise(q_std, dither)
+    out = GM(np.empty(g.w.shape), np.empty(g.m.shape), np.empty(g.P.shape), np.empty(g.mask.shape, bool),
+             g.pd_beta)
+    predict_vs_into(g, dt, p_survival, add, out, 0)
     return out
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def vs_birth_mean_point(pos: np.ndarray, turn_mean: float, out: np.ndarray) -> None:
+    """VS birth mean ``out (7,) = [pos, 0, 0, 0, turn_mean]`` of one birth position ``pos (3,)``
+    (m; velocity m/s, turn rate rad/s; see :func:`vs_birth_mean`)."""
+    for a in range(3):
+        out[a] = pos[a]
+        out[3 + a] = 0.0
+    out[6] = turn_mean
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def vs_birth_cov_point(P_pos: np.ndarray, vel_var: np.ndarray, turn_std: float, out: np.ndarray) -> None:
+    """VS birth covariance ``out (7, 7) = blkdiag((P_pos + P_pos^T) / 2, diag(vel_var), turn_std^2)``
+    of one position covariance ``P_pos (3, 3)`` (m^2); ``vel_var (3,)`` (m/s)^2, ``turn_std`` rad/s."""
+    out[:, :] = 0.0
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = 0.5 * (P_pos[a, b] + P_pos[b, a])
+        out[3 + a, 3 + a] = vel_var[a]
+    out[6, 6] = turn_std ** 2
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _birth_mean_batch(pos: np.ndarray, turn_mean: float, out: np.ndarray) -> None:
+    for n in range(pos.shape[0]):
+        vs_birth_mean_point(pos[n], turn_mean, out[n])
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _birth_cov_batch(P_pos: np.ndarray, vel_var: np.ndarray, turn_std: float, out: np.ndarray) -> None:
+    for n in range(P_pos.shape[0]):
+        vs_birth_cov_point(P_pos[n], vel_var, turn_std, out[n])
 
 
 def vs_birth_mean(pos: np.ndarray, turn_mean: float = DEFAULT_TURN_MEAN) -> np.ndarray:
     """VS birth means ``(..., 7)`` from birth positions ``pos`` ``(..., 3)`` (global frame, m).
 
-    Velocity mean 0 (``v ~ N(0, V)`` in the paper). Turn rate: the paper draws
+    Velocity mean 0 (``v ~ N(0, V)`` in the paper; :func:`vs_birth_mean_point`). Turn rate: the paper draws
     ``xi ~ U(0, 2 pi]`` "with sigma_xi = pi/2"; a GM-PHD birth needs a Gaussian, and the
     approximation used here is ``xi ~ N(turn_mean, (pi/2)^2)`` with ``turn_mean = 0`` by default.
     Rationale: the turn direction of an unseen vehicle is unknown, so the prior should be
@@ -103,15 +188,16 @@ def vs_birth_mean(pos: np.ndarray, turn_mean: float = DEFAULT_TURN_MEAN) -> np.n
     one sigma while letting the data decide the sign.
     """
     pos = np.asarray(pos, dtype=float)
-    out = np.zeros(pos.shape[:-1] + (VS_DIM,))
-    out[..., 0:3] = pos
-    out[..., 6] = turn_mean
+    if pos.shape[-1:] != (3,):
+        raise ValueError(f"pos must end in (3,), got {pos.shape}")
+    out = np.empty(pos.shape[:-1] + (VS_DIM,))
+    _birth_mean_batch(np.ascontiguousarray(pos).reshape(-1, 3), float(turn_mean), out.reshape(-1, VS_DIM))
     return out
 
 
 def vs_birth_covariance(P_pos: np.ndarray, vel_var: np.ndarray,
                         turn_std: float = math.pi / 2) -> np.ndarray:
-    """Block-diagonal VS birth covariance ``blkdiag(P_pos, diag(vel_var), turn_std^2)``.
+    """Block-diagonal VS birth covariance ``blkdiag(P_pos, diag(vel_var), turn_std^2)`` (:func:`vs_birth_cov_point`).
 
     Args:
         P_pos: ``(..., 3, 3)`` position covariance (m^2), e.g. from the CKF birth of an SP.
@@ -127,8 +213,7 @@ def vs_birth_covariance(P_pos: np.ndarray, vel_var: np.ndarray,
         raise ValueError(f"P_pos must end in (3, 3), got {P_pos.shape}")
     if vel_var.shape != (3,):
         raise ValueError(f"vel_var must have shape (3,), got {vel_var.shape}")
-    out = np.zeros(P_pos.shape[:-2] + (VS_DIM, VS_DIM))
-    out[..., 0:3, 0:3] = symmetrize(P_pos)
-    out[..., 3:6, 3:6] = np.diag(vel_var)
-    out[..., 6, 6] = float(turn_std) ** 2
+    out = np.empty(P_pos.shape[:-2] + (VS_DIM, VS_DIM))
+    _birth_cov_batch(np.ascontiguousarray(P_pos).reshape(-1, 3, 3), vel_var, float(turn_std),
+                     out.reshape(-1, VS_DIM, VS_DIM))
     return out
