@@ -39,12 +39,12 @@ _OK, _NONFINITE, _SINGULAR = -1, -2, -3
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def finite_gaussian(w: float, m: np.ndarray, P: np.ndarray) -> bool:
     """True if the weight ``w``, mean ``m (d,)`` and covariance ``P (d, d)`` are all finite."""
-    x = w * 0.0  # NaN once a NaN or infinite value enters, else 0
+    ok = np.isfinite(w)
     for a in range(m.shape[0]):
-        x += m[a] * 0.0
+        ok &= np.isfinite(m[a])
         for b in range(m.shape[0]):
-            x += P[a, b] * 0.0
-    return x == 0.0
+            ok &= np.isfinite(P[a, b])
+    return ok
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

@@ -12,6 +12,7 @@ import numba as nb
 import numpy as np
 
 from .dynamics import VS_DIM, vs_ct_point
+from .reduction import finite_gaussian
 from .gm import GM
 
 DEFAULT_TURN_MEAN = 0.0
@@ -61,12 +62,7 @@ def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray
             if mask[n, q]:
                 w_out[n, r] = w[n, q] * p_survival
                 ekf_predict_point(m[n, q], P[n, q], dt, add, m_out[n, r], P_out[n, r], F, FP)
-                x = w_out[n, r] * 0.0  # NaN once a non-finite value enters
-                for i in range(VS_DIM):
-                    x += m_out[n, r, i] * 0.0
-                    for k in range(VS_DIM):
-                        x += P_out[n, r, i, k] * 0.0
-                ok = ok and x == 0.0
+                ok &= finite_gaussian(w_out[n, r], m_out[n, r], P_out[n, r])
             else:
                 w_out[n, r] = 0.0
                 m_out[n, r] = 0.0
