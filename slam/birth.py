@@ -211,20 +211,22 @@ def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, weight: float, mo
     d = m.shape[2]
     for p in range(ok.shape[0]):
         for j in range(ok.shape[1]):
-            if not ok[p, j]:
+            if not ok[p, j]:  # a dead slot
                 w[p, j] = 0.0
-                m[p, j] = 0.0
-                P[p, j] = 0.0
                 for a in range(d):
-                    P[p, j, a, a] = 1.0
+                    m[p, j, a] = 0.0
+                    for b in range(d):
+                        P[p, j, a, b] = 1.0 if a == b else 0.0
                 continue
             w[p, j] = weight
             if moving:
                 vs_birth_mean_point(mean[p, j], turn_mean, m[p, j])
                 vs_birth_cov_point(cov[p, j], vel_var, turn_std, P[p, j])
-            else:
-                m[p, j] = mean[p, j]
-                P[p, j] = cov[p, j]
+            else:  # the position moments
+                for a in range(3):
+                    m[p, j, a] = mean[p, j, a]
+                    for b in range(3):
+                        P[p, j, a, b] = cov[p, j, a, b]
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,

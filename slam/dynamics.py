@@ -50,9 +50,9 @@ def vs_ct_point(t: np.ndarray, dt: float, out: np.ndarray, F: np.ndarray) -> Non
     out[4] = sw * vx + cw * vy
     out[5] = t[5]
     out[6] = w
-    F[:, :] = 0.0
     for i in range(7):
-        F[i, i] = 1.0
+        for k in range(7):
+            F[i, k] = (1.0 if i == k else 0.0)
     F[0, 3], F[0, 4], F[0, 6] = s1, -c1, ds1 * vx - dc1 * vy
     F[1, 3], F[1, 4], F[1, 6] = c1, s1, dc1 * vx + ds1 * vy
     F[2, 5] = dt

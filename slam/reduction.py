@@ -106,8 +106,10 @@ def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarra
     """
     d = m.shape[1]
     W = 0.0
-    out_m[:] = 0.0  # sum w_i o_i
-    out_P[:, :] = 0.0  # sum w_i (P_i + o_i o_i^T)
+    for a in range(d):
+        out_m[a] = 0.0  # sum w_i o_i
+        for b in range(d):
+            out_P[a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
     for i in members:
         W += w[i]
         for a in range(d):
@@ -277,12 +279,13 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
                     return n
             else:
                 out_w[n, r] = 0.0
-                out_m[n, r] = 0.0
-                out_P[n, r] = 0.0
                 for a in range(d):
-                    out_P[n, r, a, a] = 1.0
+                    out_m[n, r, a] = 0.0
+                    for b in range(d):
+                        out_P[n, r, a, b] = (1.0 if a == b else 0.0)
                 out_mask[n, r] = False
-                out_ab[n, r] = 1.0
+                for a in range(out_ab.shape[2]):
+                    out_ab[n, r, a] = 1.0
     return _OK
 
 

@@ -65,10 +65,10 @@ def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray
                 ok &= finite_gaussian(w_out[n, r], m_out[n, r], P_out[n, r])
             else:
                 w_out[n, r] = 0.0
-                m_out[n, r] = 0.0
-                P_out[n, r] = 0.0
                 for i in range(VS_DIM):
-                    P_out[n, r, i, i] = 1.0
+                    m_out[n, r, i] = 0.0
+                    for k in range(VS_DIM):
+                        P_out[n, r, i, k] = (1.0 if i == k else 0.0)
     return ok
 
 
@@ -151,7 +151,9 @@ def vs_birth_mean_point(pos: np.ndarray, turn_mean: float, out: np.ndarray) -> N
 def vs_birth_cov_point(P_pos: np.ndarray, vel_var: np.ndarray, turn_std: float, out: np.ndarray) -> None:
     """VS birth covariance ``out (7, 7) = blkdiag((P_pos + P_pos^T) / 2, diag(vel_var), turn_std^2)``
     of one position covariance ``P_pos (3, 3)`` (m^2); ``vel_var (3,)`` (m/s)^2, ``turn_std`` rad/s."""
-    out[:, :] = 0.0
+    for a in range(VS_DIM):
+        for b in range(VS_DIM):
+            out[a, b] = 0.0
     for a in range(3):
         for b in range(3):
             out[a, b] = 0.5 * (P_pos[a, b] + P_pos[b, a])
