@@ -30,6 +30,7 @@ from .ckf import cubature_points
 from .gm import GM
 from .dynamics import VS_DIM
 from .measurement import SP, VA, geometry_of
+from .reduction import dead_gaussian
 from .vs import DEFAULT_TURN_MEAN, vs_birth_cov_point, vs_birth_mean_point
 
 
@@ -208,15 +209,11 @@ def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, weight: float, mo
     ``weight`` at the position moments ``mean[p, j] (3,)``, ``cov[p, j] (3, 3)`` (``moving``: the 7-D
     VS birth :func:`~mmslam.slam.vs.vs_birth_mean_point`, :func:`~mmslam.slam.vs.vs_birth_cov_point`),
     else ``w = 0``, ``m = 0``, ``P = I``. Writes ``w (P, J)``, ``m (P, J, d)``, ``P (P, J, d, d)``."""
-    d = m.shape[2]
     for p in range(ok.shape[0]):
         for j in range(ok.shape[1]):
-            if not ok[p, j]:  # a dead slot
+            if not ok[p, j]:
                 w[p, j] = 0.0
-                for a in range(d):
-                    m[p, j, a] = 0.0
-                    for b in range(d):
-                        P[p, j, a, b] = 1.0 if a == b else 0.0
+                dead_gaussian(m[p, j], P[p, j])
                 continue
             w[p, j] = weight
             if moving:

@@ -48,6 +48,15 @@ def finite_gaussian(w: float, m: np.ndarray, P: np.ndarray) -> bool:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def dead_gaussian(m: np.ndarray, P: np.ndarray) -> None:
+    """A masked slot's ``m (d,) = 0`` and ``P (d, d) = I`` (the :mod:`mmslam.slam.gm` convention)."""
+    for a in range(m.shape[0]):
+        m[a] = 0.0
+        for b in range(m.shape[0]):
+            P[a, b] = 1.0 if a == b else 0.0
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def live_finite(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> bool:
     """True if every live component (``mask (Q,)``) of one mixture is finite (:func:`finite_gaussian`;
     ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``)."""
@@ -265,7 +274,6 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
 
     Returns ``_OK`` or the first ``n`` with a non-finite merged component.
     """
-    d = m.shape[2]
     for n in range(out_w.shape[0]):
         for r in range(out_w.shape[1]):
             if r < count[n]:
@@ -279,10 +287,7 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
                     return n
             else:
                 out_w[n, r] = 0.0
-                for a in range(d):
-                    out_m[n, r, a] = 0.0
-                    for b in range(d):
-                        out_P[n, r, a, b] = (1.0 if a == b else 0.0)
+                dead_gaussian(out_m[n, r], out_P[n, r])
                 out_mask[n, r] = False
                 for a in range(out_ab.shape[2]):
                     out_ab[n, r, a] = 1.0

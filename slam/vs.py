@@ -12,7 +12,7 @@ import numba as nb
 import numpy as np
 
 from .dynamics import VS_DIM, vs_ct_point
-from .reduction import finite_gaussian
+from .reduction import dead_gaussian, finite_gaussian
 from .gm import GM
 
 DEFAULT_TURN_MEAN = 0.0
@@ -65,10 +65,7 @@ def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray
                 ok &= finite_gaussian(w_out[n, r], m_out[n, r], P_out[n, r])
             else:
                 w_out[n, r] = 0.0
-                for i in range(VS_DIM):
-                    m_out[n, r, i] = 0.0
-                    for k in range(VS_DIM):
-                        P_out[n, r, i, k] = (1.0 if i == k else 0.0)
+                dead_gaussian(m_out[n, r], P_out[n, r])
     return ok
 
 
