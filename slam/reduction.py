@@ -481,7 +481,9 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     # one mixture, the union of the particles' components (particle-major order): pruned on their
     # own weights eta (NaN, never kept, in particles of weight 0), merged with the weights w_p eta
     w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
-    w, m, P, mask, ab = _reduce(w_own, (g.w * pw[:, None]).reshape(1, n), g.m.reshape(1, n, d),
+    with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
+        w_merge = (g.w * pw[:, None]).reshape(1, n)
+    w, m, P, mask, ab = _reduce(w_own, w_merge, g.m.reshape(1, n, d),
                                 g.P.reshape(1, n, d, d), g.mask.reshape(1, n),
                                 None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2), prune, max_trace,
                                 pos_dims, merge, prune, cap, False, True, "average_map")

@@ -119,3 +119,26 @@ def test_birth_moments_equal_the_stacked_reference(lm_type):
     assert np.array_equal(ok, rok) and ok.any()
     np.testing.assert_allclose(mean[ok], rm[ok], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(cov[ok], rc[ok], rtol=1e-9, atol=1e-9 * np.abs(rc[ok]).max())
+
+
+@pytest.mark.parametrize("lm_type", [VA, SP, VS])
+def test_birth_from_moments_equals_the_masked_formula(lm_type):
+    """Every slot of the birth kernel, bit for bit: weight / moments (VS: blkdiag(P, V, sigma_xi^2), mean
+    [pos, 0, 0, 0, 0]) where the moments are valid (and p_D > 0 for SP / VS), else w = 0, m = 0, P = I."""
+    from mmslam.slam.birth import birth_from_moments, birth_moments
+    from mmslam.slam.vs import vs_birth_covariance, vs_birth_mean
+
+    rng = np.random.default_rng(4)
+    s = _random_states(rng, 6)
+    Z = np.stack([measure(s[0], rng.uniform(-60, 60, 3) + [0, 0, 5], SP, BS_POS) for _ in range(5)])
+    mean, cov, ok = birth_moments(s, Z, R, lm_type, BS_POS)
+    ok[0, 0] = False  # an invalid inversion stays dead whatever its moments
+    g = birth_from_moments(s, mean, cov, ok, lm_type, 2e-5, _pd, (100.0, 100.0, 0.09), 1.5)
+    live = ok & ((lm_type == VA) | (_pd(s[:, None, :3], mean, lm_type) > 0))
+    assert np.array_equal(g.mask, live) and 0 < live.sum() < live.size
+    assert np.array_equal(g.w, np.where(live, 2e-5, 0.0))
+    d = 7 if lm_type == VS else 3
+    m_ref = vs_birth_mean(mean) if d == 7 else mean
+    P_ref = vs_birth_covariance(cov, np.array([100.0, 100.0, 0.09]), 1.5) if d == 7 else cov
+    assert np.array_equal(g.m, np.where(live[..., None], m_ref, 0.0))
+    assert np.array_equal(g.P, np.where(live[..., None, None], P_ref, np.eye(d)))

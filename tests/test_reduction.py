@@ -288,3 +288,30 @@ def test_moment_match_equals_the_textbook_formula():
     np.testing.assert_allclose(out_m, mu, rtol=1e-12)
     np.testing.assert_allclose(out_P, C, rtol=1e-9, atol=1e-9 * np.abs(C).max())
     assert np.array_equal(out_P, out_P.T)
+
+
+def test_non_finite_components_raise_only_where_live():
+    """A NaN in a masked slot is ignored; in a live component it raises even when that component would be
+    pruned (prune_merge) or belongs to a particle of weight 0 (average_map), naming the stage."""
+    g = _gm([0.5, 0.5, 1e-6], [[0, 0], [1, 1], [2, np.nan]])
+    with pytest.raises(FloatingPointError, match="in prune_merge input"):
+        prune_merge(g, 1e-4, 49.0, 5)
+    g.mask[2] = False
+    assert prune_merge(g, 1e-4, 49.0, 5).count() == 1
+    two = GM(np.array([[0.5, 0.5], [0.5, np.inf]]), np.zeros((2, 2, 2)), np.broadcast_to(np.eye(2), (2, 2, 2, 2)).copy(),
+             np.ones((2, 2), bool))
+    with pytest.raises(FloatingPointError, match="in average_map input"):
+        average_map(two, np.array([1.0, 0.0]), 0.1, 49.0, 5)
+    two.mask[1, 1] = False
+    out = average_map(two, np.array([1.0, 0.0]), 0.1, 49.0, 5)
+    assert out.count() == 1 and np.isclose(out.w[0], 1.0)  # particle 0's two Gaussians merged
+
+
+def test_fixed_capacity_pads_with_dead_slots():
+    g = _gm([[0.6, 0.4, 0.3], [0.2, 0.0, 0.0]], [[[0, 0], [1, 0], [10, 0]], [[5, 5], [0, 0], [0, 0]]])
+    g.mask[1, 1:] = False
+    out = prune_merge(g, 1e-4, 4.0, 4, fixed_capacity=True)
+    assert out.capacity == 4 and out.count().tolist() == [2, 1]
+    dead = ~out.mask
+    assert (out.w[dead] == 0).all() and (out.m[dead] == 0).all() and (out.P[dead] == np.eye(2)).all()
+    assert prune_merge(g, 1e-4, 4.0, 4).capacity == 2

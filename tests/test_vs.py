@@ -102,3 +102,35 @@ def test_birth_mean_and_covariance():
     assert C[0, 6, 6] == pytest.approx((math.pi / 2) ** 2)
     assert np.all(C[:, :3, 3:] == 0) and np.all(C[:, 3:6, 6] == 0)
     assert np.all(np.linalg.eigvalsh(C) > 0)
+
+
+@pytest.mark.parametrize("scope", ["all", "newborn"])
+@pytest.mark.parametrize("n_old", [0, 3])
+def test_vs_map_prediction_equals_the_concatenated_predictions(scope, n_old):
+    """predict_vs_map writes the predicted map and its predicted births side by side: bit for bit the
+    concatenation of the two predictions (old Gaussians dithered only with scope 'all')."""
+    from types import SimpleNamespace
+
+    from mmslam.slam.gm import concat
+    from mmslam.slam.landmarks import predict_vs_map
+
+    rng = np.random.default_rng(9)
+
+    def rand_gm(q):
+        m = rng.normal(size=(4, q, 7)) * [10, 10, 1, 5, 5, 0.1, 0.3]
+        X = rng.normal(size=(4, q, 7, 7))
+        mask = rng.random((4, q)) < 0.7
+        P = np.where(mask[..., None, None], X @ np.swapaxes(X, -1, -2) + np.eye(7), np.eye(7))
+        return GM(np.where(mask, rng.random((4, q)), 0.0), np.where(mask[..., None], m, 0.0), P, mask)
+
+    old, born = rand_gm(n_old), rand_gm(5)
+    fp = SimpleNamespace(vs_process_std=tuple(Q_STD), vs_dither=tuple(DITHER), vs_dither_scope=scope, p_survival=0.99)
+    scn = SimpleNamespace(filter=fp, dt=0.5)
+    out = predict_vs_map(old, born, scn)
+    ref = concat(predict_vs(old, 0.5, 0.99, Q_STD, DITHER if scope == "all" else None),
+                 predict_vs(born, 0.5, 0.99, Q_STD, DITHER))
+    for a, b in ((out.w, ref.w), (out.m, ref.m), (out.P, ref.P), (out.mask, ref.mask)):
+        assert np.array_equal(a, b)
+    assert out.pd_beta is None
+    alone = predict_vs_map(old, None, scn)  # no births: the map alone
+    assert alone.capacity == n_old and np.array_equal(alone.P, ref.P[:, :n_old])
