@@ -136,6 +136,16 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     return GM(w, m, P, mask, pd_beta)
 
 
+def drop_dead_slots(g: GM) -> GM:
+    """``g`` without the slots that are masked in every mixture of the batch (the others keep their
+    order); ``g`` itself if there are none."""
+    live = g.mask.reshape(-1, g.capacity).any(axis=0)
+    if live.all():
+        return g
+    return GM(g.w[..., live], g.m[..., live, :], g.P[..., live, :, :], g.mask[..., live],
+              None if g.pd_beta is None else g.pd_beta[..., live, :])
+
+
 def symmetrize(P: np.ndarray) -> np.ndarray:
     """``(P + P^T) / 2`` over the last two axes."""
     return 0.5 * (P + np.swapaxes(P, -1, -2))

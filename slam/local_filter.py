@@ -32,7 +32,7 @@ from mmslam.scenes.scenario import Scenario
 
 from .birth import birth_moments_by_kind
 from .dynamics import wrap_angle
-from .gm import GM, empty
+from .gm import GM, drop_dead_slots, empty
 from .gmphd import correct
 from .landmarks import LandmarkSpec
 from .measurement import BS
@@ -123,7 +123,8 @@ class LocalFilter:
             kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}))
             moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t, sp in self.specs.items():
-                births[t] = sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn)
+                # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
+                births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn))
         self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
                            self.rng)
         if not self.update:

@@ -315,3 +315,20 @@ def test_fixed_capacity_pads_with_dead_slots():
     dead = ~out.mask
     assert (out.w[dead] == 0).all() and (out.m[dead] == 0).all() and (out.P[dead] == np.eye(2)).all()
     assert prune_merge(g, 1e-4, 4.0, 4).capacity == 2
+
+
+def test_drop_dead_slots_keeps_the_live_columns_in_order():
+    from mmslam.slam.gm import drop_dead_slots
+
+    rng = np.random.default_rng(3)
+    mask = np.array([[True, False, False, True], [False, False, False, True]])
+    g = GM(np.where(mask, 0.5, 0.0), rng.normal(size=(2, 4, 3)), rng.normal(size=(2, 4, 3, 3)), mask,
+           rng.uniform(1, 5, (2, 4, 2)))
+    out = drop_dead_slots(g)
+    assert out.capacity == 2
+    for a, b in ((out.w, g.w), (out.mask, g.mask), (out.pd_beta, g.pd_beta)):
+        assert np.array_equal(a, b[:, [0, 3]])
+    assert np.array_equal(out.m, g.m[:, [0, 3]]) and np.array_equal(out.P, g.P[:, [0, 3]])
+    full = GM(g.w, g.m, g.P, np.ones((2, 4), bool))
+    assert drop_dead_slots(full) is full
+    assert drop_dead_slots(empty((2,), 3, 3)).capacity == 0
