@@ -142,8 +142,9 @@ def drop_dead_slots(g: GM) -> GM:
     live = g.mask.reshape(-1, g.capacity).any(axis=0)
     if live.all():
         return g
-    return GM(g.w[..., live], g.m[..., live, :], g.P[..., live, :, :], g.mask[..., live],
-              None if g.pd_beta is None else g.pd_beta[..., live, :])
+    idx = np.flatnonzero(live)
+    return GM(np.take(g.w, idx, -1), np.take(g.m, idx, -2), np.take(g.P, idx, -3), np.take(g.mask, idx, -1),
+              None if g.pd_beta is None else np.take(g.pd_beta, idx, -2))
 
 
 def symmetrize(P: np.ndarray) -> np.ndarray:
