@@ -117,21 +117,32 @@ def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
     Returns False if a moment is not finite or the spread is degenerate (``det(cov) <= 0``).
     """
     K = x.shape[0]
+    # one pass per moment order, the sums (each over k in order) side by side
+    s0 = s1 = s2 = 0.0
+    for k in range(K):
+        s0 += x[k, 0]
+        s1 += x[k, 1]
+        s2 += x[k, 2]
+    m0, m1, m2 = s0 / K, s1 / K, s2 / K
+    c00 = c10 = c11 = c20 = c21 = c22 = 0.0
+    for k in range(K):
+        e0, e1, e2 = x[k, 0] - m0, x[k, 1] - m1, x[k, 2] - m2
+        c00 += e0 * e0
+        c10 += e1 * e0
+        c11 += e1 * e1
+        c20 += e2 * e0
+        c21 += e2 * e1
+        c22 += e2 * e2
+    mean[0], mean[1], mean[2] = m0, m1, m2
+    cov[0, 0], cov[1, 1], cov[2, 2] = c00 / K, c11 / K, c22 / K
+    cov[1, 0] = cov[0, 1] = c10 / K
+    cov[2, 0] = cov[0, 2] = c20 / K
+    cov[2, 1] = cov[1, 2] = c21 / K
     ok = True
     for a in range(3):
-        t = 0.0
-        for k in range(K):
-            t += x[k, a]
-        mean[a] = t / K
-        ok = ok and np.isfinite(mean[a])
-    for a in range(3):
-        for c in range(a + 1):
-            t = 0.0
-            for k in range(K):
-                t += (x[k, a] - mean[a]) * (x[k, c] - mean[c])
-            cov[a, c] = t / K
-            cov[c, a] = cov[a, c]
-            ok = ok and np.isfinite(cov[a, c])
+        ok &= np.isfinite(mean[a])
+        for c in range(3):
+            ok &= np.isfinite(cov[a, c])
     if not ok:
         return False
     det = (cov[0, 0] * (cov[1, 1] * cov[2, 2] - cov[1, 2] * cov[1, 2])
