@@ -20,27 +20,41 @@ DEFAULT_TURN_MEAN = 0.0
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def row_times(x: np.ndarray, M: np.ndarray, out: np.ndarray) -> None:
+    """``out (7,) = x^T M`` for ``x (7,)``, ``M (7, 7)``: ``out[k] = sum_a x[a] M[a, k]``, each sum in
+    the order ``a = 0..6``, the seven sums side by side (independent accumulators)."""
+    t0 = t1 = t2 = t3 = t4 = t5 = t6 = 0.0
+    for a in range(VS_DIM):
+        f = x[a]
+        t0 += f * M[a, 0]
+        t1 += f * M[a, 1]
+        t2 += f * M[a, 2]
+        t3 += f * M[a, 3]
+        t4 += f * M[a, 4]
+        t5 += f * M[a, 5]
+        t6 += f * M[a, 6]
+    out[0], out[1], out[2], out[3], out[4], out[5], out[6] = t0, t1, t2, t3, t4, t5, t6
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def ekf_predict_point(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, m_out: np.ndarray,
-                      P_out: np.ndarray, F: np.ndarray, FP: np.ndarray) -> None:
+                      P_out: np.ndarray, work: np.ndarray) -> None:
     """EKF prediction of one VS Gaussian ``N(m, P)`` (paper eq. (9)): ``m' = f(m)``,
-    ``P' = F P F^T + add`` (exactly symmetric), with ``f``, ``F`` from
-    :func:`~mmslam.slam.dynamics.vs_ct_point`. ``m, m_out (7,)``; ``P, add, P_out (7, 7)``;
-    ``F, FP (7, 7)`` scratch."""
+    ``P' = F P F^T + add`` (exactly symmetric: the mean of ``G = F P F^T`` and ``G^T``), with
+    ``f``, ``F`` from :func:`~mmslam.slam.dynamics.vs_ct_point`. ``m, m_out (7,)``;
+    ``P, add, P_out (7, 7)``; ``work (3, 7, 7)`` scratch."""
+    F, Ft, FP = work[0], work[1], work[2]
     vs_ct_point(m, dt, m_out, F)
     for i in range(VS_DIM):
         for k in range(VS_DIM):
-            t = 0.0
-            for a in range(VS_DIM):
-                t += F[i, a] * P[a, k]
-            FP[i, k] = t
+            Ft[k, i] = F[i, k]
+    for i in range(VS_DIM):
+        row_times(F[i], P, FP[i])  # (F P)[i, :]
+    for i in range(VS_DIM):
+        row_times(FP[i], Ft, P_out[i])  # G[i, :] = (F P F^T)[i, :]
     for i in range(VS_DIM):
         for k in range(i + 1):
-            t1 = 0.0
-            t2 = 0.0
-            for a in range(VS_DIM):
-                t1 += FP[i, a] * F[k, a]
-                t2 += FP[k, a] * F[i, a]
-            v = 0.5 * (t1 + t2) + 0.5 * (add[i, k] + add[k, i])
+            v = 0.5 * (P_out[i, k] + P_out[k, i]) + 0.5 * (add[i, k] + add[k, i])
             P_out[i, k] = v
             P_out[k, i] = v
 
@@ -52,8 +66,7 @@ def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray
     """:func:`ekf_predict_point` and ``w' = p_survival w`` of every live slot ``(n, q)`` of a flat batch
     ``(N, Q, ...)`` into output slot ``(n, off + q)``; dead slots ``w = 0``, ``m = 0``, ``P = I``.
     Returns False if a live predicted component is not finite."""
-    F = np.empty((VS_DIM, VS_DIM))
-    FP = np.empty((VS_DIM, VS_DIM))
+    work = np.empty((3, VS_DIM, VS_DIM))
     ok = True
     for n in range(w.shape[0]):
         for q in range(w.shape[1]):
@@ -61,7 +74,7 @@ def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray
             mask_out[n, r] = mask[n, q]
             if mask[n, q]:
                 w_out[n, r] = w[n, q] * p_survival
-                ekf_predict_point(m[n, q], P[n, q], dt, add, m_out[n, r], P_out[n, r], F, FP)
+                ekf_predict_point(m[n, q], P[n, q], dt, add, m_out[n, r], P_out[n, r], work)
                 ok &= finite_gaussian(w_out[n, r], m_out[n, r], P_out[n, r])
             else:
                 w_out[n, r] = 0.0
