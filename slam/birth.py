@@ -241,12 +241,14 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
                        lm_type: int, birth_weight: float,
                        pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                        vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
-                       vs_turn_std: float = np.pi / 2) -> GM:
+                       vs_turn_std: float = np.pi / 2, *, drop_dead: bool = False) -> GM:
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
 
     The type's spec (:func:`mmslam.slam.landmarks.landmark_type`) decides: a range-gated type's
     births need ``p_D > 0`` at their mean; a 7-D (moving, VS) type gets the velocity / turn-rate
     prior (:func:`~mmslam.slam.vs.vs_birth_mean`, :func:`~mmslam.slam.vs.vs_birth_covariance`).
+    Slot ``j`` holds the births of ``z_j``; with ``drop_dead`` the measurements without a birth in
+    any particle have no slot (the others keep their order).
     """
     from .landmarks import landmark_type  # lazy: the registry module imports this one
 
@@ -254,6 +256,10 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     if spec.range_gated:  # e.g. not a VA: its image lies behind the wall
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
         ok = ok & (pd > 0.0)
+    if drop_dead:
+        cols = np.flatnonzero(ok.any(axis=0))
+        if cols.size < ok.shape[1]:
+            mean, cov, ok = np.take(mean, cols, 1), np.take(cov, cols, 1), np.take(ok, cols, 1)
     moving = spec.state_dim == VS_DIM
     vel_var = np.asarray(vs_velocity_var, dtype=float)
     if moving and vel_var.shape != (3,):

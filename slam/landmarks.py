@@ -204,12 +204,13 @@ def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
 def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
                 scn: "Scenario", pd_fn: PdFn) -> GM:
     """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
-    step's measurements (:func:`mmslam.slam.birth.birth_from_moments`; a 7-D VS birth gets the
+    step's measurements, one slot per measurement with a birth in some particle
+    (:func:`mmslam.slam.birth.birth_from_moments`; a 7-D VS birth gets the
     velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``),
     with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one."""
     fp = scn.filter
     born = birth_from_moments(states, *moments, spec.code, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
-                              fp.vs_birth_turn_std)
+                              fp.vs_birth_turn_std, drop_dead=True)
     prior = spec.pd_beta_prior(scn)
     if prior is not None:
         born.pd_beta = np.broadcast_to(np.asarray(prior, float), born.w.shape + (2,)).copy()

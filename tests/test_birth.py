@@ -133,6 +133,7 @@ def test_birth_from_moments_equals_the_masked_formula(lm_type):
     Z = np.stack([measure(s[0], rng.uniform(-60, 60, 3) + [0, 0, 5], SP, BS_POS) for _ in range(5)])
     mean, cov, ok = birth_moments(s, Z, R, lm_type, BS_POS)
     ok[0, 0] = False  # an invalid inversion stays dead whatever its moments
+    ok[:, 3] = False  # and a measurement without a birth in any particle
     g = birth_from_moments(s, mean, cov, ok, lm_type, 2e-5, _pd, (100.0, 100.0, 0.09), 1.5)
     live = ok & ((lm_type == VA) | (_pd(s[:, None, :3], mean, lm_type) > 0))
     assert np.array_equal(g.mask, live) and 0 < live.sum() < live.size
@@ -142,3 +143,9 @@ def test_birth_from_moments_equals_the_masked_formula(lm_type):
     P_ref = vs_birth_covariance(cov, np.array([100.0, 100.0, 0.09]), 1.5) if d == 7 else cov
     assert np.array_equal(g.m, np.where(live[..., None], m_ref, 0.0))
     assert np.array_equal(g.P, np.where(live[..., None, None], P_ref, np.eye(d)))
+    # drop_dead: only the measurements with a birth in some particle keep a slot, in order
+    cols = live.any(axis=0)
+    assert not cols.all()
+    short = birth_from_moments(s, mean, cov, ok, lm_type, 2e-5, _pd, (100.0, 100.0, 0.09), 1.5, drop_dead=True)
+    for a, b in ((short.w, g.w), (short.m, g.m), (short.P, g.P), (short.mask, g.mask)):
+        assert np.array_equal(a, b[:, cols])
