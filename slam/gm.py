@@ -139,7 +139,7 @@ def compact(g: GM, capacity: int | None = None) -> GM:
 def drop_dead_slots(g: GM) -> GM:
     """``g`` without the slots that are masked in every mixture of the batch (the others keep their
     order); ``g`` itself if there are none."""
-    live = g.mask.reshape(-1, g.capacity).any(axis=0)
+    live = g.mask.any(axis=tuple(range(g.mask.ndim - 1)))
     if live.all():
         return g
     idx = np.flatnonzero(live)

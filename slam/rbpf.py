@@ -9,6 +9,7 @@ Every random draw uses the ``numpy.random.Generator`` passed in.
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 from .dynamics import vehicle_ct, wrap_angle
@@ -80,8 +81,22 @@ def weighted_state_mean(s: np.ndarray, w: np.ndarray) -> np.ndarray:
     return m
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _weighted_outer_sum(w: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
+    """``out[a, b] = sum_p w[p] d[p, a] d[p, b]`` (``w (P,)``, ``d (P, n)``), each sum over ``p`` in order."""
+    for a in range(d.shape[1]):
+        for b in range(d.shape[1]):
+            t = 0.0
+            for p in range(d.shape[0]):
+                t += w[p] * d[p, a] * d[p, b]
+            out[a, b] = t
+
+
 def weighted_state_cov(s: np.ndarray, w: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """Weighted particle covariance ``(7, 7)`` around ``mean`` (heading differences wrapped)."""
+    """Weighted particle covariance ``(7, 7)`` around ``mean`` (heading differences wrapped):
+    ``sum_p w_p (s_p - mean)(s_p - mean)^T``."""
     d = s - mean[None, :]
     d[:, 3] = wrap_angle(d[:, 3])
-    return np.einsum("p,pa,pb->ab", w, d, d)
+    out = np.empty((d.shape[1], d.shape[1]))
+    _weighted_outer_sum(np.ascontiguousarray(w, dtype=float), d, out)
+    return out

@@ -332,3 +332,6 @@ def test_drop_dead_slots_keeps_the_live_columns_in_order():
     full = GM(g.w, g.m, g.P, np.ones((2, 4), bool))
     assert drop_dead_slots(full) is full
     assert drop_dead_slots(empty((2,), 3, 3)).capacity == 0
+    none = empty((2,), 0, 3)
+    assert drop_dead_slots(none) is none
+    assert drop_dead_slots(empty((), 2, 3)).capacity == 0
