@@ -57,28 +57,24 @@ def dead_gaussian(m: np.ndarray, P: np.ndarray) -> None:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def live_finite(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> bool:
-    """True if every live component (``mask (Q,)``) of one mixture is finite (:func:`finite_gaussian`;
-    ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``)."""
-    for i in range(w.shape[0]):
-        if mask[i] and not finite_gaussian(w[i], m[i], P[i]):
-            return False
-    return True
-
-
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def survivors(w: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float, max_trace: float, pos_dims: int,
-              out: np.ndarray) -> int:
+def survivors(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float,
+              max_trace: float, pos_dims: int, out: np.ndarray) -> int:
     """Vo & Ma 2006, Table II, step 1, for one mixture: the components that survive pruning.
 
-    Survivor ``i``: ``mask[i]``, ``w[i] >= prune`` and ``trace(P[i, :pos_dims, :pos_dims]) <=
-    max_trace`` (m^2; ``inf`` for no limit). ``w (Q,)``, ``P (Q, d, d)``, ``mask (Q,)``. Their slot
-    indices are written, in slot order, to ``out[:n]``; returns ``n``.
+    Survivor ``i``: ``mask[i]``, ``w_prune[i] >= prune`` and ``trace(P[i, :pos_dims, :pos_dims]) <=
+    max_trace`` (m^2; ``inf`` for no limit). ``w_prune, w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``,
+    ``mask (Q,)``. Their slot indices are written, in slot order, to ``out[:n]``; returns ``n``, or -1
+    if a live component (``mask``) has a non-finite weight ``w``, mean or covariance
+    (:func:`finite_gaussian`; pruned ones too).
     """
     n = 0
     k = min(pos_dims, P.shape[1])
     for i in range(w.shape[0]):
-        if mask[i] and w[i] >= prune:
+        if not mask[i]:
+            continue
+        if not finite_gaussian(w[i], m[i], P[i]):
+            return -1
+        if w_prune[i] >= prune:
             tr = 0.0
             for a in range(k):
                 tr += P[i, a, a]
@@ -141,8 +137,8 @@ def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarra
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray, n: int, merge: float,
-                    L: np.ndarray, r2: np.ndarray, D: np.ndarray, members: np.ndarray, heads: np.ndarray,
-                    starts: np.ndarray, W: np.ndarray) -> int:
+                    by_weight: bool, L: np.ndarray, r2: np.ndarray, D: np.ndarray, members: np.ndarray,
+                    heads: np.ndarray, starts: np.ndarray, W: np.ndarray) -> int:
     """Greedy Mahalanobis clusters of one mixture (Vo & Ma 2006, Table II, step 2).
 
     Take the highest-weight remaining component ``j`` (the first in ``rem`` order on ties); its
@@ -154,6 +150,7 @@ def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray
         w: ``(Q,)`` weights; m: ``(Q, d)`` means; P: ``(Q, d, d)`` SPD covariances.
         rem: ``(>= n,)`` the slots to merge in ``rem[:n]``, in priority order (overwritten).
         merge: the gate ``U``.
+        by_weight: ``rem`` is sorted by descending weight (ties in slot order): the head is the first.
         L, r2, D: scratch ``(Q, d, d)``, ``(Q,)``, ``(d,)`` (Cholesky factors, pre-gate radii).
         members: ``(>= n,)`` receives the slots grouped by cluster (each cluster in ``rem`` order);
             cluster ``k`` is ``members[starts[k]:starts[k + 1]]``, its head ``heads[k]``, its weight
@@ -176,7 +173,7 @@ def greedy_clusters(w: np.ndarray, m: np.ndarray, P: np.ndarray, rem: np.ndarray
     pos = 0
     while n > 0:
         jj = 0
-        for t in range(1, n):
+        for t in range(1, 1 if by_weight else n):
             if w[rem[t]] > w[rem[jj]]:
                 jj = t
         j = rem[jj]
@@ -251,12 +248,13 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     rem = np.empty(q, np.int64)
     W = np.empty(q)
     for n in range(N):
-        if not live_finite(w[n], m[n], P[n], mask[n]):
+        ns = survivors(w_prune[n], w[n], m[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
+        if ns < 0:
             return _NONFINITE
-        ns = survivors(w_prune[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
         if sort_input:
             sort_descending(w[n], rem, ns)
-        K = greedy_clusters(w[n], m[n], P[n], rem, ns, merge, L, r2, D, members[n], heads[n], starts[n], W)
+        K = greedy_clusters(w[n], m[n], P[n], rem, ns, merge, sort_input, L, r2, D, members[n], heads[n], starts[n],
+                            W)
         if K < 0:
             return _SINGULAR
         count[n] = min(cap, cluster_order(W, K, min_weight, sort_output, order[n]))
