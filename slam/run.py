@@ -37,6 +37,7 @@ from .evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
 from .landmarks import known_codes, landmark_types
 from .local_filter import LocalFilter, StepEstimate
+from .memory import retain_freed_memory
 from .result import Result
 from .variants import VariantSpec, get_variant
 
@@ -102,6 +103,7 @@ class CooperativeRun:
         from .sensor import fov_detect_prob, simulate_measurements
 
         self.t0 = time.perf_counter()
+        retain_freed_memory()  # no page faults per step for the maps' arrays (slam/memory.py)
         self.variant = get_variant(variant)
         self.measurement_update = bool(measurement_update and self.variant.measurement_update)
         self.particles = resolve_particles(scn, particles)
