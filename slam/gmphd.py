@@ -177,10 +177,12 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     c = np.ascontiguousarray
     g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta)
     P_, Q, d = g.m.shape
+    beta_shape = None if g.pd_beta is None else np.shape(g.pd_beta)
     if (d < 3 or g.P.shape != (P_, Q, d, d) or g.w.shape != (P_, Q) or g.mask.shape != (P_, Q)
-            or np.shape(states) != (P_, 7) or np.shape(bs) != (3,)):
+            or np.shape(states) != (P_, 7) or np.shape(bs) != (3,) or beta_shape not in (None, (P_, Q, 2))):
         raise ValueError(f"{stage}: shapes w {g.w.shape}, m {g.m.shape}, P {g.P.shape}, states {np.shape(states)}, "
-                         f"bs {np.shape(bs)}; expected (P, Q), (P, Q, d >= 3), (P, Q, d, d), (P, 7), (3,)")
+                         f"bs {np.shape(bs)}, pd_beta {beta_shape}; expected (P, Q), (P, Q, d >= 3), (P, Q, d, d), "
+                         f"(P, 7), (3,), None or (P, Q, 2)")
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
         pd = expected_pd(pd, g.pd_beta)
@@ -299,14 +301,21 @@ def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
                p_d: np.ndarray) -> np.ndarray:
     """``log(p_D N(z_j; h(s_p, b, BS), R))`` for the known BS, shape ``(P, J)``.
 
-    ``p_d`` is ``(P,)``: the BS detection probability for each particle. ``R``: ``(5, 5)``, or
-    ``(J, 5, 5)`` one covariance per measurement.
+    ``p_d`` is ``(P,)``: the BS detection probability for each particle. ``states (P, 7)``,
+    ``Z (J, 5)``, ``bs (3,)``; ``R``: ``(5, 5)``, or ``(J, 5, 5)`` one covariance per measurement.
+
+    Raises:
+        ValueError: an array of another shape (checked before the compiled loop, which reads
+            ``R[j]``, ``states[p]`` and ``bs`` unchecked).
     """
     J = Z.shape[0]
+    R = _per_measurement_cov(R, J)
+    if np.ndim(states) != 2 or np.shape(states)[1] != 7 or np.shape(Z) != (J, MEAS_DIM) or np.shape(bs) != (3,):
+        raise ValueError(f"BS likelihood: shapes states {np.shape(states)}, Z {np.shape(Z)}, bs {np.shape(bs)}; "
+                         f"expected (P, 7), (J, 5), (3,)")
     if J == 0:  # no measurements
         return np.zeros((states.shape[0], 0))
-    R = np.asarray(R, float)
-    L = safe_cholesky(R.reshape(-1, MEAS_DIM, MEAS_DIM), "BS likelihood")
+    L = safe_cholesky(R, "BS likelihood")
     ll = np.empty((states.shape[0], J))
     _bs_loglik(np.ascontiguousarray(states, dtype=float), np.ascontiguousarray(Z, dtype=float), L,
                np.ascontiguousarray(bs, dtype=float), ll)

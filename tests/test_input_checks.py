@@ -80,6 +80,45 @@ def test_type_terms_rejects_wrong_shapes_before_its_kernel():
         type_terms(g, SP, s, Z, np.stack([R] * 3), BS_POS, pd_fn)
 
 
+def test_type_terms_rejects_a_pd_beta_of_another_shape():
+    """Review finding: the correction kernel reads pd_beta[p, q] unchecked; a Beta array that
+    NumPy broadcasts in expected_pd ((P, 1, 2), (1, Q, 2)) gave the corrected components Beta
+    parameters read past the array (denormal garbage). Now a ValueError naming the stage."""
+    from mmslam.slam.gm import GM
+    from mmslam.slam.gmphd import type_terms
+
+    def pd_fn(u, x, t):
+        return np.full(np.shape(u)[:-1], 0.9)
+
+    P_, Q = 2, 3
+    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
+           np.ones((P_, Q), bool), np.full((P_, Q, 2), 2.0))
+    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    assert type_terms(g, SP, s, Z, R, BS_POS, pd_fn).logq.shape == (P_, Q, 2)
+    for beta in (np.full((P_, 1, 2), 2.0), np.full((1, Q, 2), 2.0), np.full((P_, Q, 3), 2.0), np.full(2, 2.0)):
+        with pytest.raises(ValueError, match=r"SP correction: shapes .* pd_beta .* expected .*\(P, Q, 2\)"):
+            type_terms(dataclasses.replace(g, pd_beta=beta), SP, s, Z, R, BS_POS, pd_fn)
+
+
+def test_bs_logterm_rejects_wrong_shapes_before_its_kernel():
+    """Review finding: gmphd.correct computes the BS term first, and its compiled loop read R[j],
+    states[p] and bs unchecked: one R per measurement for too few measurements returned numbers
+    read past the array (later hidden by type_terms' ValueError). Now a ValueError up front."""
+    from mmslam.slam.gmphd import bs_logterm
+
+    R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+    s = np.array([[20.0, 20.0, 0.0, 0.5, 10.0, 0.0, 1.0]] * 2)
+    Z = np.stack([measure(s[0], np.array([40.0, 50.0, 2.0]), VA, BS_POS)] * 3)
+    p = np.full(2, 0.9)
+    ok = bs_logterm(s, Z, R, BS_POS, p)
+    np.testing.assert_array_equal(bs_logterm(s, Z, np.stack([R] * 3), BS_POS, p), ok)
+    with pytest.raises(ValueError, match=r"R has shape \(2, 5, 5\); expected \(5, 5\) or \(3, 5, 5\)"):
+        bs_logterm(s, Z, np.stack([R] * 2), BS_POS, p)
+    for bad in ((s[:, :6], Z, BS_POS), (s, Z[:, :4], BS_POS), (s, Z, BS_POS[:2])):
+        with pytest.raises(ValueError, match="BS likelihood: shapes"):
+            bs_logterm(*bad[:2], R, bad[2], p)
+
+
 def test_step_keeps_its_own_copy_of_the_measurements():
     """The measurements are kept for the next step's births: a caller reusing its buffer must not
     change them."""
