@@ -84,7 +84,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance, ``psi(z) = 0``, or a
             broken PHD-mass invariant.
-        ValueError: ``R`` of another shape.
+        ValueError: ``R``, ``Z``, ``states``, ``bs`` or an array of a map of another shape.
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
