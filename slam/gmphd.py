@@ -504,8 +504,11 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
 
     Raises:
         FloatingPointError: a non-finite weight, mean or covariance of a corrected component.
+        ValueError: ``logpsi`` not ``(P, J)``.
     """
     g, inn = t.g, t.inn
+    if np.shape(logpsi) != t.logq.shape[::2]:  # the kernel reads logpsi[p, j] unchecked
+        raise ValueError(f"logpsi has shape {np.shape(logpsi)}; expected {t.logq.shape[::2]} (P, J)")
     c = np.ascontiguousarray
     beta = g.pd_beta is not None
     w, m, Pc, live, pd_beta, finite = _corrected_components(

@@ -119,6 +119,27 @@ def test_bs_logterm_rejects_wrong_shapes_before_its_kernel():
             bs_logterm(*bad[:2], R, bad[2], p)
 
 
+def test_corrected_gm_rejects_a_log_psi_of_another_shape():
+    """Review finding: the corrected-components kernel reads logpsi[p, j] unchecked; a (P, J')
+    log psi with J' < J gave weights from past the array. Now a ValueError."""
+    from mmslam.slam.gm import GM
+    from mmslam.slam.gmphd import corrected_gm, log_psi, type_terms
+
+    def pd_fn(u, x, t):
+        return np.full(np.shape(u)[:-1], 0.9)
+
+    P_, Q = 2, 3
+    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
+           np.ones((P_, Q), bool))
+    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    tc = type_terms(g, SP, s, Z, R, BS_POS, pd_fn)
+    lp = log_psi([tc], None, np.log(1e-5), (P_, 2))
+    assert corrected_gm(tc, Z, lp).capacity == Q * 3
+    for bad in (lp[:, :1], lp[:1], lp[..., None]):
+        with pytest.raises(ValueError, match=r"logpsi has shape .*; expected \(2, 2\)"):
+            corrected_gm(tc, Z, bad)
+
+
 def test_step_keeps_its_own_copy_of_the_measurements():
     """The measurements are kept for the next step's births: a caller reusing its buffer must not
     change them."""
