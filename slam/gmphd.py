@@ -310,7 +310,8 @@ def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
     """
     J = Z.shape[0]
     R = _per_measurement_cov(R, J)
-    if np.ndim(states) != 2 or np.shape(states)[1] != 7 or np.shape(Z) != (J, MEAS_DIM) or np.shape(bs) != (3,):
+    if (np.ndim(states) != 2 or np.shape(states)[1] != 7 or np.shape(bs) != (3,)
+            or (J and np.shape(Z) != (J, MEAS_DIM))):  # an empty Z of any shape is no measurement
         raise ValueError(f"BS likelihood: shapes states {np.shape(states)}, Z {np.shape(Z)}, bs {np.shape(bs)}; "
                          f"expected (P, 7), (J, 5), (3,)")
     if J == 0:  # no measurements
