@@ -1,0 +1,114 @@
+"""Benchmark: the CKF update kernel (:func:`mmslam.slam.ckf.ckf_update`) per Gaussian.
+
+Captures the real inputs of :func:`mmslam.slam.ckf.innovate` (Gaussians, particle states,
+measurements, ``R``) from the first ``--steps`` steps of vehicle 1 of a baseline run on the
+analytic ``paper`` data (P = 300), then times the compiled batch kernel of each path geometry
+on them, on one core, and reports ns per Gaussian (median of ``--repeats`` runs over the
+captured batches; mirror = VA, scatter = SP and VS).
+
+    python benchmarks/bench_ckf.py                 # capture 8 steps, 15 repeats
+    python benchmarks/bench_ckf.py --save X.npz    # keep the captured batches
+    python benchmarks/bench_ckf.py --load X.npz    # time saved batches (same inputs across versions)
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+def capture(steps: int, particles: int = 300, variant: str = "baseline") -> list[dict]:
+    """The arguments of every :func:`innovate` call of vehicle 1's steps ``0..steps-1``."""
+    from bench_filter import paper_data
+
+    import mmslam.slam.gmphd as gmphd
+    from mmslam.slam.run import CooperativeRun
+
+    scn, states, paths = paper_data(steps)
+    run = CooperativeRun(scn, states, paths, variant, particles, 0, steps, evaluate=False)
+    calls: list[dict] = []
+    orig = gmphd.innovate
+
+    def spy(m, P, st, geometry, bs, Z, R, stage, extent=None):  # noqa: ANN001, ANN202
+        if record[0] and len(m):
+            calls.append(dict(m=np.array(m), P=np.array(P), states=np.array(st), geometry=int(geometry),
+                              bs=np.array(bs, float), Z=np.array(Z, float), R=np.array(R, float),
+                              extent=np.zeros((3, 3)) if extent is None else np.array(extent, float)))
+        return orig(m, P, st, geometry, bs, Z, R, stage, extent)
+
+    record = [False]
+    gmphd.innovate = spy
+    try:
+        for k in range(steps):
+            run.predict_at_bs(k)
+            for n in range(run.n_veh):
+                Z, spd, tr, R_z = run.local_inputs(k, n)
+                record[0] = n == 0
+                est = run.filters[n].step(Z, spd, tr, R_z)
+                run.upload(k, n, est)
+    finally:
+        gmphd.innovate = orig
+    return calls
+
+
+def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]]:
+    """Median ns per Gaussian of the compiled batch kernel, per geometry name, and the Gaussian count."""
+    from mmslam.slam.ckf import _CKF_BATCH, MEAS_DIM
+
+    names = {0: "direct", 1: "mirror", 2: "scatter"}
+    out = {}
+    for geo, name in names.items():
+        sel = [c for c in calls if c["geometry"] == geo]
+        if not sel:
+            continue
+        args = []
+        for c in sel:
+            n, d = c["m"].shape
+            J = c["Z"].shape[0]
+            R = c["R"].reshape(-1, MEAS_DIM, MEAS_DIM)
+            args.append((np.ascontiguousarray(c["m"]), np.ascontiguousarray(c["P"]), np.ascontiguousarray(c["states"]),
+                         c["bs"], c["extent"], np.ascontiguousarray(c["Z"]), np.ascontiguousarray(R),
+                         np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))))
+        kernel = _CKF_BATCH[geo]
+        for a in args[:1]:
+            kernel(*a)  # compile / load
+        total = sum(a[0].shape[0] for a in args)
+        times = []
+        for _ in range(repeats):
+            t0 = time.thread_time_ns()
+            for a in args:
+                kernel(*a)
+            times.append((time.thread_time_ns() - t0) / total)
+        out[name] = (float(np.median(times)), total)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--save", help="save the captured batches (npz)")
+    ap.add_argument("--load", help="time batches saved by --save instead of capturing")
+    a = ap.parse_args()
+    if a.load:
+        with np.load(a.load) as f:
+            k = int(f["count"])
+            calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
+                      for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent")} for i in range(k)]
+    else:
+        calls = capture(a.steps)
+    if a.save:
+        flat = {f"{i}_{key}": v for i, c in enumerate(calls) for key, v in c.items()}
+        np.savez(a.save, count=len(calls), **flat)
+    for name, (ns, total) in time_batches(calls, a.repeats).items():
+        print(f"{name:8s} {total:7d} Gaussians  {ns:7.1f} ns/Gaussian (median of {a.repeats}, thread CPU time)")
+
+
+if __name__ == "__main__":
+    main()
