@@ -22,6 +22,8 @@ from mmslam.model import (ANGLE_COMPONENTS, AZIMUTH_COMPONENTS, BS, MEAS_DIM, OT
                           TYPE_NAMES, VA, VS, direction_angles, mirror_point, wrap_angle)
 from mmslam.model import Bounce
 
+from .trig import atan2
+
 _DIRECT, _MIRROR = int(Bounce.DIRECT), int(Bounce.MIRROR)
 _TWO_PI = 2.0 * math.pi
 
@@ -50,9 +52,9 @@ def wrap(a: float) -> float:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _elevation(dz: float, r: float) -> float:
-    """``asin(dz / r)`` (rad), clipped to ``[-pi/2, pi/2]``; 0 for a zero-length vector."""
-    return math.asin(min(1.0, max(-1.0, dz / (r if r > 0.0 else 1.0))))
+def _elevation(dx: float, dy: float, dz: float) -> float:
+    """Elevation ``asin(dz / |d|) = atan2(dz, |(dx, dy)|)`` (rad) of a vector ``d``; 0 for ``d = 0``."""
+    return atan2(dz, math.sqrt(dx * dx + dy * dy))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -75,28 +77,19 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
     if geometry == _DIRECT:
         dep0, dep1, dep2 = u[0] - b[0], u[1] - b[1], u[2] - b[2]
         arr0, arr1, arr2 = -dep0, -dep1, -dep2
-        rdep = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
-        rarr = rdep
-        toa = rdep
+        toa = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
     elif geometry == _MIRROR:
         arr0, arr1, arr2 = x[0] - u[0], x[1] - u[1], x[2] - u[2]  # v - u
-        rarr = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
         n0, n1, n2 = x[0] - b[0], x[1] - b[1], x[2] - b[2]  # wall normal ~ v - b
-        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        nn = nn if nn > 0.0 else 1.0
-        n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
-        proj = -(arr0 * n0 + arr1 * n1 + arr2 * n2)  # (u - v) . n
+        nn = n0 * n0 + n1 * n1 + n2 * n2
+        proj = -(arr0 * n0 + arr1 * n1 + arr2 * n2) / (nn if nn > 0.0 else 1.0)  # (u - v) . n / |n|^2
         dep0, dep1, dep2 = -arr0 - 2.0 * proj * n0, -arr1 - 2.0 * proj * n1, -arr2 - 2.0 * proj * n2
-        rdep = rarr  # a mirror keeps the length
-        toa = rarr
+        toa = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)  # a mirror keeps the length
     else:
         dep0, dep1, dep2 = x[0] - b[0], x[1] - b[1], x[2] - b[2]
         arr0, arr1, arr2 = x[0] - u[0], x[1] - u[1], x[2] - u[2]
-        rdep = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2)
-        rarr = math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
-        toa = rdep + rarr
-    return (toa, math.atan2(dep1, dep0), _elevation(dep2, rdep), math.atan2(arr1, arr0),
-            _elevation(arr2, rarr))
+        toa = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2) + math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
+    return (toa, atan2(dep1, dep0), _elevation(dep0, dep1, dep2), atan2(arr1, arr0), _elevation(arr0, arr1, arr2))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
