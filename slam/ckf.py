@@ -23,13 +23,28 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .linalg import back_solve, cholesky, forward_solve, safe_cholesky
-from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, measure_point, wrap
+from .linalg import back_solve, cholesky, forward_solve, lower_inverse, safe_cholesky
+from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_frame, measure_point, path_vectors, wrap
+from .trig import atan2
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _IS_AZIMUTH = np.array([c in AZIMUTH_COMPONENTS for c in range(MEAS_DIM)])
 OK, BAD_POSITION_COV, BAD_INNOVATION_COV = 0, 1, 2
 """Return codes of :func:`ckf_update`."""
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def residual_component(a: int, z: float, zhat: float) -> float:
+    """Component ``a`` of the residual ``z - zhat`` of a measurement (m or rad), azimuths wrapped to ``(-pi, pi]``."""
+    res = z - zhat
+    return wrap(res) if _IS_AZIMUTH[a] else res
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def whitened_loglik(q: float, half_logdet: float) -> float:
+    """``log N(z; zhat, S) = -q / 2 - log det L_S - 5/2 log 2 pi`` from the squared whitened residual
+    ``q = |L_S^-1 (z - zhat)|^2`` and ``half_logdet = log det L_S`` (``S = L_S L_S^T``)."""
+    return -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -41,13 +56,12 @@ def gaussian_loglik(z: np.ndarray, zhat: np.ndarray, LS: np.ndarray, half_logdet
     ``LS^-1 (z - zhat)`` (the Kalman mean update uses it). Units: as the measurement (m, rad).
     """
     for a in range(MEAS_DIM):
-        res = z[a] - zhat[a]
-        y[a] = wrap(res) if _IS_AZIMUTH[a] else res
+        y[a] = residual_component(a, z[a], zhat[a])
     forward_solve(LS, y, y)
     q = 0.0
     for a in range(MEAS_DIM):
         q += y[a] * y[a]
-    return -0.5 * q - half_logdet - 0.5 * MEAS_DIM * _LOG_2PI
+    return whitened_loglik(q, half_logdet)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -61,13 +75,15 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     landmark position (an extended landmark such as a car body; zeros for a point landmark).
 
     1. cubature points ``x_k = m_pos +- sqrt(3) L e_k`` (``L L^T = P_pos + extent``), weight 1/6;
-    2. ``zhat = mean h(s, x_k)`` (azimuths averaged as deviations from the first point, wrapped);
-       ``Pzz = mean (h_k - zhat)(h_k - zhat)^T``; ``Cov(x + e, z) = sqrt(3) L G`` with
-       ``G = (Dz_+ - Dz_-) / 6``; ``Pxz = P[:, :3] (L L^T)^-1 Cov(x + e, z)``
-       (``= sqrt(3) L G`` for a 3-D point landmark);
-    3. per measurement covariance ``R_r``: ``S = Pzz + R_r = L_S L_S^T``, ``A = Pxz L_S^-T``
-       (so ``K = A L_S^-1``), ``P_post = P - A A^T``;
-    4. per measurement ``z_j``: whitened residual ``y = L_S^-1 (z_j - zhat)``,
+    2. ``h(s, x_k)``: :func:`measure_point` split in its parts (:func:`path_vectors`, then the 24
+       angles of the 6 points in one loop of :func:`~mmslam.slam.trig.atan2`, which vectorises,
+       then :func:`body_frame`); ``zhat = mean h(s, x_k)`` (azimuths averaged as deviations from
+       the first point, wrapped); ``Pzz = mean (h_k - zhat)(h_k - zhat)^T``;
+       ``Cov(x + e, z) = sqrt(3) L G`` with ``G = (Dz_+ - Dz_-) / 6``;
+       ``Pxz = P[:, :3] (L L^T)^-1 Cov(x + e, z)`` (``= sqrt(3) L G`` for a 3-D point landmark);
+    3. per measurement covariance ``R_r``: ``S = Pzz + R_r = L_S L_S^T``, ``W = L_S^-1``,
+       ``A = Pxz W^T`` (so ``K = A W``), ``P_post = P - A A^T``;
+    4. per measurement ``z_j`` (paper eqs. (5), (10)): whitened residual ``y = W (z_j - zhat)``,
        ``log N(z_j; zhat, S) = -|y|^2 / 2 - log det L_S - 5/2 log 2 pi``, ``m_post = m + A y``.
 
     Args:
@@ -87,7 +103,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
-    Ppos, L, x, hz, Dz, zhat, Pzz, g, S, LS, y, Pxz, A = work
+    Ppos, L, x, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, W, y, Pxz, A = work
     point = True
     for i in range(3):
         for k in range(3):
@@ -95,19 +111,25 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             point = point and extent[i, k] == 0.0
     if not cholesky(Ppos, L):
         return BAD_POSITION_COV
-    # 1.-2. cubature points through h; deviations from the first point (azimuths wrapped)
+    # 1.-2. cubature points r = k (+) and k + 3 (-) through h: path vectors, the 24 angles (az, el of
+    # departure, az, el of arrival per point: ya[4 r + i] = atan2(ya, xa)), the body frame
     c = math.sqrt(3.0)
-    for k in range(3):
-        for sign in range(2):
-            for i in range(3):
-                x[i] = m[i] + c * L[i, k] if sign == 0 else m[i] - c * L[i, k]
-            r = k + 3 * sign
-            hz[r, 0], hz[r, 1], hz[r, 2], hz[r, 3], hz[r, 4] = measure_point(geometry, s, x, b)
+    for r in range(6):
+        sign = c if r < 3 else -c
+        for i in range(3):
+            x[i] = m[i] + sign * L[i, r % 3]
+        toa[r], dep0, dep1, dep2, arr0, arr1, arr2 = path_vectors(geometry, s, x, b)
+        ya[4 * r], xa[4 * r], ya[4 * r + 1], xa[4 * r + 1] = angle_arguments(dep0, dep1, dep2)
+        ya[4 * r + 2], xa[4 * r + 2], ya[4 * r + 3], xa[4 * r + 3] = angle_arguments(arr0, arr1, arr2)
+    for i in range(24):
+        ya[i] = atan2(ya[i], xa[i])
+    for r in range(6):
+        hz[r, 0], hz[r, 1], hz[r, 2], hz[r, 3], hz[r, 4] = body_frame(
+            s, toa[r], ya[4 * r], ya[4 * r + 1], ya[4 * r + 2], ya[4 * r + 3])
     for a in range(MEAS_DIM):
         mean = 0.0
         for k in range(6):
-            dev = hz[k, a] - hz[0, a]
-            Dz[k, a] = wrap(dev) if _IS_AZIMUTH[a] else dev
+            Dz[k, a] = residual_component(a, hz[k, a], hz[0, a])
             mean += Dz[k, a]
         mean /= 6.0
         for k in range(6):
@@ -119,7 +141,6 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             for k in range(6):
                 t += Dz[k, a] * Dz[k, e]
             Pzz[a, e] = t / 6.0
-            Pzz[e, a] = Pzz[a, e]
     for a in range(MEAS_DIM):
         for k in range(3):
             g[k] = (Dz[k, a] - Dz[k + 3, a]) / 6.0
@@ -136,15 +157,26 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     # 3.-4. per measurement covariance: gain and posterior covariance; per measurement: likelihood, mean
     for r in range(R.shape[0]):
         for a in range(MEAS_DIM):
-            for e in range(MEAS_DIM):
+            for e in range(a + 1):
                 S[a, e] = Pzz[a, e] + R[r, a, e]
         if not cholesky(S, LS):
             return BAD_INNOVATION_COV
-        half_logdet = 0.0
+        lower_inverse(LS, W)
+        det = 1.0
         for a in range(MEAS_DIM):
-            half_logdet += math.log(LS[a, a])
+            det *= LS[a, a]
+        if 0.0 < det < math.inf:  # log det L_S, one logarithm
+            half_logdet = math.log(det)
+        else:
+            half_logdet = 0.0
+            for a in range(MEAS_DIM):
+                half_logdet += math.log(LS[a, a])
         for i in range(d):
-            forward_solve(LS, Pxz[i], A[i])
+            for a in range(MEAS_DIM):
+                t = 0.0
+                for e in range(a + 1):
+                    t += Pxz[i, e] * W[a, e]
+                A[i, a] = t
         for i in range(d):
             for k in range(i + 1):
                 t = 0.5 * (P[i, k] + P[k, i])
@@ -154,7 +186,15 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 P_post[r, k, i] = t
         j0, j1 = (0, J) if R.shape[0] == 1 else (r, r + 1)
         for j in range(j0, j1):
-            loglik[j] = gaussian_loglik(Z[j], zhat, LS, half_logdet, y)
+            for a in range(MEAS_DIM):
+                g5 = 0.0
+                for e in range(a + 1):
+                    g5 += W[a, e] * residual_component(e, Z[j, e], zhat[e])
+                y[a] = g5
+            q = 0.0
+            for a in range(MEAS_DIM):
+                q += y[a] * y[a]
+            loglik[j] = whitened_loglik(q, half_logdet)
             for i in range(d):
                 t = m[i]
                 for a in range(MEAS_DIM):
@@ -166,8 +206,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
 @nb.njit(cache=True, error_model="numpy")
 def workspace(d: int) -> tuple:
     """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
-    return (np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)),
-            np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)),
+    return (np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(24), np.empty(24), np.empty(6),
+            np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
+            np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)),
             np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
 
 

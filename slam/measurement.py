@@ -52,15 +52,9 @@ def wrap(a: float) -> float:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _elevation(dx: float, dy: float, dz: float) -> float:
-    """Elevation ``asin(dz / |d|) = atan2(dz, |(dx, dy)|)`` (rad) of a vector ``d``; 0 for ``d = 0``."""
-    return atan2(dz, math.sqrt(dx * dx + dy * dy))
-
-
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
-                  ) -> tuple[float, float, float, float, float]:
-    """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
+def path_vectors(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
+                 ) -> tuple[float, float, float, float, float, float, float]:
+    """Path length and end directions of one path, the geometry of paper eq. (3).
 
     Args:
         geometry: :class:`~mmslam.model.Bounce` code: DIRECT (line of sight, ``x`` ignored),
@@ -69,10 +63,13 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
             point; b: ``(3,)`` BS position (global frame, m).
 
     Returns:
-        ``(toa (m), aod az, aod el, aoa az (global frame), aoa el)`` (rad).
-            MIRROR: the AOD points at the incidence point on the wall, i.e. the direction ``u - v``
-            reflected in the wall plane (the perpendicular bisector of ``b`` and ``v``); the TOA is
-            ``|u - v|``. SCATTER: ``|x - b| + |x - u|``.
+        ``(toa, dep_x, dep_y, dep_z, arr_x, arr_y, arr_z)``: the TOA (path length, m), the
+        departure direction at the BS and the arrival direction at the vehicle (vectors pointing
+        along the path's first and against its last leg, global frame, not normalised).
+        DIRECT: ``|u - b|``, ``u - b``, ``b - u``. MIRROR: ``|u - v|``; the arrival direction is
+        ``v - u``, the departure direction points at the incidence point on the wall, i.e. ``u - v``
+        reflected in the wall plane (the perpendicular bisector of ``b`` and ``v``). SCATTER:
+        ``|x - b| + |x - u|``, ``x - b``, ``x - u``.
     """
     if geometry == _DIRECT:
         dep0, dep1, dep2 = u[0] - b[0], u[1] - b[1], u[2] - b[2]
@@ -89,7 +86,38 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
         dep0, dep1, dep2 = x[0] - b[0], x[1] - b[1], x[2] - b[2]
         arr0, arr1, arr2 = x[0] - u[0], x[1] - u[1], x[2] - u[2]
         toa = math.sqrt(dep0 * dep0 + dep1 * dep1 + dep2 * dep2) + math.sqrt(arr0 * arr0 + arr1 * arr1 + arr2 * arr2)
-    return (toa, atan2(dep1, dep0), _elevation(dep0, dep1, dep2), atan2(arr1, arr0), _elevation(arr0, arr1, arr2))
+    return toa, dep0, dep1, dep2, arr0, arr1, arr2
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def angle_arguments(dx: float, dy: float, dz: float) -> tuple[float, float, float, float]:
+    """``(y, x)`` arguments of :func:`~mmslam.slam.trig.atan2` for the azimuth and the elevation of a
+    direction ``d``: azimuth ``atan2(dy, dx)``, elevation ``asin(dz / |d|) = atan2(dz, |(dx, dy)|)``
+    (0 for ``d = 0``). Returns ``(dy, dx, dz, |(dx, dy)|)``."""
+    return dy, dx, dz, math.sqrt(dx * dx + dy * dy)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
+                  ) -> tuple[float, float, float, float, float]:
+    """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
+
+    ``geometry``, ``u``, ``x``, ``b``: as :func:`path_vectors`. Returns ``(toa (m), aod az,
+    aod el, aoa az (global frame), aoa el)`` (rad): the angles of :func:`path_vectors`' directions
+    (:func:`angle_arguments`).
+    """
+    toa, dep0, dep1, dep2, arr0, arr1, arr2 = path_vectors(geometry, u, x, b)
+    ya, xa, ye, xe = angle_arguments(dep0, dep1, dep2)
+    yb, xb, yf, xf = angle_arguments(arr0, arr1, arr2)
+    return toa, atan2(ya, xa), atan2(ye, xe), atan2(yb, xb), atan2(yf, xf)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def body_frame(s: np.ndarray, toa: float, aod_az: float, aod_el: float, aoa_az: float, aoa_el: float
+               ) -> tuple[float, float, float, float, float]:
+    """The measurement of global channel parameters seen from vehicle state ``s (>= 7,)`` (paper
+    eq. (3)): ``(toa + B (m), aod az, aod el, aoa az - heading (wrapped to (-pi, pi]), aoa el)``."""
+    return toa + s[6], aod_az, aod_el, wrap(aoa_az - s[3]), aoa_el
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -98,11 +126,11 @@ def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray
     """Noise-free measurement ``h(s, x)`` of one landmark point seen from one vehicle, paper eq. (3).
 
     ``s (>= 7,)``: vehicle state ``[x, y, z (m), heading (rad), v (m/s), turn rate (rad/s), clock
-    bias B (m)]``; ``x``, ``b``, ``geometry``: as :func:`channel_point`. Returns
+    bias B (m)]``; ``x``, ``b``, ``geometry``: as :func:`path_vectors`. Returns
     ``(TOA + B (m), AOD az, AOD el, AOA az - heading (body frame, wrapped to (-pi, pi]), AOA el)``.
     """
     toa, aod_az, aod_el, aoa_az, aoa_el = channel_point(geometry, s, x, b)
-    return toa + s[6], aod_az, aod_el, wrap(aoa_az - s[3]), aoa_el
+    return body_frame(s, toa, aod_az, aod_el, aoa_az, aoa_el)
 
 
 @nb.njit(cache=True, error_model="numpy")
