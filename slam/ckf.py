@@ -186,20 +186,19 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 P_post[r, k, i] = t
         j0, j1 = (0, J) if R.shape[0] == 1 else (r, r + 1)
         for j in range(j0, j1):
-            for a in range(MEAS_DIM):
-                g5 = 0.0
-                for e in range(a + 1):
-                    g5 += W[a, e] * residual_component(e, Z[j, e], zhat[e])
-                y[a] = g5
-            q = 0.0
-            for a in range(MEAS_DIM):
-                q += y[a] * y[a]
-            loglik[j] = whitened_loglik(q, half_logdet)
+            r0 = residual_component(0, Z[j, 0], zhat[0])
+            r1 = residual_component(1, Z[j, 1], zhat[1])
+            r2 = residual_component(2, Z[j, 2], zhat[2])
+            r3 = residual_component(3, Z[j, 3], zhat[3])
+            r4 = residual_component(4, Z[j, 4], zhat[4])
+            y0 = W[0, 0] * r0
+            y1 = W[1, 0] * r0 + W[1, 1] * r1
+            y2 = W[2, 0] * r0 + W[2, 1] * r1 + W[2, 2] * r2
+            y3 = W[3, 0] * r0 + W[3, 1] * r1 + W[3, 2] * r2 + W[3, 3] * r3
+            y4 = W[4, 0] * r0 + W[4, 1] * r1 + W[4, 2] * r2 + W[4, 3] * r3 + W[4, 4] * r4
+            loglik[j] = whitened_loglik(y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4, half_logdet)
             for i in range(d):
-                t = m[i]
-                for a in range(MEAS_DIM):
-                    t += A[i, a] * y[a]
-                m_post[j, i] = t
+                m_post[j, i] = m[i] + A[i, 0] * y0 + A[i, 1] * y1 + A[i, 2] * y2 + A[i, 3] * y3 + A[i, 4] * y4
     return OK
 
 

@@ -21,9 +21,10 @@ JITTER = 1e-10
 """Relative diagonal jitter of the one retry of :func:`cholesky` (times the largest diagonal entry)."""
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
-    """Cholesky-Crout factor of ``A + jitter I`` into ``L`` (lower triangle of ``A`` read); False if not SPD."""
+    """Cholesky-Crout factor of ``A + jitter I`` into ``L`` (lower triangle of ``A`` read); False if
+    not SPD or not finite (a non-finite entry reaches some pivot as NaN or infinity)."""
     d = A.shape[0]
     for j in range(d):
         for i in range(j):
@@ -31,19 +32,20 @@ def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
         s = A[j, j] + jitter
         for k in range(j):
             s -= L[j, k] * L[j, k]
-        if not s > 0.0:  # also NaN
+        if not 0.0 < s < np.inf:  # also NaN
             return False
         piv = np.sqrt(s)
+        inv = 1.0 / piv
         L[j, j] = piv
         for i in range(j + 1, d):
             t = A[i, j]
             for k in range(j):
                 t -= L[i, k] * L[j, k]
-            L[i, j] = t / piv
+            L[i, j] = t * inv
     return True
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def cholesky(A: np.ndarray, L: np.ndarray, retry: bool = True) -> bool:
     """Lower Cholesky factor ``A = L L^T`` of one SPD matrix ``A (d, d)`` written into ``L (d, d)``.
 
@@ -53,12 +55,12 @@ def cholesky(A: np.ndarray, L: np.ndarray, retry: bool = True) -> bool:
     near-singular but valid covariance). Returns False if that fails too or ``A`` is not finite.
     """
     d = A.shape[0]
+    if _cholesky_once(A, L, 0.0):
+        return True
     for i in range(d):
         for j in range(i + 1):
             if not np.isfinite(A[i, j]):
                 return False
-    if _cholesky_once(A, L, 0.0):
-        return True
     if not retry:
         return False
     scale = 1e-12
