@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .linalg import back_solve, cholesky, forward_solve, lower_inverse, safe_cholesky
+from .linalg import back_solve, cholesky, forward_solve, safe_cholesky
 from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_frame, measure_point, path_vectors, wrap
 from .trig import atan2
 
@@ -81,9 +81,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
        the first point, wrapped); ``Pzz = mean (h_k - zhat)(h_k - zhat)^T``;
        ``Cov(x + e, z) = sqrt(3) L G`` with ``G = (Dz_+ - Dz_-) / 6``;
        ``Pxz = P[:, :3] (L L^T)^-1 Cov(x + e, z)`` (``= sqrt(3) L G`` for a 3-D point landmark);
-    3. per measurement covariance ``R_r``: ``S = Pzz + R_r = L_S L_S^T``, ``W = L_S^-1``,
-       ``A = Pxz W^T`` (so ``K = A W``), ``P_post = P - A A^T``;
-    4. per measurement ``z_j`` (paper eqs. (5), (10)): whitened residual ``y = W (z_j - zhat)``,
+    3. per measurement covariance ``R_r``: ``S = Pzz + R_r = L_S L_S^T``, ``A = Pxz L_S^-T``
+       (so ``K = A L_S^-1``), ``P_post = P - A A^T``;
+    4. per measurement ``z_j`` (paper eqs. (5), (10)): whitened residual ``y = L_S^-1 (z_j - zhat)``,
        ``log N(z_j; zhat, S) = -|y|^2 / 2 - log det L_S - 5/2 log 2 pi``, ``m_post = m + A y``.
 
     Args:
@@ -103,7 +103,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
-    Ppos, L, x, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, W, y, Pxz, A = work
+    Ppos, L, x, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A = work
     point = True
     for i in range(3):
         for k in range(3):
@@ -161,9 +161,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 S[a, e] = Pzz[a, e] + R[r, a, e]
         if not cholesky(S, LS):
             return BAD_INNOVATION_COV
-        lower_inverse(LS, W)
         det = 1.0
         for a in range(MEAS_DIM):
+            inv[a] = 1.0 / LS[a, a]
             det *= LS[a, a]
         if 0.0 < det < math.inf:  # log det L_S, one logarithm
             half_logdet = math.log(det)
@@ -171,12 +171,12 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             half_logdet = 0.0
             for a in range(MEAS_DIM):
                 half_logdet += math.log(LS[a, a])
-        for i in range(d):
+        for i in range(d):  # A = Pxz L_S^-T: forward substitution along each row
             for a in range(MEAS_DIM):
-                t = 0.0
-                for e in range(a + 1):
-                    t += Pxz[i, e] * W[a, e]
-                A[i, a] = t
+                t = Pxz[i, a]
+                for e in range(a):
+                    t -= LS[a, e] * A[i, e]
+                A[i, a] = t * inv[a]
         for i in range(d):
             for k in range(i + 1):
                 t = 0.5 * (P[i, k] + P[k, i])
@@ -191,11 +191,11 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             r2 = residual_component(2, Z[j, 2], zhat[2])
             r3 = residual_component(3, Z[j, 3], zhat[3])
             r4 = residual_component(4, Z[j, 4], zhat[4])
-            y0 = W[0, 0] * r0
-            y1 = W[1, 0] * r0 + W[1, 1] * r1
-            y2 = W[2, 0] * r0 + W[2, 1] * r1 + W[2, 2] * r2
-            y3 = W[3, 0] * r0 + W[3, 1] * r1 + W[3, 2] * r2 + W[3, 3] * r3
-            y4 = W[4, 0] * r0 + W[4, 1] * r1 + W[4, 2] * r2 + W[4, 3] * r3 + W[4, 4] * r4
+            y0 = r0 * inv[0]  # y = L_S^-1 r by forward substitution
+            y1 = (r1 - LS[1, 0] * y0) * inv[1]
+            y2 = (r2 - LS[2, 0] * y0 - LS[2, 1] * y1) * inv[2]
+            y3 = (r3 - LS[3, 0] * y0 - LS[3, 1] * y1 - LS[3, 2] * y2) * inv[3]
+            y4 = (r4 - LS[4, 0] * y0 - LS[4, 1] * y1 - LS[4, 2] * y2 - LS[4, 3] * y3) * inv[4]
             loglik[j] = whitened_loglik(y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4, half_logdet)
             for i in range(d):
                 m_post[j, i] = m[i] + A[i, 0] * y0 + A[i, 1] * y1 + A[i, 2] * y2 + A[i, 3] * y3 + A[i, 4] * y4
@@ -207,8 +207,8 @@ def workspace(d: int) -> tuple:
     """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
     return (np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(24), np.empty(24), np.empty(6),
             np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
-            np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)),
-            np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
+            np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
+            np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

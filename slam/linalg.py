@@ -91,24 +91,6 @@ def back_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
         x[i] = t / L[i, i]
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def lower_inverse(L: np.ndarray, W: np.ndarray) -> None:
-    """``W = L^-1 (d, d)`` of a lower-triangular ``L (d, d)`` with non-zero diagonal (``W`` lower
-    triangular, zeros above the diagonal). Column ``e`` solves ``L w = e_e`` by forward
-    substitution, with the reciprocal diagonal ``1 / L[a, a]`` computed once."""
-    d = L.shape[0]
-    for a in range(d):
-        W[a, a] = 1.0 / L[a, a]
-    for e in range(d):
-        for a in range(e):
-            W[a, e] = 0.0
-        for a in range(e + 1, d):
-            t = 0.0
-            for k in range(e, a):
-                t -= L[a, k] * W[k, e]
-            W[a, e] = t * W[a, a]
-
-
 @nb.njit(cache=True, error_model="numpy")
 def spd_inverse(A: np.ndarray, out: np.ndarray) -> bool:
     """``out = A^-1 = L^-T L^-1`` of one SPD ``A (d, d)`` (exactly symmetric); False if not SPD."""
