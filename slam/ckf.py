@@ -103,7 +103,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
-    Ppos, L, x, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A = work
+    Ppos, L, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A = work
     point = True
     for i in range(3):
         for k in range(3):
@@ -115,10 +115,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     # departure, az, el of arrival per point: ya[4 r + i] = atan2(ya, xa)), the body frame
     c = math.sqrt(3.0)
     for r in range(6):
-        sign = c if r < 3 else -c
-        for i in range(3):
-            x[i] = m[i] + sign * L[i, r % 3]
-        toa[r], dep0, dep1, dep2, arr0, arr1, arr2 = path_vectors(geometry, s, x, b)
+        sign, k = (c, r) if r < 3 else (-c, r - 3)
+        xr = (m[0] + sign * L[0, k], m[1] + sign * L[1, k], m[2] + sign * L[2, k])
+        toa[r], dep0, dep1, dep2, arr0, arr1, arr2 = path_vectors(geometry, s, xr, b)
         ya[4 * r], xa[4 * r], ya[4 * r + 1], xa[4 * r + 1] = angle_arguments(dep0, dep1, dep2)
         ya[4 * r + 2], xa[4 * r + 2], ya[4 * r + 3], xa[4 * r + 3] = angle_arguments(arr0, arr1, arr2)
     for i in range(24):
@@ -205,7 +204,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
 @nb.njit(cache=True, error_model="numpy")
 def workspace(d: int) -> tuple:
     """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
-    return (np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(24), np.empty(24), np.empty(6),
+    return (np.empty((3, 3)), np.empty((3, 3)), np.empty(24), np.empty(24), np.empty(6),
             np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
             np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
             np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))

@@ -60,7 +60,7 @@ def path_vectors(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
         geometry: :class:`~mmslam.model.Bounce` code: DIRECT (line of sight, ``x`` ignored),
             MIRROR (``x`` = image source ``v`` of the BS in the wall) or SCATTER (``x`` = bounce point).
         u: ``(>= 3,)`` vehicle antenna position (first three entries read); x: ``(3,)`` landmark
-            point; b: ``(3,)`` BS position (global frame, m).
+            point; b: ``(3,)`` BS position (global frame, m). Arrays or tuples of floats.
 
     Returns:
         ``(toa, dep_x, dep_y, dep_z, arr_x, arr_y, arr_z)``: the TOA (path length, m), the
