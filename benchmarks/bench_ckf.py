@@ -4,9 +4,10 @@ Captures the real inputs of :func:`mmslam.slam.ckf.innovate` (Gaussians, particl
 measurements, ``R``) from the first ``--steps`` steps of vehicle 1 of a baseline run on the
 analytic ``paper`` data (P = 300), then times the compiled batch kernel of each path geometry
 on them, on one core, and reports ns per Gaussian (median of ``--repeats`` runs over the
-captured batches; mirror = VA, scatter = SP and VS).
+captured batches; mirror = VA, scatter = SP and VS; ``vs`` = the VS batches alone).
 
     python benchmarks/bench_ckf.py                 # capture 8 steps, 15 repeats
+    python benchmarks/bench_ckf.py --variant proposed   # also VS Gaussians (d = 7, a car-body extent)
     python benchmarks/bench_ckf.py --save X.npz    # keep the captured batches
     python benchmarks/bench_ckf.py --load X.npz    # time saved batches (same inputs across versions)
 """
@@ -61,10 +62,11 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
     """Median ns per Gaussian of the compiled batch kernel, per geometry name, and the Gaussian count."""
     from mmslam.slam.ckf import _CKF_BATCH, MEAS_DIM
 
-    names = {0: "direct", 1: "mirror", 2: "scatter"}
+    groups = {"direct": lambda c: c["geometry"] == 0, "mirror": lambda c: c["geometry"] == 1,
+              "scatter": lambda c: c["geometry"] == 2, "vs": lambda c: c["m"].shape[1] == 7}
     out = {}
-    for geo, name in names.items():
-        sel = [c for c in calls if c["geometry"] == geo]
+    for name, pick in groups.items():
+        sel = [c for c in calls if pick(c)]
         if not sel:
             continue
         args = []
@@ -75,7 +77,7 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
             args.append((np.ascontiguousarray(c["m"]), np.ascontiguousarray(c["P"]), np.ascontiguousarray(c["states"]),
                          c["bs"], c["extent"], np.ascontiguousarray(c["Z"]), np.ascontiguousarray(R),
                          np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))))
-        kernel = _CKF_BATCH[geo]
+        kernel = _CKF_BATCH[sel[0]["geometry"]]
         for a in args[:1]:
             kernel(*a)  # compile / load
         total = sum(a[0].shape[0] for a in args)
@@ -92,6 +94,7 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=8)
+    ap.add_argument("--variant", default="baseline", help="filter variant of the captured run")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--save", help="save the captured batches (npz)")
     ap.add_argument("--load", help="time batches saved by --save instead of capturing")
@@ -102,7 +105,7 @@ def main() -> None:
             calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
                       for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent")} for i in range(k)]
     else:
-        calls = capture(a.steps)
+        calls = capture(a.steps, variant=a.variant)
     if a.save:
         flat = {f"{i}_{key}": v for i, c in enumerate(calls) for key, v in c.items()}
         np.savez(a.save, count=len(calls), **flat)
