@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .linalg import back_solve, cholesky, forward_solve, safe_cholesky
+from .linalg import cholesky, forward_solve, safe_cholesky
 from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_frame, measure_point, path_vectors, wrap
 from .trig import atan2
 
@@ -103,7 +103,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
-    Ppos, L, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A = work
+    Ppos, L, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A, M = work
     point = True
     for i in range(3):
         for k in range(3):
@@ -140,19 +140,27 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             for k in range(6):
                 t += Dz[k, a] * Dz[k, e]
             Pzz[a, e] = t / 6.0
+    point = d == 3 and point
+    if not point:  # M = P[:, :3] L^-T: row i solves L M_i^T = P[i, :3]^T
+        rl = (1.0 / L[0, 0], 1.0 / L[1, 1], 1.0 / L[2, 2])
+        for i in range(d):
+            for k in range(3):
+                t = P[i, k]
+                for e in range(k):
+                    t -= L[k, e] * M[i, e]
+                M[i, k] = t * rl[k]
     for a in range(MEAS_DIM):
         for k in range(3):
             g[k] = (Dz[k, a] - Dz[k + 3, a]) / 6.0
-        if d == 3 and point:  # Pxz = sqrt(3) L G
+        if point:  # Pxz = sqrt(3) L G
             for i in range(3):
                 t = 0.0
                 for k in range(i + 1):
                     t += L[i, k] * g[k]
                 Pxz[i, a] = c * t
-        else:  # Pxz = sqrt(3) P[:, :3] L^-T G
-            back_solve(L, g, g)
+        else:  # Pxz = sqrt(3) P[:, :3] L^-T G = sqrt(3) M G
             for i in range(d):
-                Pxz[i, a] = c * (P[i, 0] * g[0] + P[i, 1] * g[1] + P[i, 2] * g[2])
+                Pxz[i, a] = c * (M[i, 0] * g[0] + M[i, 1] * g[1] + M[i, 2] * g[2])
     # 3.-4. per measurement covariance: gain and posterior covariance; per measurement: likelihood, mean
     for r in range(R.shape[0]):
         for a in range(MEAS_DIM):
@@ -207,7 +215,7 @@ def workspace(d: int) -> tuple:
     return (np.empty((3, 3)), np.empty((3, 3)), np.empty(24), np.empty(24), np.empty(6),
             np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
             np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
-            np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)))
+            np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)), np.empty((d, 3)))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
