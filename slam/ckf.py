@@ -28,6 +28,7 @@ from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_fra
 from .trig import atan2
 
 _LOG_2PI = math.log(2.0 * math.pi)
+_SIXTH = 1.0 / 6.0  # the cubature weight (a multiplication, not 35 divisions per Gaussian)
 _IS_AZIMUTH = np.array([c in AZIMUTH_COMPONENTS for c in range(MEAS_DIM)])
 OK, BAD_POSITION_COV, BAD_INNOVATION_COV = 0, 1, 2
 """Return codes of :func:`ckf_update`."""
@@ -130,7 +131,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         for k in range(6):
             Dz[k, a] = residual_component(a, hz[k, a], hz[0, a])
             mean += Dz[k, a]
-        mean /= 6.0
+        mean *= _SIXTH
         for k in range(6):
             Dz[k, a] -= mean
         zhat[a] = wrap(hz[0, a] + mean) if _IS_AZIMUTH[a] else hz[0, a] + mean
@@ -139,7 +140,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             t = 0.0
             for k in range(6):
                 t += Dz[k, a] * Dz[k, e]
-            Pzz[a, e] = t / 6.0
+            Pzz[a, e] = t * _SIXTH
     point = d == 3 and point
     if not point:  # M = P[:, :3] L^-T: row i solves L M_i^T = P[i, :3]^T
         rl = (1.0 / L[0, 0], 1.0 / L[1, 1], 1.0 / L[2, 2])
@@ -151,7 +152,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 M[i, k] = t * rl[k]
     for a in range(MEAS_DIM):
         for k in range(3):
-            g[k] = (Dz[k, a] - Dz[k + 3, a]) / 6.0
+            g[k] = (Dz[k, a] - Dz[k + 3, a]) * _SIXTH
         if point:  # Pxz = sqrt(3) L G
             for i in range(3):
                 t = 0.0
