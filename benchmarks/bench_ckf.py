@@ -1,12 +1,12 @@
 """Benchmark: the CKF update kernel (:func:`mmslam.slam.ckf.ckf_update`) per Gaussian.
 
 Captures the real inputs of :func:`mmslam.slam.ckf.innovate` (Gaussians, particle states,
-measurements, ``R``) from the first ``--steps`` steps of vehicle 1 of a baseline run on the
+measurements, ``R``) from steps ``--first..--steps - 1`` of vehicle 1 of a baseline run on the
 analytic ``paper`` data (P = 300), then times the compiled batch kernel of each path geometry
 on them, on one core, and reports ns per Gaussian (median of ``--repeats`` runs over the
 captured batches; mirror = VA, scatter = SP and VS; ``vs`` = the VS batches alone).
 
-    python benchmarks/bench_ckf.py                 # capture 8 steps, 15 repeats
+    python benchmarks/bench_ckf.py                 # capture steps 5..19, 15 repeats
     python benchmarks/bench_ckf.py --variant proposed   # also VS Gaussians (d = 7, a car-body extent)
     python benchmarks/bench_ckf.py --save X.npz    # keep the captured batches
     python benchmarks/bench_ckf.py --load X.npz    # time saved batches (same inputs across versions)
@@ -24,8 +24,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def capture(steps: int, particles: int = 300, variant: str = "baseline") -> list[dict]:
-    """The arguments of every :func:`innovate` call of vehicle 1's steps ``0..steps-1``."""
+def capture(steps: int, particles: int = 300, variant: str = "baseline", first: int = 5) -> list[dict]:
+    """The arguments of every :func:`innovate` call of vehicle 1's steps ``first..steps-1``."""
     from bench_filter import paper_data
 
     import mmslam.slam.gmphd as gmphd
@@ -50,7 +50,7 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline") -> list
             run.predict_at_bs(k)
             for n in range(run.n_veh):
                 Z, spd, tr, R_z = run.local_inputs(k, n)
-                record[0] = n == 0
+                record[0] = n == 0 and k >= first
                 est = run.filters[n].step(Z, spd, tr, R_z)
                 run.upload(k, n, est)
     finally:
@@ -93,7 +93,8 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=8)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--first", type=int, default=5, help="first captured step (as bench_filter's --warmup)")
     ap.add_argument("--variant", default="baseline", help="filter variant of the captured run")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--save", help="save the captured batches (npz)")
@@ -105,7 +106,7 @@ def main() -> None:
             calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
                       for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent")} for i in range(k)]
     else:
-        calls = capture(a.steps, variant=a.variant)
+        calls = capture(a.steps, variant=a.variant, first=a.first)
     if a.save:
         flat = {f"{i}_{key}": v for i, c in enumerate(calls) for key, v in c.items()}
         np.savez(a.save, count=len(calls), **flat)
