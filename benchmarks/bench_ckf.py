@@ -1,7 +1,7 @@
 """Benchmark: the CKF update kernel (:func:`mmslam.slam.ckf.ckf_update`) per Gaussian.
 
-Captures the real inputs of :func:`mmslam.slam.ckf.innovate` (Gaussians, particle states,
-measurements, ``R``) from steps ``--first..--steps - 1`` of vehicle 1 of a baseline run on the
+Captures the real inputs of the CKF updates (Gaussians, particle states, measurements, ``R``)
+from steps ``--first..--steps - 1`` of vehicle 1 of a run (``--variant``, default baseline) on the
 analytic ``paper`` data (P = 300), then times the compiled batch kernel of each path geometry
 on them, on one core, and reports ns per Gaussian (median of ``--repeats`` runs over the
 captured batches; mirror = VA, scatter = SP and VS; ``vs`` = the VS batches alone).
@@ -25,7 +25,9 @@ import numpy as np  # noqa: E402
 
 
 def capture(steps: int, particles: int = 300, variant: str = "baseline", first: int = 5) -> list[dict]:
-    """The arguments of every :func:`innovate` call of vehicle 1's steps ``first..steps-1``."""
+    """The CKF batches (every Gaussian with a CKF update: ``m, P``, its particle's state, ``Z``, ``R``,
+    extent, geometry) of the correction kernels of :mod:`mmslam.slam.gmphd` in vehicle 1's steps
+    ``first..steps-1``."""
     from bench_filter import paper_data
 
     import mmslam.slam.gmphd as gmphd
@@ -34,17 +36,20 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline", first: 
     scn, states, paths = paper_data(steps)
     run = CooperativeRun(scn, states, paths, variant, particles, 0, steps, evaluate=False)
     calls: list[dict] = []
-    orig = gmphd.innovate
-
-    def spy(m, P, st, geometry, bs, Z, R, stage, extent=None):  # noqa: ANN001, ANN202
-        if record[0] and len(m):
-            calls.append(dict(m=np.array(m), P=np.array(P), states=np.array(st), geometry=int(geometry),
-                              bs=np.array(bs, float), Z=np.array(Z, float), R=np.array(R, float),
-                              extent=np.zeros((3, 3)) if extent is None else np.array(extent, float)))
-        return orig(m, P, st, geometry, bs, Z, R, stage, extent)
-
+    orig = gmphd._TYPE_TERMS
     record = [False]
-    gmphd.innovate = spy
+
+    def spy(geometry: int):  # noqa: ANN202
+        def kernel(w, pd, m, P, st, b, extent, Z, R, det_index, *rest):  # noqa: ANN001, ANN202
+            code = orig[geometry](w, pd, m, P, st, b, extent, Z, R, det_index, *rest)
+            p, q = np.nonzero(det_index >= 0)  # numbered in this order
+            if record[0] and p.size:
+                calls.append(dict(m=m[p, q], P=P[p, q], states=st[p], geometry=geometry, bs=np.array(b),
+                                  Z=np.array(Z), R=np.array(R), extent=np.array(extent)))
+            return code
+        return kernel
+
+    gmphd._TYPE_TERMS = tuple(spy(g) for g in range(len(orig)))
     try:
         for k in range(steps):
             run.predict_at_bs(k)
@@ -54,7 +59,7 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline", first: 
                 est = run.filters[n].step(Z, spd, tr, R_z)
                 run.upload(k, n, est)
     finally:
-        gmphd.innovate = orig
+        gmphd._TYPE_TERMS = orig
     return calls
 
 
