@@ -104,7 +104,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     """
     d = m.shape[0]
     J = Z.shape[0]
-    Ppos, L, ya, xa, toa, hz, Dz, zhat, Pzz, g, S, LS, inv, Pxz, A, M = work
+    Ppos, L, ya, xa, toa, hz, Dz, zhat, Pzz, S, LS, inv, Pxz, A, M = work
     point = True
     for i in range(3):
         for k in range(3):
@@ -150,18 +150,17 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 for e in range(k):
                     t -= L[k, e] * M[i, e]
                 M[i, k] = t * rl[k]
-    for a in range(MEAS_DIM):
-        for k in range(3):
-            g[k] = (Dz[k, a] - Dz[k + 3, a]) * _SIXTH
+    for a in range(MEAS_DIM):  # column a of G: (g0, g1, g2)
+        g0 = (Dz[0, a] - Dz[3, a]) * _SIXTH
+        g1 = (Dz[1, a] - Dz[4, a]) * _SIXTH
+        g2 = (Dz[2, a] - Dz[5, a]) * _SIXTH
         if point:  # Pxz = sqrt(3) L G
-            for i in range(3):
-                t = 0.0
-                for k in range(i + 1):
-                    t += L[i, k] * g[k]
-                Pxz[i, a] = c * t
+            Pxz[0, a] = c * (L[0, 0] * g0)
+            Pxz[1, a] = c * (L[1, 0] * g0 + L[1, 1] * g1)
+            Pxz[2, a] = c * (L[2, 0] * g0 + L[2, 1] * g1 + L[2, 2] * g2)
         else:  # Pxz = sqrt(3) P[:, :3] L^-T G = sqrt(3) M G
             for i in range(d):
-                Pxz[i, a] = c * (M[i, 0] * g[0] + M[i, 1] * g[1] + M[i, 2] * g[2])
+                Pxz[i, a] = c * (M[i, 0] * g0 + M[i, 1] * g1 + M[i, 2] * g2)
     # 3.-4. per measurement covariance: gain and posterior covariance; per measurement: likelihood, mean
     for r in range(R.shape[0]):
         for a in range(MEAS_DIM):
@@ -215,7 +214,7 @@ def workspace(d: int) -> tuple:
     """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
     return (np.empty((3, 3)), np.empty((3, 3)), np.empty(24), np.empty(24), np.empty(6),
             np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
-            np.empty(3), np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
+            np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
             np.empty((d, MEAS_DIM)), np.empty((d, MEAS_DIM)), np.empty((d, 3)))
 
 
