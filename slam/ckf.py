@@ -127,14 +127,15 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         hz[r, 0], hz[r, 1], hz[r, 2], hz[r, 3], hz[r, 4] = body_frame(
             s, toa[r], ya[4 * r], ya[4 * r + 1], ya[4 * r + 2], ya[4 * r + 3])
     for a in range(MEAS_DIM):
-        mean = 0.0
+        h0, mean = hz[0, a], 0.0
         for k in range(6):
-            Dz[k, a] = residual_component(a, hz[k, a], hz[0, a])
-            mean += Dz[k, a]
+            dev = residual_component(a, hz[k, a], h0)
+            Dz[k, a] = dev
+            mean += dev
         mean *= _SIXTH
         for k in range(6):
             Dz[k, a] -= mean
-        zhat[a] = wrap(hz[0, a] + mean) if _IS_AZIMUTH[a] else hz[0, a] + mean
+        zhat[a] = wrap(h0 + mean) if _IS_AZIMUTH[a] else h0 + mean
     for a in range(MEAS_DIM):
         for e in range(a + 1):
             t = 0.0
