@@ -21,7 +21,7 @@ JITTER = 1e-10
 """Relative diagonal jitter of the one retry of :func:`cholesky` (times the largest diagonal entry)."""
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
     """Cholesky-Crout factor of ``A + jitter I`` into ``L`` (lower triangle of ``A`` read); False if
     not SPD or not finite (a non-finite entry reaches some pivot as NaN or infinity)."""
@@ -45,7 +45,7 @@ def _cholesky_once(A: np.ndarray, L: np.ndarray, jitter: float) -> bool:
     return True
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def cholesky(A: np.ndarray, L: np.ndarray, retry: bool = True) -> bool:
     """Lower Cholesky factor ``A = L L^T`` of one SPD matrix ``A (d, d)`` written into ``L (d, d)``.
 

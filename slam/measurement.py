@@ -42,7 +42,7 @@ def geometry_of(lm_type: int) -> int:
         raise ValueError(f"unknown landmark type {lm_type!r}: {e}") from None
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def wrap(a: float) -> float:
     """Angle ``a`` (rad) wrapped to ``(-pi, pi]`` (the scalar twin of :func:`mmslam.model.wrap_angle`)."""
     if -math.pi < a <= math.pi:  # the usual case: no floating-point modulo
@@ -51,7 +51,7 @@ def wrap(a: float) -> float:
     return math.pi if w == -math.pi else w
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def path_vectors(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
                  ) -> tuple[float, float, float, float, float, float, float]:
     """Path length and end directions of one path, the geometry of paper eq. (3).
@@ -89,7 +89,7 @@ def path_vectors(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
     return toa, dep0, dep1, dep2, arr0, arr1, arr2
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def angle_arguments(dx: float, dy: float, dz: float) -> tuple[float, float, float, float]:
     """``(y, x)`` arguments of :func:`~mmslam.slam.trig.atan2` for the azimuth and the elevation of a
     direction ``d``: azimuth ``atan2(dy, dx)``, elevation ``asin(dz / |d|) = atan2(dz, |(dx, dy)|)``
@@ -97,7 +97,7 @@ def angle_arguments(dx: float, dy: float, dz: float) -> tuple[float, float, floa
     return dy, dx, dz, math.sqrt(dx * dx + dy * dy)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
                   ) -> tuple[float, float, float, float, float]:
     """Noise-free global channel parameters of one path, paper eq. (3) without noise and clock bias.
@@ -112,7 +112,7 @@ def channel_point(geometry: int, u: np.ndarray, x: np.ndarray, b: np.ndarray
     return toa, atan2(ya, xa), atan2(ye, xe), atan2(yb, xb), atan2(yf, xf)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def body_frame(s: np.ndarray, toa: float, aod_az: float, aod_el: float, aoa_az: float, aoa_el: float
                ) -> tuple[float, float, float, float, float]:
     """The measurement of global channel parameters seen from vehicle state ``s (>= 7,)`` (paper
@@ -120,7 +120,7 @@ def body_frame(s: np.ndarray, toa: float, aod_az: float, aod_el: float, aoa_az: 
     return toa + s[6], aod_az, aod_el, wrap(aoa_az - s[3]), aoa_el
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def measure_point(geometry: int, s: np.ndarray, x: np.ndarray, b: np.ndarray
                   ) -> tuple[float, float, float, float, float]:
     """Noise-free measurement ``h(s, x)`` of one landmark point seen from one vehicle, paper eq. (3).

@@ -48,7 +48,7 @@ ATAN_POLY = (
 _C0, _C1, _C2, _C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10 = ATAN_POLY
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy")
 def atan2(y: float, x: float) -> float:
     """``atan2(y, x)`` in ``[-pi, pi]`` (rad) of finite ``y, x``, within 2 ulp of ``math.atan2``.
 
