@@ -98,41 +98,54 @@ def sort_descending(key: np.ndarray, idx: np.ndarray, n: int) -> None:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
-                 out_m: np.ndarray, out_P: np.ndarray) -> float:
-    """Moment match of the components ``members`` of one mixture (Vo & Ma 2006, Table II, step 2).
+def moment_match_at(w: np.ndarray, m: np.ndarray, P: np.ndarray, n: int, members: np.ndarray, lo: int, hi: int,
+                    ref: int, out_m: np.ndarray, out_P: np.ndarray, r: int) -> float:
+    """Moment match of the components ``members[n, lo:hi]`` of mixture ``n`` of a batch (Vo & Ma 2006,
+    Table II, step 2), written to slot ``r`` of mixture ``n`` of ``out_m (N, R, d)``, ``out_P (N, R, d, d)``.
 
     ``W = sum w_i``, ``m = sum w_i m_i / W``, ``P = sum w_i (P_i + (m_i - m)(m_i - m)^T) / W``,
     accumulated as offsets ``o_i = m_i - m_ref`` from the component ``ref`` (less cancellation far
     from the origin): ``dbar = sum w_i o_i / W``, ``m = m_ref + dbar``,
-    ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m (d,)`` and ``out_P (d, d)``
-    (exactly symmetric) are written (they hold the sums meanwhile: no scratch), ``W`` is returned.
-    Shapes: ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``; ``members (K,)`` slot indices.
+    ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m[n, r]`` and ``out_P[n, r]``
+    (exactly symmetric) hold the sums meanwhile (no scratch); ``W`` is returned.
+    Shapes: ``w (N, Q)``, ``m (N, Q, d)``, ``P (N, Q, d, d)``, ``members (N, K)`` slot indices.
+    Indexed on the batch arrays, not on per-mixture views: numba's inlined views cost about as
+    much as the arithmetic here.
     """
-    d = m.shape[1]
+    d = m.shape[2]
     W = 0.0
     for a in range(d):
-        out_m[a] = 0.0  # sum w_i o_i
+        out_m[n, r, a] = 0.0  # sum w_i o_i
         for b in range(d):
-            out_P[a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
-    for i in members:
-        W += w[i]
+            out_P[n, r, a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
+    for t in range(lo, hi):
+        i = members[n, t]
+        W += w[n, i]
         for a in range(d):
-            oa = m[i, a] - m[ref, a]
-            out_m[a] += w[i] * oa
+            oa = m[n, i, a] - m[n, ref, a]
+            out_m[n, r, a] += w[n, i] * oa
             for b in range(d):
-                out_P[a, b] += w[i] * (P[i, a, b] + oa * (m[i, b] - m[ref, b]))
+                out_P[n, r, a, b] += w[n, i] * (P[n, i, a, b] + oa * (m[n, i, b] - m[n, ref, b]))
     Wsafe = W if W > 0.0 else 1.0
     for a in range(d):
-        out_m[a] /= Wsafe  # dbar
+        out_m[n, r, a] /= Wsafe  # dbar
     for a in range(d):
         for b in range(a + 1):
-            v = 0.5 * (out_P[a, b] + out_P[b, a]) / Wsafe - out_m[a] * out_m[b]
-            out_P[a, b] = v
-            out_P[b, a] = v
+            v = 0.5 * (out_P[n, r, a, b] + out_P[n, r, b, a]) / Wsafe - out_m[n, r, a] * out_m[n, r, b]
+            out_P[n, r, a, b] = v
+            out_P[n, r, b, a] = v
     for a in range(d):
-        out_m[a] += m[ref, a]
+        out_m[n, r, a] += m[n, ref, a]
     return W
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
+                 out_m: np.ndarray, out_P: np.ndarray) -> float:
+    """:func:`moment_match_at` of the components ``members (K,)`` of one mixture ``w (Q,)``, ``m (Q, d)``,
+    ``P (Q, d, d)`` (offsets from the component ``ref``) into ``out_m (d,)``, ``out_P (d, d)``; returns ``W``."""
+    return moment_match_at(w[None], m[None], P[None], 0, members[None], 0, members.shape[0], ref, out_m[None, None],
+                           out_P[None, None], 0)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -276,10 +289,10 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
         for r in range(out_w.shape[1]):
             if r < count[n]:
                 c = order[n, r]
-                mem = members[n, starts[n, c]:starts[n, c + 1]]
-                out_w[n, r] = moment_match(w[n], m[n], P[n], mem, heads[n, c], out_m[n, r], out_P[n, r])
+                out_w[n, r] = moment_match_at(w, m, P, n, members, starts[n, c], starts[n, c + 1], heads[n, c],
+                                              out_m, out_P, r)
                 if ab.shape[2]:
-                    beta_pool(w[n], ab[n], mem, out_ab[n, r])
+                    beta_pool(w[n], ab[n], members[n, starts[n, c]:starts[n, c + 1]], out_ab[n, r])
                 out_mask[n, r] = True
                 if not finite_gaussian(out_w[n, r], out_m[n, r], out_P[n, r]):
                     return n
