@@ -19,6 +19,8 @@ Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, 
 """
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -485,15 +487,26 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     pw = np.asarray(particle_weights, dtype=float)
     if pw.shape != g.batch_shape:
         raise ValueError(f"particle_weights shape {pw.shape} != batch shape {g.batch_shape}")
-    if not np.all(np.isfinite(pw)) or np.any(pw < 0) or pw.sum() <= 0:
+    # a finite positive sum of non-negative weights: every weight finite (NaN or inf make the sum
+    # non-finite, -inf is negative); two reductions instead of four
+    with np.errstate(invalid="ignore"):  # inf + -inf: NaN, rejected below
+        tot = float(pw.sum())
+    if not (math.isfinite(tot) and tot > 0.0):
         raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
-    pw = pw / pw.sum()
+    pw = pw / tot
+    low = float(pw.min(initial=np.inf))
+    if low < 0.0:
+        raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
     n, d = g.w.size, g.dim
     # one mixture, the union of the particles' components (particle-major order): pruned on their
     # own weights eta (NaN, never kept, in particles of weight 0), merged with the weights w_p eta
-    w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
-    with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
+    if low > 0.0:  # no particle of weight 0 (the usual case): no NaN to place, no inf * 0
+        w_own = g.w.reshape(1, n)
         w_merge = (g.w * pw[:, None]).reshape(1, n)
+    else:
+        w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
+        with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
+            w_merge = (g.w * pw[:, None]).reshape(1, n)
     w, m, P, mask, ab = _reduce(w_own, w_merge, g.m.reshape(1, n, d),
                                 g.P.reshape(1, n, d, d), g.mask.reshape(1, n),
                                 None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2), prune, max_trace,
