@@ -35,7 +35,8 @@ _cholesky = nb.njit(inline="always", error_model="numpy")(_cholesky_once.py_func
 _forward_solve = nb.njit(inline="always", error_model="numpy")(forward_solve.py_func)
 
 _OK, _NONFINITE, _SINGULAR = -1, -2, -3
-"""Status codes of the batch kernels (``>= 0``: index of a mixture whose output is not finite)."""
+"""Status codes of the batch kernels (``_write_batch``: ``>= 0`` is the index of a mixture whose output
+is not finite; ``_plan_batch``: ``>= 0`` is the largest number of clusters kept, no error)."""
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -253,7 +254,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     ``sort_output``), at most ``cap``. Writes ``members, heads, order (N, Q)``, ``starts (N, Q + 1)``,
     ``count (N,)`` (clusters kept).
 
-    Returns ``_OK``, ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
+    Returns the largest ``count`` (0 for ``N = 0``), or ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
     or ``_SINGULAR``.
     """
     N, q, d = m.shape
@@ -262,6 +263,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     D = np.empty(d)
     rem = np.empty(q, np.int64)
     W = np.empty(q)
+    most = 0
     for n in range(N):
         ns = survivors(w_prune[n], w[n], m[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
         if ns < 0:
@@ -273,7 +275,8 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
         if K < 0:
             return _SINGULAR
         count[n] = min(cap, cluster_order(W, K, min_weight, sort_output, order[n]))
-    return _OK
+        most = max(most, count[n])
+    return most
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -324,9 +327,9 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
     w = np.ascontiguousarray(w, dtype=float)
     m = np.ascontiguousarray(m, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
-    members, heads, order = (np.empty((n, q), np.int64) for _ in range(3))
+    members, heads, order = np.empty((3, n, q), np.int64)  # one allocation
     starts = np.empty((n, q + 1), np.int64)
-    count = np.zeros(n, np.int64)
+    count = np.empty(n, np.int64)
     status = _plan_batch(np.ascontiguousarray(w_prune, dtype=float), w, m, P, np.ascontiguousarray(mask, dtype=bool),
                          float(prune), np.inf if max_trace is None else float(max_trace), int(pos_dims),
                          float(merge), float(min_weight), max(int(cap), 0), sort_input, sort_output, members, heads,
@@ -335,7 +338,7 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
         raise FloatingPointError(f"non-finite Gaussian component in {stage} input")
     if status == _SINGULAR:
         raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
-    k = int(count.max(initial=0)) if capacity is None else capacity
+    k = status if capacity is None else capacity
     ab_in = np.empty((n, q, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)
     out = (np.empty((n, k)), np.empty((n, k, d)), np.empty((n, k, d, d)), np.empty((n, k), bool),
            np.empty((n, k, ab_in.shape[2])))
