@@ -92,6 +92,8 @@ def _sinc_terms(w: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     w = np.asarray(w, dtype=float)
     wt = w * dt
     small = np.abs(wt) < 1e-4
+    if not small.any():  # the usual case (turning): the closed forms only, the same values as below
+        return np.sin(wt) / w, (1.0 - np.cos(wt)) / w
     w_safe = np.where(small, 1.0, w)
     a = np.where(small, dt * (1.0 - wt**2 / 6.0), np.sin(wt) / w_safe)
     b = np.where(small, dt * (wt / 2.0 - wt**3 / 24.0), (1.0 - np.cos(wt)) / w_safe)

@@ -152,38 +152,43 @@ def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _moments_batch(geometry: int, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
+def _moments_batch(geometries: np.ndarray, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
                    cov: np.ndarray, ok: np.ndarray) -> None:
-    """Birth moments of every particle ``p`` and measurement ``j`` from the cubature points ``zpts (J, K, 5)``.
+    """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the cubature
+    points ``zpts (J, K, 5)``: ``geometries (G,)`` (:class:`mmslam.model.Bounce` codes), ``states (P, 7)``;
+    writes ``mean (G, P, J, 3)``, ``cov (G, P, J, 3, 3)``, ``ok (G, P, J)``.
 
     The AOA direction of point ``k`` seen with heading ``h_p`` uses ``cos(a + h) = cos a cos h -
     sin a sin h`` (and the same for sin): the trigonometric functions are evaluated once per
-    point and once per particle instead of per pair.
+    point and once per particle instead of per pair, and each direction once for all geometries.
     """
-    J, K = zpts.shape[0], zpts.shape[1]
+    J, K, G = zpts.shape[0], zpts.shape[1], geometries.shape[0]
     ca, sa = np.cos(zpts[:, :, 3]), np.sin(zpts[:, :, 3])
     ce, se = np.cos(zpts[:, :, 4]), np.sin(zpts[:, :, 4])
-    x = np.empty((K, 3))
+    x = np.empty((G, K, 3))
+    valid = np.empty(G, np.bool_)
     for p in range(states.shape[0]):
         s = states[p]
         ch, sh = math.cos(s[3]), math.sin(s[3])
         for j in range(J):
-            valid = True
+            valid[:] = True
             for k in range(K):
                 d0 = ce[j, k] * (ca[j, k] * ch - sa[j, k] * sh)
                 d1 = ce[j, k] * (sa[j, k] * ch + ca[j, k] * sh)
                 L = zpts[j, k, 0] - s[6]
-                # constant geometry at each call site: the inlined inversion is specialised (~8x faster)
-                if geometry == _MIRROR:
-                    valid = invert_ray(_MIRROR, s, d0, d1, se[j, k], L, b, x[k]) and valid
-                else:
-                    valid = invert_ray(_SCATTER, s, d0, d1, se[j, k], L, b, x[k]) and valid
-            ok[p, j] = image_moments(x, mean[p, j], cov[p, j]) and valid
+                for g in range(G):
+                    # constant geometry at each call site: the inlined inversion is specialised (~8x faster)
+                    if geometries[g] == _MIRROR:
+                        valid[g] = invert_ray(_MIRROR, s, d0, d1, se[j, k], L, b, x[g, k]) and valid[g]
+                    else:
+                        valid[g] = invert_ray(_SCATTER, s, d0, d1, se[j, k], L, b, x[g, k]) and valid[g]
+            for g in range(G):
+                ok[g, p, j] = image_moments(x[g], mean[g, p, j], cov[g, p, j]) and valid[g]
 
 
 def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
                           bs: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """:func:`birth_moments` for several path geometries sharing the cubature points.
+    """:func:`birth_moments` for several path geometries sharing the cubature points (one kernel pass).
 
     ``kinds``: :class:`mmslam.model.Bounce` codes (MIRROR, SCATTER; types of one geometry share
     the inversion). Returns ``{geometry: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}``.
@@ -192,12 +197,11 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     zpts = np.ascontiguousarray(cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature"))  # (J, 10, 5)
     s = np.ascontiguousarray(states, dtype=float)
     b = np.ascontiguousarray(bs, dtype=float)
-    out = {}
-    for k in kinds:
-        mean, cov, ok = np.empty((P_, J, 3)), np.empty((P_, J, 3, 3)), np.empty((P_, J), bool)
-        _moments_batch(int(k), s, zpts, b, mean, cov, ok)
-        out[int(k)] = (mean, cov, ok)
-    return out
+    geos = np.array([int(k) for k in kinds], dtype=np.int64)
+    G = geos.shape[0]
+    mean, cov, ok = np.empty((G, P_, J, 3)), np.empty((G, P_, J, 3, 3)), np.empty((G, P_, J), bool)
+    _moments_batch(geos, s, zpts, b, mean, cov, ok)
+    return {int(k): (mean[g], cov[g], ok[g]) for g, k in enumerate(geos)}
 
 
 def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int,

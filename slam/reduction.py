@@ -19,6 +19,8 @@ Shapes follow :mod:`mmslam.slam.gm`: weights ``(*B, Q)``, means ``(*B, Q, d)``, 
 """
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -33,7 +35,8 @@ _cholesky = nb.njit(inline="always", error_model="numpy")(_cholesky_once.py_func
 _forward_solve = nb.njit(inline="always", error_model="numpy")(forward_solve.py_func)
 
 _OK, _NONFINITE, _SINGULAR = -1, -2, -3
-"""Status codes of the batch kernels (``>= 0``: index of a mixture whose output is not finite)."""
+"""Status codes of the batch kernels (``_write_batch``: ``>= 0`` is the index of a mixture whose output
+is not finite; ``_plan_batch``: ``>= 0`` is the largest number of clusters kept, no error)."""
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -98,41 +101,54 @@ def sort_descending(key: np.ndarray, idx: np.ndarray, n: int) -> None:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
-                 out_m: np.ndarray, out_P: np.ndarray) -> float:
-    """Moment match of the components ``members`` of one mixture (Vo & Ma 2006, Table II, step 2).
+def moment_match_at(w: np.ndarray, m: np.ndarray, P: np.ndarray, n: int, members: np.ndarray, lo: int, hi: int,
+                    ref: int, out_m: np.ndarray, out_P: np.ndarray, r: int) -> float:
+    """Moment match of the components ``members[n, lo:hi]`` of mixture ``n`` of a batch (Vo & Ma 2006,
+    Table II, step 2), written to slot ``r`` of mixture ``n`` of ``out_m (N, R, d)``, ``out_P (N, R, d, d)``.
 
     ``W = sum w_i``, ``m = sum w_i m_i / W``, ``P = sum w_i (P_i + (m_i - m)(m_i - m)^T) / W``,
     accumulated as offsets ``o_i = m_i - m_ref`` from the component ``ref`` (less cancellation far
     from the origin): ``dbar = sum w_i o_i / W``, ``m = m_ref + dbar``,
-    ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m (d,)`` and ``out_P (d, d)``
-    (exactly symmetric) are written (they hold the sums meanwhile: no scratch), ``W`` is returned.
-    Shapes: ``w (Q,)``, ``m (Q, d)``, ``P (Q, d, d)``; ``members (K,)`` slot indices.
+    ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m[n, r]`` and ``out_P[n, r]``
+    (exactly symmetric) hold the sums meanwhile (no scratch); ``W`` is returned.
+    Shapes: ``w (N, Q)``, ``m (N, Q, d)``, ``P (N, Q, d, d)``, ``members (N, K)`` slot indices.
+    Indexed on the batch arrays, not on per-mixture views: numba's inlined views cost about as
+    much as the arithmetic here.
     """
-    d = m.shape[1]
+    d = m.shape[2]
     W = 0.0
     for a in range(d):
-        out_m[a] = 0.0  # sum w_i o_i
+        out_m[n, r, a] = 0.0  # sum w_i o_i
         for b in range(d):
-            out_P[a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
-    for i in members:
-        W += w[i]
+            out_P[n, r, a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
+    for t in range(lo, hi):
+        i = members[n, t]
+        W += w[n, i]
         for a in range(d):
-            oa = m[i, a] - m[ref, a]
-            out_m[a] += w[i] * oa
+            oa = m[n, i, a] - m[n, ref, a]
+            out_m[n, r, a] += w[n, i] * oa
             for b in range(d):
-                out_P[a, b] += w[i] * (P[i, a, b] + oa * (m[i, b] - m[ref, b]))
+                out_P[n, r, a, b] += w[n, i] * (P[n, i, a, b] + oa * (m[n, i, b] - m[n, ref, b]))
     Wsafe = W if W > 0.0 else 1.0
     for a in range(d):
-        out_m[a] /= Wsafe  # dbar
+        out_m[n, r, a] /= Wsafe  # dbar
     for a in range(d):
         for b in range(a + 1):
-            v = 0.5 * (out_P[a, b] + out_P[b, a]) / Wsafe - out_m[a] * out_m[b]
-            out_P[a, b] = v
-            out_P[b, a] = v
+            v = 0.5 * (out_P[n, r, a, b] + out_P[n, r, b, a]) / Wsafe - out_m[n, r, a] * out_m[n, r, b]
+            out_P[n, r, a, b] = v
+            out_P[n, r, b, a] = v
     for a in range(d):
-        out_m[a] += m[ref, a]
+        out_m[n, r, a] += m[n, ref, a]
     return W
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
+                 out_m: np.ndarray, out_P: np.ndarray) -> float:
+    """:func:`moment_match_at` of the components ``members (K,)`` of one mixture ``w (Q,)``, ``m (Q, d)``,
+    ``P (Q, d, d)`` (offsets from the component ``ref``) into ``out_m (d,)``, ``out_P (d, d)``; returns ``W``."""
+    return moment_match_at(w[None], m[None], P[None], 0, members[None], 0, members.shape[0], ref, out_m[None, None],
+                           out_P[None, None], 0)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -238,7 +254,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     ``sort_output``), at most ``cap``. Writes ``members, heads, order (N, Q)``, ``starts (N, Q + 1)``,
     ``count (N,)`` (clusters kept).
 
-    Returns ``_OK``, ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
+    Returns the largest ``count`` (0 for ``N = 0``), or ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
     or ``_SINGULAR``.
     """
     N, q, d = m.shape
@@ -247,6 +263,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     D = np.empty(d)
     rem = np.empty(q, np.int64)
     W = np.empty(q)
+    most = 0
     for n in range(N):
         ns = survivors(w_prune[n], w[n], m[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
         if ns < 0:
@@ -258,7 +275,8 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
         if K < 0:
             return _SINGULAR
         count[n] = min(cap, cluster_order(W, K, min_weight, sort_output, order[n]))
-    return _OK
+        most = max(most, count[n])
+    return most
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -276,10 +294,10 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
         for r in range(out_w.shape[1]):
             if r < count[n]:
                 c = order[n, r]
-                mem = members[n, starts[n, c]:starts[n, c + 1]]
-                out_w[n, r] = moment_match(w[n], m[n], P[n], mem, heads[n, c], out_m[n, r], out_P[n, r])
+                out_w[n, r] = moment_match_at(w, m, P, n, members, starts[n, c], starts[n, c + 1], heads[n, c],
+                                              out_m, out_P, r)
                 if ab.shape[2]:
-                    beta_pool(w[n], ab[n], mem, out_ab[n, r])
+                    beta_pool(w[n], ab[n], members[n, starts[n, c]:starts[n, c + 1]], out_ab[n, r])
                 out_mask[n, r] = True
                 if not finite_gaussian(out_w[n, r], out_m[n, r], out_P[n, r]):
                     return n
@@ -309,9 +327,9 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
     w = np.ascontiguousarray(w, dtype=float)
     m = np.ascontiguousarray(m, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
-    members, heads, order = (np.empty((n, q), np.int64) for _ in range(3))
+    members, heads, order = np.empty((3, n, q), np.int64)  # one allocation
     starts = np.empty((n, q + 1), np.int64)
-    count = np.zeros(n, np.int64)
+    count = np.empty(n, np.int64)
     status = _plan_batch(np.ascontiguousarray(w_prune, dtype=float), w, m, P, np.ascontiguousarray(mask, dtype=bool),
                          float(prune), np.inf if max_trace is None else float(max_trace), int(pos_dims),
                          float(merge), float(min_weight), max(int(cap), 0), sort_input, sort_output, members, heads,
@@ -320,7 +338,7 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
         raise FloatingPointError(f"non-finite Gaussian component in {stage} input")
     if status == _SINGULAR:
         raise FloatingPointError("singular or indefinite covariance in Gaussian-mixture merging")
-    k = int(count.max(initial=0)) if capacity is None else capacity
+    k = status if capacity is None else capacity
     ab_in = np.empty((n, q, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)
     out = (np.empty((n, k)), np.empty((n, k, d)), np.empty((n, k, d, d)), np.empty((n, k), bool),
            np.empty((n, k, ab_in.shape[2])))
@@ -472,15 +490,26 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     pw = np.asarray(particle_weights, dtype=float)
     if pw.shape != g.batch_shape:
         raise ValueError(f"particle_weights shape {pw.shape} != batch shape {g.batch_shape}")
-    if not np.all(np.isfinite(pw)) or np.any(pw < 0) or pw.sum() <= 0:
+    # a finite positive sum of non-negative weights: every weight finite (NaN or inf make the sum
+    # non-finite, -inf is negative); two reductions instead of four
+    with np.errstate(invalid="ignore"):  # inf + -inf: NaN, rejected below
+        tot = float(pw.sum())
+    if not (math.isfinite(tot) and tot > 0.0):
         raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
-    pw = pw / pw.sum()
+    pw = pw / tot
+    low = float(pw.min(initial=np.inf))
+    if low < 0.0:
+        raise FloatingPointError("particle weights must be finite, non-negative and not all zero")
     n, d = g.w.size, g.dim
     # one mixture, the union of the particles' components (particle-major order): pruned on their
     # own weights eta (NaN, never kept, in particles of weight 0), merged with the weights w_p eta
-    w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
-    with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
+    if low > 0.0:  # no particle of weight 0 (the usual case): no NaN to place, no inf * 0
+        w_own = g.w.reshape(1, n)
         w_merge = (g.w * pw[:, None]).reshape(1, n)
+    else:
+        w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
+        with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
+            w_merge = (g.w * pw[:, None]).reshape(1, n)
     w, m, P, mask, ab = _reduce(w_own, w_merge, g.m.reshape(1, n, d),
                                 g.P.reshape(1, n, d, d), g.mask.reshape(1, n),
                                 None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2), prune, max_trace,

@@ -215,11 +215,13 @@ def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | 
         ``fov_range`` (distance <= range) of the vehicle; 0 for SP / VS beyond it.
     """
     x, u = np.asarray(lm_pos, float), np.asarray(vehicle_pos, float)
+    gated = is_range_gated(lm_type)  # the type specs' FOV rule (SP, VS: range-gated)
+    if np.ndim(gated) == 0 and not gated:  # one type, never range-gated (BS, VA): no distances needed
+        return np.full(np.broadcast_shapes(x.shape[:-1], u.shape[:-1]), float(params.p_detect))
     # component-wise distance: the same arithmetic as np.linalg.norm(x - u, axis=-1), without
     # NumPy's slow inner loops over the length-3 axis
     dx, dy, dz = x[..., 0] - u[..., 0], x[..., 1] - u[..., 1], x[..., 2] - u[..., 2]
     d = np.sqrt(dx * dx + dy * dy + dz * dz)
-    gated = is_range_gated(lm_type)  # the type specs' FOV rule (SP, VS: range-gated)
     inside = ~gated | (d <= params.fov_range)
     return np.where(inside, params.p_detect, 0.0)
 

@@ -307,6 +307,21 @@ def test_non_finite_components_raise_only_where_live():
     assert out.count() == 1 and np.isclose(out.w[0], 1.0)  # particle 0's two Gaussians merged
 
 
+def test_average_map_rejects_bad_particle_weights_and_drops_zero_weight_particles():
+    """NaN, +-inf, negative or all-zero particle weights raise; a particle of weight 0 contributes no
+    component even when its own weight eta passes the prune threshold (the path without NaN placement
+    for all-positive weights gives the same map as one with an explicit zero)."""
+    m = np.array([[[0, 0, 0]], [[100, 0, 0]]], float)
+    g = GM(np.array([[0.9], [0.9]]), m, np.broadcast_to(np.eye(3), (2, 1, 3, 3)).copy(), np.ones((2, 1), bool))
+    for bad in ([np.nan, 1.0], [np.inf, 1.0], [-np.inf, 1.0], [-0.5, 1.0], [0.0, 0.0], [np.inf, -np.inf]):
+        with pytest.raises(FloatingPointError, match="particle weights must be finite, non-negative"):
+            average_map(g, np.array(bad), 0.1, 49.0, 5)
+    out = average_map(g, np.array([1.0, 0.0]), 0.1, 49.0, 5)
+    assert out.count() == 1 and np.array_equal(out.m[0], [0.0, 0.0, 0.0]) and out.w[0] == 0.9
+    both = average_map(g, np.array([1.0, 1.0]), 0.1, 49.0, 5)
+    assert both.count() == 2 and np.allclose(np.sort(both.w[both.mask]), [0.45, 0.45])
+
+
 def test_fixed_capacity_pads_with_dead_slots():
     g = _gm([[0.6, 0.4, 0.3], [0.2, 0.0, 0.0]], [[[0, 0], [1, 0], [10, 0]], [[5, 5], [0, 0], [0, 0]]])
     g.mask[1, 1:] = False
