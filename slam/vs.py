@@ -104,17 +104,26 @@ def predict_vs_into(g: GM, dt: float, p_survival: float, add: np.ndarray, out: G
     ``out`` (batch ``B``, contiguous arrays; e.g. a predicted map and its births side by side);
     ``add (7, 7)`` from :func:`process_noise`. ``out.pd_beta`` is not touched.
 
-    Raises FloatingPointError if a live predicted component is not finite.
+    Raises FloatingPointError if a live predicted component is not finite; ValueError if ``out`` is
+    not a contiguous float batch of shape ``B`` with room for ``Q`` slots at ``off``, or ``add`` not
+    ``(7, 7)`` (the compiled loop would write past ``out`` or into a copy).
     """
     if g.dim != VS_DIM:
         raise ValueError(f"predict_vs expects {VS_DIM}-D VS states, got dimension {g.dim}")
     B, q = g.batch_shape, g.capacity
     n, k = int(np.prod(B, dtype=int)), out.capacity
+    arrays = ((out.w, np.float64), (out.m, np.float64), (out.P, np.float64), (out.mask, np.bool_))
+    if (out.batch_shape != B or out.dim != VS_DIM or not 0 <= off <= k - q
+            or not all(a.dtype == t and a.flags.c_contiguous for a, t in arrays)
+            or np.shape(add) != (VS_DIM, VS_DIM)):
+        raise ValueError(f"predict_vs_into: out (batch {out.batch_shape}, {k} slots, dim {out.dim}) cannot take "
+                         f"{q} slots of batch {B} at offset {off}, or add {np.shape(add)} is not (7, 7); "
+                         f"pass contiguous float arrays of batch {B} with at least off + {q} slots")
     if not _predict_batch(np.ascontiguousarray(g.w, dtype=float).reshape(n, q),
                           np.ascontiguousarray(g.m, dtype=float).reshape(n, q, VS_DIM),
                           np.ascontiguousarray(g.P, dtype=float).reshape(n, q, VS_DIM, VS_DIM),
                           np.ascontiguousarray(g.mask, dtype=bool).reshape(n, q), float(dt), float(p_survival),
-                          add, int(off), out.w.reshape(n, k), out.m.reshape(n, k, VS_DIM),
+                          np.ascontiguousarray(add, dtype=float), int(off), out.w.reshape(n, k), out.m.reshape(n, k, VS_DIM),
                           out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k)):
         raise FloatingPointError("non-finite Gaussian component after VS prediction")
 

@@ -134,3 +134,28 @@ def test_vs_map_prediction_equals_the_concatenated_predictions(scope, n_old):
     assert out.pd_beta is None
     alone = predict_vs_map(old, None, scn)  # no births: the map alone
     assert alone.capacity == n_old and np.array_equal(alone.P, ref.P[:, :n_old])
+
+
+def test_predict_vs_into_rejects_an_out_it_would_overrun_or_copy():
+    """The compiled loop does not check bounds: an ``out`` too small for ``off + Q`` slots, of another
+    batch shape or not contiguous (its reshape a copy: the prediction lost) is a ValueError, and
+    nothing is written past it."""
+    from mmslam.slam.vs import predict_vs_into, process_noise
+
+    g = empty((2,), 3, 7)
+    g.mask[:] = True
+    g.w[:] = 0.5
+    add = process_noise(Q_STD, None)
+    ok = empty((2,), 5, 7)
+    predict_vs_into(g, 0.1, 0.9, add, ok, 2)  # slots 2..4 of 5: fits
+    np.testing.assert_array_equal(ok.w, [[0, 0, 0.45, 0.45, 0.45]] * 2)
+    for bad_out, off in [(empty((2,), 4, 7), 2), (empty((2,), 5, 7), -1), (empty((3,), 5, 7), 0),
+                         (empty((2,), 5, 3), 0)]:
+        with pytest.raises(ValueError, match="predict_vs_into"):
+            predict_vs_into(g, 0.1, 0.9, add, bad_out, off)
+    strided = empty((2,), 10, 7)
+    view = GM(strided.w[:, ::2], strided.m[:, ::2], strided.P[:, ::2], strided.mask[:, ::2])
+    with pytest.raises(ValueError, match="predict_vs_into"):
+        predict_vs_into(g, 0.1, 0.9, add, view, 0)
+    with pytest.raises(ValueError, match="predict_vs_into"):
+        predict_vs_into(g, 0.1, 0.9, np.eye(3), empty((2,), 3, 7), 0)
