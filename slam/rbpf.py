@@ -95,6 +95,9 @@ def _weighted_outer_sum(w: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
 def weighted_state_cov(s: np.ndarray, w: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """Weighted particle covariance ``(7, 7)`` around ``mean`` (heading differences wrapped):
     ``sum_p w_p (s_p - mean)(s_p - mean)^T``."""
+    if np.shape(w) != (s.shape[0],) or np.shape(mean) != (s.shape[1],):
+        raise ValueError(f"weighted_state_cov: weights {np.shape(w)} and mean {np.shape(mean)} do not match "
+                         f"the states {s.shape}; pass w (P,) and mean (7,)")
     d = s - mean[None, :]
     d[:, 3] = wrap_angle(d[:, 3])
     out = np.empty((d.shape[1], d.shape[1]))

@@ -402,6 +402,18 @@ def test_power_aware_sensor_gives_the_filter_each_measurements_covariance(paper,
     assert len({tuple(np.round(np.diag(r), 12)) for r in R}) > 1  # measurements differ in accuracy
 
 
+def test_weighted_state_cov_rejects_weights_of_another_length():
+    """The compiled sum reads ``w[p]`` for every state without bounds checks: a shorter ``w`` read
+    past it (the einsum raised); now a ValueError naming the shapes."""
+    from mmslam.slam.rbpf import weighted_state_cov
+
+    s = np.arange(70.0).reshape(10, 7)
+    with pytest.raises(ValueError, match="weighted_state_cov"):
+        weighted_state_cov(s, np.full(3, 1 / 3), s.mean(0))
+    with pytest.raises(ValueError, match="weighted_state_cov"):
+        weighted_state_cov(s, np.full(10, 0.1), s.mean(0)[:3])
+
+
 def test_weighted_state_cov_equals_the_einsum_bit_for_bit():
     """The compiled weighted outer-product sum gives the same bits as the NumPy form it replaced."""
     from mmslam.slam.dynamics import wrap_angle
