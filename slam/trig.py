@@ -16,7 +16,10 @@ error times ``s`` is below 1e-17). The octant folds back as ``k pi/4 +- atan(u)`
 ``pi/4`` split into a 50-bit head (``k * head`` exact) and a tail. Measured accuracy against
 ``math.atan2`` (``tests/test_trig.py``, 2e6 random and special inputs): at most 2 ulp, signed
 zeros as ``math.atan2`` (``atan2(+-0, -0) = +-pi``), NaN for a NaN input. Infinite inputs are not
-supported (NaN).
+supported (NaN), nor inputs with ``|x| + |y|`` above the largest double (~1.8e308: the fold's
+``a + b`` overflows and the angle is wrong, e.g. ``pi/4`` for ``(0.9e308, 1e308)``); the measurement
+model's path vectors (m) are far below both, and :func:`mmslam.slam.measurement.angle_arguments`
+overflows already for ``|d_xy|`` above ~1e154.
 """
 from __future__ import annotations
 
@@ -50,7 +53,7 @@ _C0, _C1, _C2, _C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10 = ATAN_POLY
 
 @nb.njit(cache=True, error_model="numpy")
 def atan2(y: float, x: float) -> float:
-    """``atan2(y, x)`` in ``[-pi, pi]`` (rad) of finite ``y, x``, within 2 ulp of ``math.atan2``.
+    """``atan2(y, x)`` in ``[-pi, pi]`` (rad) of finite ``y, x`` (``|x| + |y|`` finite), within 2 ulp of ``math.atan2``.
 
     Branch-free (selects only), so a loop over many angles vectorises; see the module docstring.
     """

@@ -123,8 +123,8 @@ def predict_vs_into(g: GM, dt: float, p_survival: float, add: np.ndarray, out: G
                           np.ascontiguousarray(g.m, dtype=float).reshape(n, q, VS_DIM),
                           np.ascontiguousarray(g.P, dtype=float).reshape(n, q, VS_DIM, VS_DIM),
                           np.ascontiguousarray(g.mask, dtype=bool).reshape(n, q), float(dt), float(p_survival),
-                          np.ascontiguousarray(add, dtype=float), int(off), out.w.reshape(n, k), out.m.reshape(n, k, VS_DIM),
-                          out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k)):
+                          np.ascontiguousarray(add, dtype=float), int(off), out.w.reshape(n, k),
+                          out.m.reshape(n, k, VS_DIM), out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k)):
         raise FloatingPointError("non-finite Gaussian component after VS prediction")
 
 
