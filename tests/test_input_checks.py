@@ -54,6 +54,22 @@ def test_innovate_rejects_wrong_shapes():
         innovate(m[:, :2], P[:, :2, :2], np.zeros((2, 7)), int(Bounce.SCATTER), BS_POS, Z, R, "test")  # d = 2
 
 
+
+def _pd09(u, x, t):
+    """A constant p_D of 0.9 for every Gaussian (the shape of the vehicle positions without the last axis)."""
+    return np.full(np.shape(u)[:-1], 0.9)
+
+
+def _sp_case(pd_beta: bool = False):
+    """Two particles with three SP Gaussians at (30, 30, 30) m, two measurements, R = I, states 0:
+    ``(g, Z, R, states)`` for the correction's shape checks."""
+    from mmslam.slam.gm import GM
+
+    P_, Q = 2, 3
+    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
+           np.ones((P_, Q), bool), np.full((P_, Q, 2), 2.0) if pd_beta else None)
+    return g, np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+
 def test_type_terms_rejects_wrong_shapes_before_its_kernel():
     """The compiled correction reads states[p] and P[p, q] unchecked: a mismatched shape is a
     ValueError naming the stage, never an out-of-bounds read (particle count, state length, d = 2,
@@ -61,13 +77,9 @@ def test_type_terms_rejects_wrong_shapes_before_its_kernel():
     from mmslam.slam.gm import GM
     from mmslam.slam.gmphd import type_terms
 
-    def pd_fn(u, x, t):
-        return np.full(np.shape(u)[:-1], 0.9)
-
+    pd_fn = _pd09
     P_, Q = 2, 3
-    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
-           np.ones((P_, Q), bool))
-    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    g, Z, R, s = _sp_case()
     assert type_terms(g, SP, s, Z, R, BS_POS, pd_fn).logq.shape == (P_, Q, 2)
     for states in (np.zeros((P_ + 1, 7)), np.zeros((1, 7)), np.zeros((P_, 3))):
         with pytest.raises(ValueError, match="SP correction: shapes .* expected"):
@@ -84,16 +96,11 @@ def test_type_terms_rejects_a_pd_beta_of_another_shape():
     """Review finding: the correction kernel reads pd_beta[p, q] unchecked; a Beta array that
     NumPy broadcasts in expected_pd ((P, 1, 2), (1, Q, 2)) gave the corrected components Beta
     parameters read past the array (denormal garbage). Now a ValueError naming the stage."""
-    from mmslam.slam.gm import GM
     from mmslam.slam.gmphd import type_terms
 
-    def pd_fn(u, x, t):
-        return np.full(np.shape(u)[:-1], 0.9)
-
+    pd_fn = _pd09
     P_, Q = 2, 3
-    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
-           np.ones((P_, Q), bool), np.full((P_, Q, 2), 2.0))
-    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    g, Z, R, s = _sp_case(pd_beta=True)
     assert type_terms(g, SP, s, Z, R, BS_POS, pd_fn).logq.shape == (P_, Q, 2)
     for beta in (np.full((P_, 1, 2), 2.0), np.full((1, Q, 2), 2.0), np.full((P_, Q, 3), 2.0), np.full(2, 2.0)):
         with pytest.raises(ValueError, match=r"SP correction: shapes .* pd_beta .* expected .*\(P, Q, 2\)"):
@@ -122,16 +129,11 @@ def test_bs_logterm_rejects_wrong_shapes_before_its_kernel():
 def test_corrected_gm_rejects_a_log_psi_of_another_shape():
     """Review finding: the corrected-components kernel reads logpsi[p, j] unchecked; a (P, J')
     log psi with J' < J gave weights from past the array. Now a ValueError."""
-    from mmslam.slam.gm import GM
     from mmslam.slam.gmphd import corrected_gm, log_psi, type_terms
 
-    def pd_fn(u, x, t):
-        return np.full(np.shape(u)[:-1], 0.9)
-
+    pd_fn = _pd09
     P_, Q = 2, 3
-    g = GM(np.ones((P_, Q)), np.zeros((P_, Q, 3)) + 30.0, np.broadcast_to(np.eye(3), (P_, Q, 3, 3)).copy(),
-           np.ones((P_, Q), bool))
-    Z, R, s = np.zeros((2, 5)), np.eye(5), np.zeros((P_, 7))
+    g, Z, R, s = _sp_case()
     tc = type_terms(g, SP, s, Z, R, BS_POS, pd_fn)
     lp = log_psi([tc], None, np.log(1e-5), (P_, 2))
     assert corrected_gm(tc, Z, lp).capacity == Q * 3
