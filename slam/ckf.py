@@ -68,7 +68,8 @@ def gaussian_loglik(z: np.ndarray, zhat: np.ndarray, LS: np.ndarray, half_logdet
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
                extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
-               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple) -> int:
+               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple,
+               floor_lik: float = -math.inf, floor_post: float = -math.inf) -> int:
     """CKF update of one landmark Gaussian ``N(m, P)`` seen from one vehicle state ``s``.
 
     The measurement is ``z = h(s, x + e) + n`` (paper eq. (3), :func:`measure_point` with
@@ -86,6 +87,10 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
        (so ``K = A L_S^-1``), ``P_post = P - A A^T``;
     4. per measurement ``z_j`` (paper eqs. (5), (10)): whitened residual ``y = L_S^-1 (z_j - zhat)``,
        ``log N(z_j; zhat, S) = -|y|^2 / 2 - log det L_S - 5/2 log 2 pi``, ``m_post = m + A y``.
+       Two optional floors skip work whose result the caller never uses: if already the bound
+       ``-y_0^2 / 2 - log det L_S - 5/2 log 2 pi`` from the first component (``|y|^2 >= y_0^2``)
+       is below ``floor_lik``, ``loglik[j] = -inf`` and nothing else is computed for ``z_j``;
+       if ``loglik[j] < floor_post``, ``m_post[j]`` is not written.
 
     Args:
         geometry: :class:`mmslam.model.Bounce` code of the landmark type.
@@ -97,6 +102,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         loglik: ``(J,)`` out; m_post: ``(J, d)`` out; P_post: ``(len(R), d, d)`` out
             (exactly symmetric).
         work: scratch arrays from :func:`workspace` (allocated once per batch, not per Gaussian).
+        floor_lik, floor_post: the floors of step 4 (``-inf``: every likelihood and mean computed).
 
     Returns:
         ``OK``, or ``BAD_POSITION_COV`` / ``BAD_INNOVATION_COV`` if that covariance is not
@@ -194,17 +200,21 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
                 P_post[r, k, i] = t
         j0, j1 = (0, J) if R.shape[0] == 1 else (r, r + 1)
         for j in range(j0, j1):
-            r0 = residual_component(0, Z[j, 0], zhat[0])
+            y0 = residual_component(0, Z[j, 0], zhat[0]) * inv[0]  # y = L_S^-1 r by forward substitution
+            if whitened_loglik(y0 * y0, half_logdet) < floor_lik:  # an upper bound of loglik[j]
+                loglik[j] = -math.inf
+                continue
             r1 = residual_component(1, Z[j, 1], zhat[1])
             r2 = residual_component(2, Z[j, 2], zhat[2])
             r3 = residual_component(3, Z[j, 3], zhat[3])
             r4 = residual_component(4, Z[j, 4], zhat[4])
-            y0 = r0 * inv[0]  # y = L_S^-1 r by forward substitution
             y1 = (r1 - LS[1, 0] * y0) * inv[1]
             y2 = (r2 - LS[2, 0] * y0 - LS[2, 1] * y1) * inv[2]
             y3 = (r3 - LS[3, 0] * y0 - LS[3, 1] * y1 - LS[3, 2] * y2) * inv[3]
             y4 = (r4 - LS[4, 0] * y0 - LS[4, 1] * y1 - LS[4, 2] * y2 - LS[4, 3] * y3) * inv[4]
             loglik[j] = whitened_loglik(y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4, half_logdet)
+            if loglik[j] < floor_post:
+                continue
             for i in range(d):
                 m_post[j, i] = m[i] + A[i, 0] * y0 + A[i, 1] * y1 + A[i, 2] * y2 + A[i, 3] * y3 + A[i, 4] * y4
     return OK

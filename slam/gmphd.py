@@ -88,7 +88,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
-    terms = [type_terms(g, t, states, Z, R, bs, pd_fn, extents.get(t)) for t, g in maps.items()]  # 1.-2.
+    terms = [type_terms(g, t, states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune)
+             for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
@@ -139,7 +140,8 @@ terms of a sum are skipped without calling ``exp`` (also ``-inf``, the undetecta
 
 def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
-               extent: np.ndarray | None = None) -> TypeCorrection:
+               extent: np.ndarray | None = None, log_clutter: float = -np.inf,
+               prune: float | None = None) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -158,6 +160,12 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
             Gaussian's own Beta (:func:`mmslam.slam.detection.expected_pd`).
         extent: ``(3, 3)`` scatter-point covariance of an extended landmark (VS: a car body), see
             :func:`mmslam.slam.ckf.ckf_update`; None for point landmarks.
+        log_clutter, prune: with a clutter intensity (``log_clutter > -inf``) and a prune threshold
+            ``> 0`` of the corrected components (:func:`corrected_gm`), work whose result cannot
+            matter is skipped (:func:`_skip_floors`): a term ``log(p_D w N(z_j))`` below
+            ``log c(z) - 40`` (less than ``4.3e-18`` of ``psi(z_j) >= c(z)``) is set to ``-inf``,
+            and the posterior mean of a term that :func:`corrected_gm` will prune is not computed
+            (its ``m_post`` entry is left unset). The defaults compute everything.
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -193,14 +201,35 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
         raise FloatingPointError(f"non-finite mean or covariance in {stage}")
     n = int(det_index.max(initial=-1)) + 1  # the Gaussians with a CKF update
     loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
+    floor_q, floor_post = _skip_floors(log_clutter, prune)
     code = _TYPE_TERMS[geometry_of(lm_type)](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
-                                             loglik, m_post, P_post)
+                                             loglik, m_post, P_post, floor_q, floor_post)
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {stage}")
     if code == BAD_INNOVATION_COV:
         raise FloatingPointError(f"covariance not positive definite in {stage} (innovation covariance)")
     return TypeCorrection(g, lm_type, logq, missed_w, Innovation(loglik, m_post, P_post), det_index)
+
+
+NEGLIGIBLE_LOG = -40.0
+"""A detection term ``q`` with ``log q < log c(z) + NEGLIGIBLE_LOG`` is dropped from ``psi(z) >= c(z)``
+(``e^-40 = 4.2e-18``: far below the 1e-9 relative tolerance of results, even summed over a map)."""
+
+
+def _skip_floors(log_clutter: float, prune: float | None) -> tuple[float, float]:
+    """``(floor_q, floor_post)`` of :func:`_type_terms_loop`: the ``log q`` below which a term is
+    negligible in ``psi`` (set to ``-inf``) and below which its posterior mean is never read.
+
+    A corrected component ``(q, j)`` is kept iff ``log q - log psi(z_j) >= log prune``
+    (:func:`_corrected_components`) and ``psi >= c``, so ``log q < log c + log prune`` is
+    pruned; 1e-9 of margin covers the rounding of ``log psi`` (a few ulp). Without clutter, or
+    without pruning (``prune`` None or 0: every component is materialised, its moments read),
+    both floors are ``-inf``.
+    """
+    if prune is None or not prune > 0.0 or not log_clutter > -np.inf:
+        return -np.inf, -np.inf
+    return log_clutter + NEGLIGIBLE_LOG, log_clutter + math.log(prune) - 1e-9
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -236,12 +265,14 @@ def _detection_slots(mask: np.ndarray, w: np.ndarray, pd: np.ndarray, P: np.ndar
 def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray, P: np.ndarray,
                      states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
                      det_index: np.ndarray, logq: np.ndarray, loglik: np.ndarray, m_post: np.ndarray,
-                     P_post: np.ndarray) -> int:
+                     P_post: np.ndarray, floor_q: float, floor_post: float) -> int:
     """The CKF loop of :func:`type_terms` (after :func:`_detection_slots`); returns ``OK`` or the
     failure code of :func:`~mmslam.slam.ckf.ckf_update`.
 
     For each particle ``p`` and Gaussian ``q`` with ``n = det_index[p, q] >= 0``: the CKF update
-    into ``loglik[n]``, ``m_post[n]``, ``P_post[n]`` and ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``.
+    into ``loglik[n]``, ``m_post[n]``, ``P_post[n]`` and ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``;
+    a term below ``floor_q`` is ``-inf``, the mean of one below ``floor_post`` is not written
+    (:func:`_skip_floors`; the floors of :func:`~mmslam.slam.ckf.ckf_update` less ``log(p_D w)``).
     """
     Pn, Q, d = m.shape
     work = workspace(d)
@@ -250,11 +281,11 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
             n = det_index[p, q]
             if n < 0:
                 continue
+            lw = math.log(pd[p, q] * w[p, q])
             code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, Z, R, loglik[n], m_post[n],
-                              P_post[n], work)
+                              P_post[n], work, floor_q - lw, floor_post - lw)
             if code != OK:
                 return code
-            lw = math.log(pd[p, q] * w[p, q])
             for j in range(Z.shape[0]):
                 logq[p, q, j] = lw + loglik[n, j]
     return OK
@@ -263,18 +294,21 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
 # One kernel per path geometry (the Bounce code a constant: ckf_update inlined once per kernel),
 # compiled only when a map of that geometry is first corrected; see mmslam.slam.ckf._CKF_BATCH.
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
-    return _type_terms_loop(0, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.DIRECT
+def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+    return _type_terms_loop(0, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+                            fq, fp)  # Bounce.DIRECT
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
-    return _type_terms_loop(1, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.MIRROR
+def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+    return _type_terms_loop(1, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+                            fq, fp)  # Bounce.MIRROR
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post):  # noqa
-    return _type_terms_loop(2, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post)  # Bounce.SCATTER
+def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+    return _type_terms_loop(2, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+                            fq, fp)  # Bounce.SCATTER
 
 
 _TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)

@@ -455,3 +455,45 @@ def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_inno
             np.testing.assert_array_equal(o.pd_beta[p, live], [c[3] for c in comps])
             dead = ~o.mask[p]
             assert np.all(o.w[p, dead] == 0.0) and np.all(o.P[p, dead] == np.eye(d)) and np.all(o.pd_beta[p, dead] == 1.0)
+
+
+@pytest.mark.parametrize("lm_type", [VA, SP, VS])
+def test_skipped_work_changes_no_corrected_component(lm_type):
+    """With clutter and pruning, type_terms skips negligible terms and the means of pruned ones
+    (gmphd._skip_floors); correct() must equal the computation without skipping to 1e-12, and the
+    skipping must actually happen (terms set to -inf that were finite without it)."""
+    from mmslam.slam.gmphd import _skip_floors, correct
+
+    rng = np.random.default_rng(11)
+    P_, Q, d = 5, 6, 3 if lm_type != VS else 7
+    s = np.tile([70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0], (P_, 1))
+    s[:, 0:2] += rng.standard_normal((P_, 2)) * 0.3
+    lm = np.array([[60.0, 40.0, 5.0], [60.0, 20.0, 5.0], [90.0, 30.0, 8.0],
+                   [40.0, 60.0, 3.0], [65.0, 25.0, 4.0], [80.0, 45.0, 6.0]])
+    m = np.zeros((P_, Q, d))
+    m[..., :3] = lm + rng.standard_normal((P_, Q, 3)) * 0.5
+    if d == 7:
+        m[..., 3:6] = rng.standard_normal((P_, Q, 3))
+    Pc = np.stack([[_spd(rng, d, 0.05 if (p + q) % 2 else 1.0) for q in range(Q)] for p in range(P_)])
+    g = GM(rng.uniform(0.01, 1.0, (P_, Q)), m, Pc, rng.random((P_, Q)) < 0.9)
+    Z = np.stack([measure(s[0], lm[j], lm_type if lm_type != VS else SP, BS_POS) for j in range(4)]
+                 + [np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
+    lc, prune = np.log(1.2832e-5), 1e-5
+    fq, fp = _skip_floors(lc, prune)
+    assert fq == lc - 40.0 and np.isclose(fp, lc + np.log(prune)) and _skip_floors(lc, None) == (-np.inf, -np.inf)
+    skipped = type_terms(g, lm_type, s, Z, R, BS_POS, _pd, None, lc, prune)
+    full = type_terms(g, lm_type, s, Z, R, BS_POS, _pd)
+    gated = np.isneginf(skipped.logq) & np.isfinite(full.logq)
+    assert gated.any() and (full.logq[gated] < fq).all()  # only negligible terms are dropped
+    keep = np.isfinite(skipped.logq)
+    assert np.array_equal(skipped.logq[keep], full.logq[keep])
+    p_bs = np.full(P_, 0.95)
+    out, lpsi = correct({lm_type: g}, s, Z, R, BS_POS, _pd, p_bs, lc, prune, {}, 0)
+    lpsi_ref = log_psi([full], bs_logterm(s, Z, R, BS_POS, p_bs), lc, (P_, Z.shape[0]))
+    ref = corrected_gm(full, Z, lpsi_ref, prune=prune)
+    np.testing.assert_allclose(lpsi, lpsi_ref, rtol=1e-12)
+    a = out[lm_type]
+    assert a.w.shape == ref.w.shape and np.array_equal(a.mask, ref.mask)
+    np.testing.assert_allclose(a.w, ref.w, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(a.m[a.mask], ref.m[ref.mask], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.P[a.mask], ref.P[ref.mask], rtol=1e-12, atol=1e-12)
