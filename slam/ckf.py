@@ -90,7 +90,8 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
        Two optional floors skip work whose result the caller never uses: if already the bound
        ``-y_0^2 / 2 - log det L_S - 5/2 log 2 pi`` from the first component (``|y|^2 >= y_0^2``)
        is below ``floor_lik``, ``loglik[j] = -inf`` and nothing else is computed for ``z_j``;
-       if ``loglik[j] < floor_post``, ``m_post[j]`` is not written.
+       if ``loglik[j] < floor_post``, ``m_post[j]`` is not computed. Either way ``m_post[j, 0]`` is
+       NaN: a caller that reads a skipped mean fails its finiteness check instead of using stale memory.
 
     Args:
         geometry: :class:`mmslam.model.Bounce` code of the landmark type.
@@ -203,6 +204,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             y0 = residual_component(0, Z[j, 0], zhat[0]) * inv[0]  # y = L_S^-1 r by forward substitution
             if whitened_loglik(y0 * y0, half_logdet) < floor_lik:  # an upper bound of loglik[j]
                 loglik[j] = -math.inf
+                m_post[j, 0] = math.nan  # not computed: a reader that keeps it fails the finiteness check
                 continue
             r1 = residual_component(1, Z[j, 1], zhat[1])
             r2 = residual_component(2, Z[j, 2], zhat[2])
@@ -214,6 +216,7 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
             y4 = (r4 - LS[4, 0] * y0 - LS[4, 1] * y1 - LS[4, 2] * y2 - LS[4, 3] * y3) * inv[4]
             loglik[j] = whitened_loglik(y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4, half_logdet)
             if loglik[j] < floor_post:
+                m_post[j, 0] = math.nan
                 continue
             for i in range(d):
                 m_post[j, i] = m[i] + A[i, 0] * y0 + A[i, 1] * y1 + A[i, 2] * y2 + A[i, 3] * y3 + A[i, 4] * y4

@@ -93,7 +93,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
-        g = corrected_gm(tc, Z, lpsi, prune=prune)  # 4.
+        g = corrected_gm(tc, Z, lpsi, prune=prune, mass_check=(J, tc.lm_type, step))  # 4.
         check_phd_mass(tc.g, g, J, tc.lm_type, step)  # 5.
         out[tc.lm_type] = g
     return out, lpsi
@@ -165,7 +165,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
             matter is skipped (:func:`_skip_floors`): a term ``log(p_D w N(z_j))`` below
             ``log c(z) - 40`` (less than ``4.3e-18`` of ``psi(z_j) >= c(z)``) is set to ``-inf``,
             and the posterior mean of a term that :func:`corrected_gm` will prune is not computed
-            (its ``m_post`` entry is left unset). The defaults compute everything.
+            (its ``m_post`` row starts with NaN). The defaults compute everything.
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -519,7 +519,8 @@ def _lse_slots_kernel(logq: np.ndarray, out: np.ndarray) -> None:
             out[p, j] = mx[j] + math.log(s[j])
 
 
-def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: float | None = None) -> GM:
+def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: float | None = None,
+                 mass_check: tuple[int, int, int] | None = None) -> GM:
     """Corrected PHD of one type: missed-detection part plus one updated Gaussian per (q, z).
 
     With ``prune=None`` the result has the dense layout: batch ``(P,)`` and ``Q (1 + J)``
@@ -537,6 +538,9 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     (:func:`mmslam.slam.detection.missed_beta`: ``(s, t + 1)`` inside the FOV, ``(s, t)``
     outside; :func:`~mmslam.slam.detection.detected_beta`: ``(s + 1, t)``; dead slots (1, 1)).
 
+    ``mass_check = (J, lm_type, step)``: if a corrected component is not finite, the PHD-mass
+    invariant (:func:`check_phd_mass`) is checked first (its message is the more specific one).
+
     Raises:
         FloatingPointError: a non-finite weight, mean or covariance of a corrected component.
         ValueError: ``logpsi`` not ``(P, J)``.
@@ -553,6 +557,8 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
         prune is None)
     out = GM(w, m, Pc, live, pd_beta if beta else None)
     if not finite:
+        if mass_check is not None:  # the weights' invariant first: it names the broken step and particle
+            check_phd_mass(t.g, out, *mass_check)
         out.check(f"after the {_tname(t.lm_type)} correction")
         raise FloatingPointError(f"non-finite values after the {_tname(t.lm_type)} correction")
     return out

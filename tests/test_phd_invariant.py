@@ -100,9 +100,14 @@ def test_invariant_fires_on_the_old_logsumexp_slots(paper8, monkeypatch):
 
 def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monkeypatch):
     """Why the check exists: with it disabled, the old kernel runs to the end without an error
-    while the corrected mass exceeds the bound (weights of ~1/clutter intensity)."""
+    while the corrected mass exceeds the bound (weights of ~1/clutter intensity).
+
+    The correction of the old kernel's time computed every posterior mean; the skipped means of
+    today's (``gmphd._skip_floors``, NaN-marked) would turn this corruption into a non-finite error
+    (next test), so they are switched off here to show what the mass check alone catches."""
     scn, states, paths = paper8
     monkeypatch.setattr(gmphd, "_logsumexp_slots", _old_logsumexp_slots)
+    monkeypatch.setattr(gmphd, "_skip_floors", lambda log_clutter, prune: (-np.inf, -np.inf))
     excess = []
 
     def record(pred, corr, J, t, k):
@@ -113,3 +118,15 @@ def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monk
     monkeypatch.setattr(gmphd, "check_phd_mass", record)
     run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
     assert max(excess) > 1.0
+
+
+def test_a_corrupted_log_weight_never_reads_a_skipped_mean(paper8, monkeypatch):
+    """The correction skips the posterior means of the pairs it will prune (``gmphd._skip_floors``);
+    such a mean is NaN-marked, not stale memory. If the log-weights are corrupted after the CKF (the
+    old kernel, mass check off) so that a skipped pair is kept, the run stops with a non-finite
+    error at once instead of carrying whatever the buffer held."""
+    scn, states, paths = paper8
+    monkeypatch.setattr(gmphd, "_logsumexp_slots", _old_logsumexp_slots)
+    monkeypatch.setattr(gmphd, "check_phd_mass", lambda *a: None)
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
