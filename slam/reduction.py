@@ -493,8 +493,8 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
 
 
 def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
-                 ab: np.ndarray | None, label: np.ndarray, prune: float, max_trace: float | None, pos_dims: int
-                 ) -> tuple[np.ndarray, ...]:
+                 ab: np.ndarray | None, label: np.ndarray, prune: float, max_trace: float | None, pos_dims: int,
+                 slots: int = 0) -> tuple[np.ndarray, ...]:
     """One component per label of the union of a vehicle's particle maps (:func:`average_map`, ``by_label``).
 
     The live components ``i`` of one flat mixture ``w_own, w (n,)``, ``m (n, d)``, ``P (n, d, d)``,
@@ -519,6 +519,11 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
     idx = np.flatnonzero(keep)
     lab = np.asarray(label, np.int64)[idx]
     key = np.where(lab >= 0, lab, -1 - np.arange(idx.size))  # unlabelled: a group of one each
+    if slots and idx.size:  # one copy per particle and label: the heaviest; the others are groups of one
+        o = np.lexsort((-w[idx], idx // slots, key))
+        ks, ps = key[o], (idx // slots)[o]
+        first = np.r_[True, (ks[1:] != ks[:-1]) | (ps[1:] != ps[:-1])]
+        key[o[~first]] = -1 - o[~first]
     order = np.lexsort((-w[idx], key))  # by label, the largest weight first (stable on ties)
     members = idx[order]
     key = key[order]
@@ -536,6 +541,8 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
     return out[0], out[1], out[2], None if ab is None else out[4], pooled_label
 
 
+import os
+_ONE_PER_PARTICLE = bool(int(os.environ.get("MMSLAM_ONE_PER_PARTICLE", "0")))  # EXPERIMENT
 POOL_COPIES = "copies"
 POOL_POOLED = "pooled"
 
@@ -618,7 +625,7 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
         copies = label_prune == POOL_COPIES
         w_merge, m, P, ab, lab = _pool_labels(w_own[0], w_merge[0], m[0], P[0], mask[0],
                                               None if ab is None else ab[0], lab[0], prune if copies else -np.inf,
-                                              max_trace, pos_dims)
+                                              max_trace, pos_dims, g.capacity if _ONE_PER_PARTICLE else 0)
         mask = np.ones(w_merge.shape, bool)
         w_own, max_trace, step1 = w_merge, None, (-np.inf if copies else prune)
     w, m, P, mask, ab, lab = _reduce(w_own, w_merge, m, P, mask, ab, step1, max_trace, pos_dims, merge, prune, cap,
