@@ -185,7 +185,7 @@ class LocalFilter:
         for t in self.types:
             g = self.maps[t]
             avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
-                                  fp.max_trace, by_label=fu.average_by_label, label_prune=fu.average_label_prune)
+                                  fp.max_trace, by_label=fu.average_by_label)
                       if g.capacity else empty((), 0, self.specs[t].state_dim, with_label=self._labels))
         return mean, cov, avg
 

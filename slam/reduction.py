@@ -493,20 +493,24 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
 
 
 def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
-                 ab: np.ndarray | None, label: np.ndarray, prune: float, max_trace: float | None, pos_dims: int,
-                 slots: int = 0) -> tuple[np.ndarray, ...]:
+                 ab: np.ndarray | None, label: np.ndarray, slots: int, prune: float, max_trace: float | None,
+                 pos_dims: int) -> tuple[np.ndarray, ...]:
     """One component per label of the union of a vehicle's particle maps (:func:`average_map`, ``by_label``).
 
-    The live components ``i`` of one flat mixture ``w_own, w (n,)``, ``m (n, d)``, ``P (n, d, d)``,
-    ``mask (n,)`` (``ab (n, 2)`` Beta parameters or None, ``label (n,)``) that pass the copy rule
-    (``w_own >= prune``, position trace ``<= max_trace``; ``w_own`` NaN: a particle of weight 0,
-    never kept) are grouped by label and each group moment-matched with the weights ``w``
-    (:func:`moment_match_at`, offsets from the group's largest weight; Beta: ``beta_pool``): the
-    copies of one landmark in the particles' maps are one component whatever their spread. A
-    component without identity (``label < 0``) is a group of its own.
+    The union holds the particles' maps one after the other, ``slots`` components each (component
+    ``i`` is of particle ``i // slots``): ``w_own, w (n,)``, ``m (n, d)``, ``P (n, d, d)``,
+    ``mask (n,)``, ``ab (n, 2)`` Beta parameters or None, ``label (n,)``. The live components that
+    pass the copy rule (``w_own >= prune``, position trace ``<= max_trace``; ``w_own`` NaN, a
+    particle of weight 0, never passes) are grouped by label, one copy per particle: a particle's
+    heaviest component of the label (a label's other components in that particle, e.g. its Gaussian
+    corrected by another landmark's measurement, are other hypotheses; they and the unlabelled ones,
+    ``label < 0``, are groups of one). Each group is moment-matched with the weights ``w``
+    (:func:`moment_match_at`, offsets from its largest weight; Beta: ``beta_pool``): the copies of
+    one landmark in the particles' maps become one component whatever their spread.
 
-    Returns ``(w (1, G), m (1, G, d), P (1, G, d, d), ab (1, G, 2) or None, label (1, G))``, groups
-    in the order of their labels. Raises FloatingPointError for a non-finite live input component.
+    Returns ``(w (1, G), m (1, G, d), P (1, G, d, d), ab (1, G, 2) or None, label (1, G))``, the groups
+    in the order of their keys (labels; groups of one: :data:`NO_LABEL`). Raises FloatingPointError
+    for a non-finite live input component.
     """
     n, d = m.shape[0], m.shape[-1]
     ok = np.isfinite(w) & np.isfinite(m).all(-1) & np.isfinite(P).all((-1, -2))
@@ -517,39 +521,28 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
         k = min(pos_dims, d)
         keep &= np.trace(P[:, :k, :k], axis1=-2, axis2=-1) <= max_trace
     idx = np.flatnonzero(keep)
-    lab = np.asarray(label, np.int64)[idx]
-    key = np.where(lab >= 0, lab, -1 - np.arange(idx.size))  # unlabelled: a group of one each
-    if slots and idx.size:  # one copy per particle and label: the heaviest; the others are groups of one
-        o = np.lexsort((-w[idx], idx // slots, key))
-        ks, ps = key[o], (idx // slots)[o]
-        first = np.r_[True, (ks[1:] != ks[:-1]) | (ps[1:] != ps[:-1])]
-        key[o[~first]] = -1 - o[~first]
-    order = np.lexsort((-w[idx], key))  # by label, the largest weight first (stable on ties)
-    members = idx[order]
-    key = key[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if idx.size else np.zeros(0, np.int64)
-    G = starts.size
-    starts = np.r_[starts, idx.size].astype(np.int64)
+    lab, part, wk = np.asarray(label, np.int64)[idx], idx // max(slots, 1), w[idx]
+    o = np.lexsort((-wk, part, lab))  # by label, particle, then the largest weight first
+    later = np.zeros(idx.size, bool)  # not the heaviest of its label in its particle
+    later[o[1:]] = (lab[o][1:] == lab[o][:-1]) & (part[o][1:] == part[o][:-1])
+    key = np.where(later | (lab < 0), -1 - np.arange(idx.size), lab)  # groups of one: distinct negative keys
+    order = np.lexsort((-wk, key))  # by key, the largest weight first (stable on ties)
+    members, key = idx[order], key[order]
+    heads = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if idx.size else np.zeros(0, np.int64)
+    G = heads.size
+    starts = np.r_[heads, idx.size].astype(np.int64)
     wc, mc, Pc = (np.ascontiguousarray(a, dtype=float)[None] for a in (w, m, P))
     ab_in = np.empty((1, n, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)[None]
     out = (np.empty((1, G)), np.empty((1, G, d)), np.empty((1, G, d, d)), np.empty((1, G), bool),
            np.empty((1, G, ab_in.shape[2])))
-    if _write_batch(wc, mc, Pc, ab_in, members[None], members[starts[:-1]][None], starts[None],
+    if _write_batch(wc, mc, Pc, ab_in, members[None], members[heads][None], starts[None],
                     np.arange(G, dtype=np.int64)[None], np.array([G], np.int64), *out) != _OK:
         raise FloatingPointError("non-finite Gaussian component after average_map's label pooling")
-    pooled_label = np.where(key[starts[:-1]] >= 0, key[starts[:-1]], NO_LABEL)[None]
-    return out[0], out[1], out[2], None if ab is None else out[4], pooled_label
-
-
-import os
-_ONE_PER_PARTICLE = bool(int(os.environ.get("MMSLAM_ONE_PER_PARTICLE", "0")))  # EXPERIMENT
-POOL_COPIES = "copies"
-POOL_POOLED = "pooled"
+    return out[0], out[1], out[2], None if ab is None else out[4], np.maximum(key[heads], NO_LABEL)[None]
 
 
 def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,
-                max_trace: float | None = None, pos_dims: int = 3, *, by_label: bool = False,
-                label_prune: str = POOL_COPIES) -> GM:
+                max_trace: float | None = None, pos_dims: int = 3, *, by_label: bool = False) -> GM:
     """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (7)).
 
     ``D_bar(x) = sum_p w_p D^p(x)``: the union of all particles' components with weights
@@ -564,28 +557,25 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     4. merged components with weight ``< prune`` are dropped (a landmark carried by too small a
        share of the particle weight), and the ``cap`` largest are kept.
 
-    With ``by_label`` (``fusion.average_by_label``; ``g.label`` required) the copies of one landmark
-    in the particles' maps, the components that share a label, are first moment-matched into one,
-    particle-weighted and without a gate (:func:`_pool_labels`): their means differ along the line
-    of sight by the particles' clock-bias and position spread while each covariance is thin there,
-    so the gate of step 3 would split them into clusters that step 4 drops
-    (docs/implementation-notes.md, "VA 2 and the averaged map"). ``label_prune``: ``"copies"``
-    applies steps 1-2 to each copy before the pooling; ``"pooled"`` applies step 2 only and prunes
-    the pooled weight ``sum_p w_p eta^p`` instead (step 1 on it). Then steps 3-4 on
-    the pooled components; each output component takes its cluster leader's label.
+    With ``by_label`` (``fusion.average_by_label``; ``g.label`` required), after steps 1-2 the
+    copies of one landmark in the particles' maps, each particle's heaviest component of a label,
+    are moment-matched into one, particle-weighted and without a gate (:func:`_pool_labels`): their
+    means differ along the line of sight by the particles' clock-bias and position spread while
+    each covariance is thin there, so the gate of step 3 would split them into clusters that step
+    4 drops (docs/implementation-notes.md, "VA 2 and the averaged map"). Steps 3-4 then reduce the
+    pooled components; each output component takes its cluster leader's label.
 
     Args:
         g: particle maps, batch shape ``(P,)``, ``Q`` slots, dimension ``d``.
         particle_weights: ``(P,)`` non-negative particle weights (normalised to sum 1 here).
         prune, merge, cap, max_trace, pos_dims: as in :func:`prune_merge`.
-        by_label, label_prune: the label pooling above.
+        by_label: the label pooling above.
 
     Returns:
         A single mixture (batch shape ``()``), compacted.
 
     Raises:
-        ValueError: ``particle_weights`` not of the batch shape, ``by_label`` without labels, an unknown
-            ``label_prune``.
+        ValueError: ``particle_weights`` not of the batch shape, or ``by_label`` without labels.
         FloatingPointError: non-finite or negative particle weights, a non-finite live component.
     """
     if g.w.ndim != 2:
@@ -620,14 +610,11 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
         if lab is None:
             raise ValueError("average_map(by_label=True) needs component labels (GM.label); the local filter "
                              "labels its births when fusion.average_by_label is on")
-        if label_prune not in (POOL_COPIES, POOL_POOLED):
-            raise ValueError(f"label_prune={label_prune!r}: expected {POOL_COPIES!r} or {POOL_POOLED!r}")
-        copies = label_prune == POOL_COPIES
         w_merge, m, P, ab, lab = _pool_labels(w_own[0], w_merge[0], m[0], P[0], mask[0],
-                                              None if ab is None else ab[0], lab[0], prune if copies else -np.inf,
-                                              max_trace, pos_dims, g.capacity if _ONE_PER_PARTICLE else 0)
+                                              None if ab is None else ab[0], lab[0], g.capacity, prune, max_trace,
+                                              pos_dims)
         mask = np.ones(w_merge.shape, bool)
-        w_own, max_trace, step1 = w_merge, None, (-np.inf if copies else prune)
+        w_own, max_trace, step1 = w_merge, None, -np.inf  # steps 1-2 done on the copies
     w, m, P, mask, ab, lab = _reduce(w_own, w_merge, m, P, mask, ab, step1, max_trace, pos_dims, merge, prune, cap,
                                      False, True, "average_map", label=lab)
     return GM(w[0], m[0], P[0], mask[0], None if ab is None else ab[0], None if lab is None else lab[0])
