@@ -174,7 +174,7 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     label = None if g.label is None else g.label.reshape(n, q)[rows, o].reshape(B + (k,))
     if k < cap:  # pad when capacity exceeds current slots
         pad = empty(B, cap - k, g.dim, g.pd_beta is not None, g.label is not None)
-        return concat(GM(w, m, P, mask, pd_beta, label), pad)
+        return concat(GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL)), pad)
     w = np.where(mask, w, 0.0)
     return GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL))
 
