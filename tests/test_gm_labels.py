@@ -228,3 +228,25 @@ def test_average_map_without_pooling_equals_the_unlabelled_result():
     assert b.label is None and a.label.shape == a.w.shape
     with pytest.raises(ValueError, match="needs component labels"):
         average_map(GM(g.w, g.m, g.P, g.mask), pw, 0.1, 4.0, 10, by_label=True)
+
+
+def test_a_cooperative_run_with_labels_keeps_them_in_every_map():
+    """paper, 8 analytic steps, proposed: every local and fused map of every type carries labels from the
+    first birth on (the VS map's ego Gaussians: NO_LABEL), and live labels are those of some vehicle."""
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.scenes.trajectory import true_trajectories
+    from mmslam.slam.run import CooperativeRun
+
+    scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
+    states = true_trajectories(scn)[:8]
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(8)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    run = CooperativeRun(scn, states, paths, "proposed", 10, 3)
+    for k in range(8):
+        run.step(k)
+    maps = [g for f in run.filters for g in f.maps.values()] + list(run.center.maps.values())
+    assert all(g.label is not None and g.label.shape == g.w.shape for g in maps)
+    live = np.concatenate([g.label[g.mask] for g in maps])
+    assert live.size and np.isin(live[live >= 0] >> LABEL_BITS, np.arange(len(scn.vehicles))).all()
+    assert (run.center.maps[VS].label[run.center.maps[VS].mask] == NO_LABEL).any()  # an uploaded ego Gaussian
