@@ -229,6 +229,13 @@ class FusionParams:
                                    "accumulated FOV", "", probability=True)
     average_prune: float = param(0.1, "pruning threshold of the averaged and fused map PHDs", "", lo=0.0,
                                  hi=1.0)
+    average_by_label: bool = param(False, "averaged map (eq. 7): every Gaussian carries an identity label (a "
+                                   "birth's is the same in every particle, a corrected or merged Gaussian "
+                                   "keeps its slot's or cluster leader's, the downlink gives every particle "
+                                   "the fused map's), and the particles' copies of one labelled landmark "
+                                   "(each particle's heaviest Gaussian of the label) are moment-matched into "
+                                   "one before the gated merge; off: the gate alone decides "
+                                   "(docs/implementation-notes.md, VA 2 and the averaged map)")
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
                                 "counts as inside a vehicle's accumulated FOV if the filter's detection "
                                 "probability (filter.p_detect_<type>, 0 beyond the FOV range) reached it "

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .gm import GM, symmetrize
+from .gm import GM, NO_LABEL, symmetrize
 from .linalg import spd_inv
 from .vs import predict_vs
 
@@ -104,11 +104,28 @@ def _pd_beta(g: GM, n: int) -> np.ndarray | None:
     return None if g.pd_beta is None else g.pd_beta[g.mask].reshape(n, 2)
 
 
-def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None, ab_b=None, ab_u=None):
+def _label(g: GM, n: int) -> np.ndarray | None:
+    """The live components' labels ``(n,)`` (``GM.label``), or None."""
+    return None if g.label is None else np.asarray(g.label)[g.mask].reshape(n)
+
+
+def _join(a: np.ndarray | None, b: np.ndarray | None, na: int, nb: int, fill: np.ndarray, what: str
+          ) -> np.ndarray | None:
+    """``a`` and ``b`` (per-component arrays of two sets of ``na``, ``nb`` components, or None) joined; None
+    if both are; an empty set without one takes ``fill``'s shape. ValueError if a non-empty set lacks it."""
+    if a is None and b is None:
+        return None
+    if (a is None and na) or (b is None and nb):
+        raise ValueError(f"cannot fuse a mixture with {what} and one without")
+    return np.concatenate([fill if x is None else x for x in (a, b)])
+
+
+def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None, ab_b=None, ab_u=None, lab_b=None, lab_u=None):
     """Union of the two weighted sets, live components only, sorted by weight.
 
-    ``ab_b``, ``ab_u``: the two sets' Beta detection parameters ``(n, 2)`` (or None), carried with
-    their components (an empty set without them takes the other's).
+    ``ab_b``, ``ab_u``: the two sets' Beta detection parameters ``(n, 2)`` (or None), ``lab_b``,
+    ``lab_u`` their labels ``(n,)`` (or None), carried with their components (an empty set without
+    them takes the other's).
 
     With ``pairs = (r, c)`` (matched BS / uploaded indices into ``wb`` / ``wu``) also returns the
     ``(n, 2)`` slots of each matched pair in the output (pairs with a dropped member are left out).
@@ -118,12 +135,11 @@ def _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, pairs=None, ab_b=None, ab_
     P = np.concatenate([Pb.reshape(-1, d, d), Pu.reshape(-1, d, d)])
     keep = w > 0
     order = np.argsort(-w[keep], kind="stable")
-    ab = None
-    if ab_b is not None or ab_u is not None:
-        if (ab_b is None and wb.shape[0]) or (ab_u is None and wu.shape[0]):
-            raise ValueError("cannot fuse a mixture with Beta detection parameters and one without")
-        ab = np.concatenate([np.ones((0, 2)) if a is None else a for a in (ab_b, ab_u)])[keep][order]
-    out = GM(w[keep][order], m[keep][order], symmetrize(P[keep][order]), np.ones(int(keep.sum()), bool), ab)
+    nb_, nu_ = wb.shape[0], wu.shape[0]
+    ab = _join(ab_b, ab_u, nb_, nu_, np.ones((0, 2)), "Beta detection parameters")
+    lab = _join(lab_b, lab_u, nb_, nu_, np.zeros(0, np.int64), "component labels")
+    out = GM(w[keep][order], m[keep][order], symmetrize(P[keep][order]), np.ones(int(keep.sum()), bool),
+             None if ab is None else ab[keep][order], None if lab is None else lab[keep][order])
     out.check("after map fusion")
     if pairs is None:
         return out
@@ -184,7 +200,8 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
     beta_b[r] = 0.5
     beta_u[c] = 0.5
     return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None,
-                  _pd_beta(bs, wb.shape[0]), _pd_beta(ue, wu.shape[0]))
+                  _pd_beta(bs, wb.shape[0]), _pd_beta(ue, wu.shape[0]), _label(bs, wb.shape[0]),
+                  _label(ue, wu.shape[0]))
 
 
 def _ego_match(m: np.ndarray, P: np.ndarray, ego_mean: np.ndarray, ego_cov: np.ndarray,
@@ -216,8 +233,9 @@ def remove_ego(vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: flo
     ego_mean, ego_cov = _ego(ego_mean, ego_cov, vs.dim)
     _, w, m, P = _live(vs)
     keep = ~_ego_match(m, P, ego_mean, ego_cov, threshold)
-    ab = _pd_beta(vs, w.shape[0])
-    out = GM(w[keep], m[keep], P[keep], np.ones(int(keep.sum()), bool), None if ab is None else ab[keep])
+    ab, lab = _pd_beta(vs, w.shape[0]), _label(vs, w.shape[0])
+    out = GM(w[keep], m[keep], P[keep], np.ones(int(keep.sum()), bool), None if ab is None else ab[keep],
+             None if lab is None else lab[keep])
     out.check("after remove_ego")
     return out
 
@@ -229,7 +247,8 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
     the ego Gaussian is ``< threshold`` (``T_MD^L``). Components with ``c_q = 1`` get
     ``beta_1 = 0`` (removed: they are the ego vehicle seen as a VS by itself, e.g. through
     another vehicle's upload); the others keep their weight (``beta_1 = 1``); the ego Gaussian
-    is appended with weight 1 (``beta_2 = 1``, a PHD of one unit-weight Gaussian).
+    is appended with weight 1 (``beta_2 = 1``, a PHD of one unit-weight Gaussian; with labels, the
+    label :data:`~mmslam.slam.gm.NO_LABEL`: no particle copies to pool).
 
     Args:
         avg_vs: averaged VS map of the vehicle (batch ``()``, ``d = 7``).
@@ -244,7 +263,10 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
     ego_mean, ego_cov = _ego(ego_mean, ego_cov, d)
     _, w, m, P = _live(avg_vs)
     beta = np.where(_ego_match(m, P, ego_mean, ego_cov, threshold), 0.0, 1.0)
-    return _union(w, m, P, beta, np.ones(1), ego_mean[None], ego_cov[None], np.ones(1), d)
+    lab = _label(avg_vs, w.shape[0])
+    return _union(w, m, P, beta, np.ones(1), ego_mean[None], ego_cov[None], np.ones(1), d,
+                  lab_b=lab,
+                  lab_u=None if lab is None else np.array([NO_LABEL], np.int64))
 
 
 def predict_bs_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray, n_steps: int,
@@ -309,4 +331,5 @@ def fuse_vs(bs_pred: GM, ue: GM, ue_fov_inside: np.ndarray, t_pos: float, t_vel:
     beta_b[r] = ib_inv / (ib_inv + iu_inv)
     beta_u[c] = iu_inv / (ib_inv + iu_inv)
     return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None,
-                  _pd_beta(bs_pred, wb.shape[0]), _pd_beta(ue, wu.shape[0]))
+                  _pd_beta(bs_pred, wb.shape[0]), _pd_beta(ue, wu.shape[0]), _label(bs_pred, wb.shape[0]),
+                  _label(ue, wu.shape[0]))

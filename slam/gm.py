@@ -10,6 +10,11 @@ A batch of mixtures (e.g. one per particle) is held as arrays with a leading bat
 - ``pd_beta`` ``(*B, Q, 2)`` optional: the Beta(s, t) parameters of each component's own detection
   probability (``filter.pd_model = "beta"``, :mod:`mmslam.slam.detection`); None for a fixed ``p_D``.
   Masked slots hold (1, 1). Every operation here carries it with its component.
+- ``label`` ``(*B, Q)`` optional int64: an identity per component (``fusion.average_by_label``): a birth
+  gets one label in every particle, a corrected component its predicted slot's, a merged one its
+  cluster leader's (the largest weight), so the particles' copies of one landmark share a label
+  (:func:`mmslam.slam.reduction.average_map` pools them). None when not tracked; masked slots hold
+  -1 (:data:`NO_LABEL`, no identity: never pooled). Every operation here carries it like ``pd_beta``.
 
 Masked-out slots keep ``w = 0``, ``m = 0`` and ``P = I`` so any batched linear algebra on them
 stays finite. Functions return new arrays (no in-place mutation of inputs).
@@ -30,6 +35,7 @@ class GM:
     P: np.ndarray
     mask: np.ndarray
     pd_beta: np.ndarray | None = None
+    label: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -49,12 +55,14 @@ class GM:
 
     def copy(self) -> "GM":
         return GM(self.w.copy(), self.m.copy(), self.P.copy(), self.mask.copy(),
-                  None if self.pd_beta is None else self.pd_beta.copy())
+                  None if self.pd_beta is None else self.pd_beta.copy(),
+                  None if self.label is None else self.label.copy())
 
     def take(self, idx) -> "GM":
-        """``GM(w[idx], m[idx], P[idx], mask[idx], pd_beta[idx])``: the same index on every array."""
+        """``GM(w[idx], m[idx], P[idx], mask[idx], pd_beta[idx], label[idx])``: the same index on every array."""
         return GM(self.w[idx], self.m[idx], self.P[idx], self.mask[idx],
-                  None if self.pd_beta is None else self.pd_beta[idx])
+                  None if self.pd_beta is None else self.pd_beta[idx],
+                  None if self.label is None else self.label[idx])
 
     def check(self, where: str = "") -> None:
         """Raise FloatingPointError if a live component has a NaN/inf weight, mean or covariance."""
@@ -68,13 +76,20 @@ class GM:
             raise FloatingPointError(f"non-finite Gaussian component {where}".strip())
 
 
-def empty(batch: tuple[int, ...], capacity: int, dim: int, with_pd_beta: bool = False) -> GM:
-    """An all-masked mixture batch (``with_pd_beta``: with a ``pd_beta`` array of (1, 1) slots)."""
+NO_LABEL = -1
+"""The ``label`` of a masked slot and of a component without identity (e.g. the ego Gaussian of eq. (11))."""
+
+
+def empty(batch: tuple[int, ...], capacity: int, dim: int, with_pd_beta: bool = False,
+          with_label: bool = False) -> GM:
+    """An all-masked mixture batch (``with_pd_beta``: with a ``pd_beta`` array of (1, 1) slots;
+    ``with_label``: with a ``label`` array of :data:`NO_LABEL`)."""
     w = np.zeros(batch + (capacity,))
     m = np.zeros(batch + (capacity, dim))
     P = np.broadcast_to(np.eye(dim), batch + (capacity, dim, dim)).copy()
     pd_beta = np.ones(batch + (capacity, 2)) if with_pd_beta else None
-    return GM(w, m, P, np.zeros(batch + (capacity,), bool), pd_beta)
+    label = np.full(batch + (capacity,), NO_LABEL, np.int64) if with_label else None
+    return GM(w, m, P, np.zeros(batch + (capacity,), bool), pd_beta, label)
 
 
 def _beta_or_fill(g: GM, other: GM) -> np.ndarray | None:
@@ -95,10 +110,36 @@ def concat_pd_beta(a: GM, b: GM) -> np.ndarray | None:
     return None if ba is None else np.concatenate([ba, bb], -2)
 
 
+def _label_or_fill(g: GM, other: GM) -> np.ndarray | None:
+    """``g.label``, or an empty label array when only ``other`` carries one and ``g`` has no slots.
+
+    Raises ValueError if ``g`` has slots and no ``label`` while ``other`` has one."""
+    if g.label is not None or other.label is None:
+        return g.label
+    if g.capacity:
+        raise ValueError("cannot join a mixture with component labels and one without")
+    return np.full(g.batch_shape + (0,), NO_LABEL, np.int64)
+
+
+def concat_label(a: GM, b: GM) -> np.ndarray | None:
+    """The ``label`` of :func:`concat` ``(a, b)``: both joined on the component axis, or None."""
+    la, lb = _label_or_fill(a, b), _label_or_fill(b, a)
+    return None if la is None else np.concatenate([la, lb], -1)
+
+
 def concat(a: GM, b: GM) -> GM:
     """Concatenate the component axis of two batches with the same batch shape and dim."""
     return GM(np.concatenate([a.w, b.w], -1), np.concatenate([a.m, b.m], -2),
-              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1), concat_pd_beta(a, b))
+              np.concatenate([a.P, b.P], -3), np.concatenate([a.mask, b.mask], -1), concat_pd_beta(a, b),
+              concat_label(a, b))
+
+
+def with_labels(g: GM, first: int) -> tuple[GM, int]:
+    """``g`` with the labels ``first, first + 1, ...`` of its slots, the same in every mixture of the
+    batch (slot ``q`` of every particle's births is one landmark hypothesis); masked slots
+    :data:`NO_LABEL`. Returns the labelled mixture and the next free label."""
+    lab = np.broadcast_to(np.arange(first, first + g.capacity, dtype=np.int64), g.w.shape)
+    return (GM(g.w, g.m, g.P, g.mask, g.pd_beta, np.where(g.mask, lab, NO_LABEL)), first + g.capacity)
 
 
 def compact(g: GM, capacity: int | None = None) -> GM:
@@ -117,7 +158,8 @@ def compact(g: GM, capacity: int | None = None) -> GM:
         # identity permutation (a stable sort of non-decreasing keys): trim only
         mask = g.mask[..., :cap]
         return GM(np.where(mask, g.w[..., :cap], 0.0), g.m[..., :cap, :], g.P[..., :cap, :, :], mask,
-                  None if g.pd_beta is None else g.pd_beta[..., :cap, :])
+                  None if g.pd_beta is None else g.pd_beta[..., :cap, :],
+                  None if g.label is None else np.where(mask, g.label[..., :cap], NO_LABEL))
     order = np.argsort(key, axis=-1, kind="stable")[..., :cap]
     B = g.batch_shape
     n = int(np.prod(B, dtype=int))
@@ -129,11 +171,12 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     m = g.m.reshape(n, q, g.dim)[rows, o].reshape(B + (k, g.dim))
     P = g.P.reshape(n, q, g.dim, g.dim)[rows, o].reshape(B + (k, g.dim, g.dim))
     pd_beta = None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2)[rows, o].reshape(B + (k, 2))
+    label = None if g.label is None else g.label.reshape(n, q)[rows, o].reshape(B + (k,))
     if k < cap:  # pad when capacity exceeds current slots
-        pad = empty(B, cap - k, g.dim, g.pd_beta is not None)
-        return concat(GM(w, m, P, mask, pd_beta), pad)
+        pad = empty(B, cap - k, g.dim, g.pd_beta is not None, g.label is not None)
+        return concat(GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL)), pad)
     w = np.where(mask, w, 0.0)
-    return GM(w, m, P, mask, pd_beta)
+    return GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL))
 
 
 def drop_dead_slots(g: GM) -> GM:
@@ -144,7 +187,8 @@ def drop_dead_slots(g: GM) -> GM:
         return g
     idx = np.flatnonzero(live)
     return GM(np.take(g.w, idx, -1), np.take(g.m, idx, -2), np.take(g.P, idx, -3), np.take(g.mask, idx, -1),
-              None if g.pd_beta is None else np.take(g.pd_beta, idx, -2))
+              None if g.pd_beta is None else np.take(g.pd_beta, idx, -2),
+              None if g.label is None else np.take(g.label, idx, -1))
 
 
 def symmetrize(P: np.ndarray) -> np.ndarray:

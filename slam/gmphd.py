@@ -93,6 +93,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
+        tc.g.label = maps[tc.lm_type].label  # type_terms' contiguous copy of the map: the labels for 4.
         g = corrected_gm(tc, Z, lpsi, prune=prune, mass_check=(J, tc.lm_type, step))  # 4.
         check_phd_mass(tc.g, g, J, tc.lm_type, step)  # 5.
         out[tc.lm_type] = g
@@ -101,8 +102,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
 
 def predict_static(g: GM, p_survival: float) -> GM:
     """Static landmark prediction (identity dynamics): weights times ``p_survival`` (a Beta detection
-    history ``pd_beta`` is kept as it is)."""
-    return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta)
+    history ``pd_beta`` and the labels are kept as they are)."""
+    return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta, g.label)
 
 
 def _per_measurement_cov(R: np.ndarray, J: int) -> np.ndarray:
@@ -537,6 +538,8 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     A map with Beta detection parameters (``g.pd_beta``) gets them updated per component
     (:func:`mmslam.slam.detection.missed_beta`: ``(s, t + 1)`` inside the FOV, ``(s, t)``
     outside; :func:`~mmslam.slam.detection.detected_beta`: ``(s + 1, t)``; dead slots (1, 1)).
+    A map with labels (``g.label``): every corrected component, missed or ``(q, j)``, inherits the
+    label of its predicted slot ``q`` (dead slots -1).
 
     ``mass_check = (J, lm_type, step)``: if a corrected component is not finite, the PHD-mass
     invariant (:func:`check_phd_mass`) is checked first (its message is the more specific one).
@@ -548,14 +551,16 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
     g, inn = t.g, t.inn
     if np.shape(logpsi) != t.logq.shape[::2]:  # the kernel reads logpsi[p, j] unchecked
         raise ValueError(f"logpsi has shape {np.shape(logpsi)}; expected {t.logq.shape[::2]} (P, J)")
+    if g.label is not None and np.shape(g.label) != g.w.shape:  # the kernel reads label[p, q] unchecked
+        raise ValueError(f"label has shape {np.shape(g.label)}; expected the map's {g.w.shape} (P, Q)")
     c = np.ascontiguousarray
     beta = g.pd_beta is not None
-    w, m, Pc, live, pd_beta, finite = _corrected_components(
+    w, m, Pc, live, pd_beta, label, finite = _corrected_components(
         c(g.mask, dtype=bool), c(t.missed_w, dtype=float), c(t.logq, dtype=float), c(logpsi, dtype=float),
         c(g.m, dtype=float), c(g.P, dtype=float), c(t.det_index, dtype=np.int64), inn.m_post, inn.P_post,
         c(g.pd_beta, dtype=float) if beta else np.ones((0, 0, 2)), beta, 0.0 if prune is None else float(prune),
-        prune is None)
-    out = GM(w, m, Pc, live, pd_beta if beta else None)
+        prune is None, np.empty((0, 0), np.int64) if g.label is None else c(g.label, dtype=np.int64))
+    out = GM(w, m, Pc, live, pd_beta if beta else None, None if g.label is None else label)
     if not finite:
         if mass_check is not None:  # the weights' invariant first: it names the broken step and particle
             check_phd_mass(t.g, out, *mass_check)
@@ -567,16 +572,18 @@ def corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: fl
 @nb.njit(cache=True, error_model="numpy")
 def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarray, lpsi: np.ndarray,
                           m: np.ndarray, P: np.ndarray, det_index: np.ndarray, m_post: np.ndarray,
-                          P_post: np.ndarray, pd_beta: np.ndarray, beta: bool, prune: float, dense: bool
-                          ) -> tuple:
+                          P_post: np.ndarray, pd_beta: np.ndarray, beta: bool, prune: float, dense: bool,
+                          label: np.ndarray) -> tuple:
     """The components of paper eq. (5) for each particle ``p`` (see :func:`corrected_gm`).
 
     Missed detections ``(1 - p_D) w`` with the predicted moments (slots ``q``), then one updated
     Gaussian per ``(q, j)``: weight ``exp(logq - log psi(z_j)) = p_D w N(z_j) / psi(z_j)``, moments
     from the innovation (``det_index[p, q] >= 0``) or the predicted ones (``p_D = 0``). ``dense``:
     every live slot at its fixed place ``q`` / ``Q + q J + j``; else only weights ``>= prune``,
-    compacted in that order (a first pass counts them). Returns ``(w, m, P, mask, pd_beta,
-    finite)``: dead slots hold 0 / I / (1, 1); ``finite`` is False if a written value is not.
+    compacted in that order (a first pass counts them). ``label (P, Q)``: slot labels, or ``(0, 0)``
+    for none. Returns ``(w, m, P, mask, pd_beta, label, finite)``: dead slots hold 0 / I / (1, 1) / -1
+    (``label (P, K)``, each component its slot ``q``'s; ``(0, K)`` without labels); ``finite`` is False
+    if a written value is not.
     """
     Pn, Q, d = m.shape
     J = logq.shape[2]
@@ -597,6 +604,8 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
     out_P = np.empty((Pn, K, d, d))
     out_mask = np.zeros((Pn, K), np.bool_)
     out_beta = np.ones((Pn if beta else 0, K, 2))
+    lab = label.shape[0] > 0
+    out_label = np.full((Pn if lab else 0, K), -1, np.int64)
     finite = True
     jr = P_post.shape[1] > 1  # one posterior covariance per measurement
     for p in range(Pn):
@@ -609,6 +618,8 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
             if beta:
                 out_beta[p, at, 0], out_beta[p, at, 1] = missed_beta(pd_beta[p, q, 0], pd_beta[p, q, 1],
                                                                      det_index[p, q] >= 0)
+            if lab:
+                out_label[p, at] = label[p, q]
             k += 1
         for q in range(Q):  # detections of z_j, CKF posterior (predicted moments and weight 0 if p_D = 0)
             if not mask[p, q]:
@@ -626,13 +637,15 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
                     finite &= _put(out_w, out_m, out_P, out_mask, p, at, math.exp(logw), m[p, q], P[p, q])
                 if beta:
                     out_beta[p, at, 0], out_beta[p, at, 1] = detected_beta(pd_beta[p, q, 0], pd_beta[p, q, 1])
+                if lab:
+                    out_label[p, at] = label[p, q]
                 k += 1
         for at in range(K):  # dead slots: identity covariance
             if not out_mask[p, at]:
                 for i in range(d):
                     for e in range(d):
                         out_P[p, at, i, e] = 1.0 if i == e else 0.0
-    return out_w, out_m, out_P, out_mask, out_beta, finite
+    return out_w, out_m, out_P, out_mask, out_beta, out_label, finite
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

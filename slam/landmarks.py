@@ -42,7 +42,7 @@ from mmslam.errors import MmslamError
 from mmslam.model import OTHER, Bounce, LandmarkType
 
 from .birth import birth_from_moments
-from .gm import GM, concat, concat_pd_beta
+from .gm import GM, concat, concat_label, concat_pd_beta
 from .gmphd import predict_static
 from .reduction import merge_pairs, prune_merge
 
@@ -193,7 +193,8 @@ def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
     qa, qb = g.capacity, 0 if born is None else born.capacity
     shape = g.batch_shape + (qa + qb,)
     out = GM(np.empty(shape), np.empty(shape + (g.dim,)), np.empty(shape + (g.dim, g.dim)), np.empty(shape, bool),
-             g.pd_beta if born is None else concat_pd_beta(g, born))
+             g.pd_beta if born is None else concat_pd_beta(g, born),
+             g.label if born is None else concat_label(g, born))
     if qa:
         predict_vs_into(g, scn.dt, fp.p_survival, add_old, out, 0)
     if born is not None:

@@ -12,7 +12,8 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
    eq. 6 writes a sum). Corrected components below the prune threshold are never materialised;
 3. reduction per type (``prune_merge``: prune, merge, cap, max_trace);
 4. estimates with the corrected weights: weighted-mean state, averaged maps (eq. 7,
-   ``average_map`` with ``fusion.average_prune``);
+   ``average_map`` with ``fusion.average_prune``; with ``fusion.average_by_label`` the particles'
+   copies of one labelled landmark pooled first);
 5. systematic resampling when ``ESS < resample_ess P`` (no roughening: the process noise added
    at every prediction keeps the particles diverse).
 
@@ -32,7 +33,7 @@ from mmslam.scenes.scenario import Scenario
 
 from .birth import birth_moments_by_kind
 from .dynamics import wrap_angle
-from .gm import GM, drop_dead_slots, empty
+from .gm import GM, drop_dead_slots, empty, with_labels
 from .gmphd import correct
 from .landmarks import LandmarkSpec
 from .measurement import BS
@@ -40,6 +41,10 @@ from .rbpf import (ess, init_particles, normalise_log_weights, propagate, system
                    weighted_state_cov, weighted_state_mean)
 from .reduction import average_map, prune_merge
 from .variants import VariantSpec, get_variant
+
+
+LABEL_BITS = 40
+"""Births of vehicle ``n`` are labelled from ``n << LABEL_BITS`` (``fusion.average_by_label``)."""
 
 
 def _broadcast_gm(g: GM, n: int) -> GM:
@@ -82,12 +87,14 @@ class LocalFilter:
             probability (typically :func:`mmslam.slam.sensor.fov_detect_prob`).
         rng: this filter's random generator.
         measurement_update: False for dead reckoning (no correction, births or map).
+        vehicle: the vehicle's index; with ``fusion.average_by_label`` its births are labelled
+            ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
                  R: np.ndarray, clutter_intensity: float,
                  pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
-                 rng: np.random.Generator, measurement_update: bool = True) -> None:
+                 rng: np.random.Generator, measurement_update: bool = True, vehicle: int = 0) -> None:
         spec = get_variant(variant)
         if particles < 1:
             raise MmslamError(f"particles={particles}: expected at least 1 particle")
@@ -110,9 +117,13 @@ class LocalFilter:
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
-        self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim) for t, s in self.specs.items()}
+        self._labels = bool(scn.fusion.average_by_label)
+        self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim, with_label=self._labels)
+                                    for t, s in self.specs.items()}
         self._prev_Z: np.ndarray | None = None
         self._k = -1
+        self._next_label = int(vehicle) << LABEL_BITS
+        """the label of the next birth (``fusion.average_by_label``)"""
 
     # ------------------------------------------------------------------ stages
     def predict(self, speed: float, turn_rate: float) -> None:
@@ -125,6 +136,8 @@ class LocalFilter:
             for t, sp in self.specs.items():
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn))
+                if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
+                    births[t], self._next_label = with_labels(births[t], self._next_label)
         self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
                            self.rng)
         if not self.update:
@@ -172,8 +185,8 @@ class LocalFilter:
         for t in self.types:
             g = self.maps[t]
             avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
-                                  fp.max_trace)
-                      if g.capacity else empty((), 0, self.specs[t].state_dim))
+                                  fp.max_trace, by_label=fu.average_by_label)
+                      if g.capacity else empty((), 0, self.specs[t].state_dim, with_label=self._labels))
         return mean, cov, avg
 
     def resample(self, w: np.ndarray) -> tuple[float, bool]:
@@ -218,7 +231,8 @@ class LocalFilter:
         ``ego``: this vehicle's posterior as a VS Gaussian (mean ``(7,)``, covariance ``(7, 7)``);
         for a variant with ``downlink_ego_removal`` (``proposed``, part of its ``F'_AA``
         countermeasure) the type's ``remove_ego`` (VS, with ``fusion.downlink_ego = "remove"``)
-        drops the components matched to it first.
+        drops the components matched to it first. The fused map's labels (``fusion.average_by_label``)
+        go to every particle with it: after a downlink the particles' copies of a landmark share one.
         """
         for t, g in fused.items():
             if t not in self.maps:

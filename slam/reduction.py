@@ -25,7 +25,7 @@ import numba as nb
 import numpy as np
 
 from .detection import beta_pool
-from .gm import GM
+from .gm import GM, NO_LABEL
 from .linalg import _cholesky_once, forward_solve
 
 # linalg's Cholesky factor (no jitter: a singular covariance is an error; finiteness is checked
@@ -313,12 +313,14 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
 def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
             ab: np.ndarray | None, prune: float, max_trace: float | None, pos_dims: int, merge: float,
             min_weight: float, cap: int, sort_input: bool, sort_output: bool, stage: str,
-            capacity: int | None = None) -> tuple[np.ndarray, ...]:
+            capacity: int | None = None, label: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Reduce every mixture of a flat batch (:func:`_plan_batch`, :func:`_write_batch`).
 
     ``w_prune, w (N, Q)``: the weights pruned and the weights merged; ``m (N, Q, d)``,
-    ``P (N, Q, d, d)``, ``mask (N, Q)``; ``ab (N, Q, 2)`` Beta parameters or None. The output has
-    ``capacity`` slots (default: the largest number of clusters kept): ``(w, m, P, mask, ab or None)``.
+    ``P (N, Q, d, d)``, ``mask (N, Q)``; ``ab (N, Q, 2)`` Beta parameters or None; ``label (N, Q)``
+    component labels or None (a merged component takes its cluster head's: the largest weight,
+    Vo & Ma's ``j``). The output has ``capacity`` slots (default: the largest number of clusters
+    kept): ``(w, m, P, mask, ab or None, label or None)``.
 
     Raises FloatingPointError (naming ``stage``) for a non-finite live input or output component
     or a singular / indefinite covariance to merge.
@@ -344,7 +346,21 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
            np.empty((n, k, ab_in.shape[2])))
     if _write_batch(w, m, P, ab_in, members, heads, starts, order, count, *out) != _OK:
         raise FloatingPointError(f"non-finite Gaussian component after {stage}")
-    return out[:4] + (None if ab is None else out[4],)
+    return out[:4] + (None if ab is None else out[4], None if label is None else _head_labels(label, heads, order,
+                                                                                              count, k))
+
+
+def _head_labels(label: np.ndarray, heads: np.ndarray, order: np.ndarray, count: np.ndarray, k: int) -> np.ndarray:
+    """``(N, k)`` the label of each output slot of :func:`_write_batch`: slot ``r < count[n]`` holds cluster
+    ``order[n, r]``, whose head is ``heads[n, order[n, r]]``; the other slots :data:`NO_LABEL`."""
+    n = label.shape[0]
+    r = min(k, order.shape[1])
+    kept = np.arange(r) < count[:, None]  # order[n, r:] and heads of dropped clusters are not written
+    head = np.take_along_axis(heads, np.where(kept, order[:, :r], 0), 1)  # (N, r) each kept cluster's head
+    lab = np.take_along_axis(np.asarray(label, np.int64), np.where(kept, head, 0), 1)
+    out = np.full((n, k), NO_LABEL, np.int64)
+    out[:, :r] = np.where(kept, lab, NO_LABEL)
+    return out
 
 
 def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, merge: float,
@@ -359,7 +375,7 @@ def _merge_flat(w: np.ndarray, m: np.ndarray, P: np.ndarray, keep: np.ndarray, m
     n, q, d = np.shape(m)
     res = _reduce(w, w, m, P, keep, None if ab is None else np.reshape(ab, (n, q, 2)), -np.inf, None, d, merge,
                   -np.inf, q, False, False, "merging")
-    return res[:4] if ab is None else res
+    return res[:4] if ab is None else res[:5]
 
 
 def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | None = None,
@@ -376,7 +392,8 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
        distance over all ``d`` state dimensions, e.g. ``49 = 7^2``); replace the cluster by its
        moment match ``w = sum w_i``, ``m = sum w_i m_i / w``,
        ``P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w``; repeat until none remain
-       (:func:`greedy_clusters`, :func:`moment_match`; Beta parameters: ``beta_pool``);
+       (:func:`greedy_clusters`, :func:`moment_match`; Beta parameters: ``beta_pool``; labels:
+       the label of ``j``, the cluster's largest weight);
     3. keep the ``cap`` largest merged components (:func:`cluster_order`).
 
     Args:
@@ -400,13 +417,21 @@ def prune_merge(g: GM, prune: float, merge: float, cap: int, max_trace: float | 
     B, q, d = g.batch_shape, g.capacity, g.dim
     n = int(np.prod(B, dtype=int))
     w = g.w.reshape(n, q)
-    w, m, P, mask, ab = _reduce(w, w, g.m.reshape(n, q, d), g.P.reshape(n, q, d, d), g.mask.reshape(n, q),
-                                None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2), prune, max_trace, pos_dims,
-                                merge, -np.inf, cap, True, True, "prune_merge",
-                                max(int(cap), 0) if fixed_capacity else None)
+    w, m, P, mask, ab, lab = _reduce(w, w, g.m.reshape(n, q, d), g.P.reshape(n, q, d, d), g.mask.reshape(n, q),
+                                     None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2), prune, max_trace,
+                                     pos_dims, merge, -np.inf, cap, True, True, "prune_merge",
+                                     max(int(cap), 0) if fixed_capacity else None,
+                                     None if g.label is None else _labels_of(g).reshape(n, q))
     k = w.shape[-1]
     return GM(w.reshape(B + (k,)), m.reshape(B + (k, d)), P.reshape(B + (k, d, d)), mask.reshape(B + (k,)),
-              None if ab is None else ab.reshape(B + (k, 2)))
+              None if ab is None else ab.reshape(B + (k, 2)), None if lab is None else lab.reshape(B + (k,)))
+
+
+def _labels_of(g: GM) -> np.ndarray:
+    """``g.label`` as int64 of the batch's slot shape; ValueError naming both shapes if it is not."""
+    if np.shape(g.label) != g.w.shape:
+        raise ValueError(f"GM.label has shape {np.shape(g.label)}; expected the weights' {g.w.shape}")
+    return np.asarray(g.label, np.int64)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -432,7 +457,8 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
 
     For a pair ``(i, j)``: ``w = w_i + w_j``, ``m = (w_i m_i + w_j m_j) / w``,
     ``P = sum_{l in (i, j)} w_l (P_l + (m_l - m)(m_l - m)^T) / w`` (Vo & Ma 2006, Table II, step 2,
-    for a cluster of two); the merged component takes slot ``i`` and slot ``j`` is freed. Used
+    for a cluster of two); the merged component takes slot ``i`` (and the label of the heavier of
+    the two, ``i`` on a tie) and slot ``j`` is freed. Used
     for the fused VS map (``fusion.vs_reduction = "matched"``): only the pairs the fusion operator
     matched are one target; every other component stays as it is.
 
@@ -457,12 +483,66 @@ def merge_pairs(g: GM, pairs: np.ndarray) -> GM:
     out.mask[pairs[:, 1]] = False
     if out.pd_beta is not None:
         out.pd_beta[pairs[:, 1]] = 1.0
+    if out.label is not None:
+        i, j = pairs[:, 0], pairs[:, 1]
+        lab = _labels_of(g)
+        out.label[i] = np.where(g.w[i] >= g.w[j], lab[i], lab[j])
+        out.label[j] = NO_LABEL
     out.check("after merge_pairs")
     return out
 
 
+def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
+                 ab: np.ndarray | None, label: np.ndarray, slots: int, prune: float, max_trace: float | None,
+                 pos_dims: int) -> tuple[np.ndarray, ...]:
+    """One component per label of the union of a vehicle's particle maps (:func:`average_map`, ``by_label``).
+
+    The union holds the particles' maps one after the other, ``slots`` components each (component
+    ``i`` is of particle ``i // slots``): ``w_own, w (n,)``, ``m (n, d)``, ``P (n, d, d)``,
+    ``mask (n,)``, ``ab (n, 2)`` Beta parameters or None, ``label (n,)``. The live components that
+    pass the copy rule (``w_own >= prune``, position trace ``<= max_trace``; ``w_own`` NaN, a
+    particle of weight 0, never passes) are grouped by label, one copy per particle: a particle's
+    heaviest component of the label (a label's other components in that particle, e.g. its Gaussian
+    corrected by another landmark's measurement, are other hypotheses; they and the unlabelled ones,
+    ``label < 0``, are groups of one). Each group is moment-matched with the weights ``w``
+    (:func:`moment_match_at`, offsets from its largest weight; Beta: ``beta_pool``): the copies of
+    one landmark in the particles' maps become one component whatever their spread.
+
+    Returns ``(w (1, G), m (1, G, d), P (1, G, d, d), ab (1, G, 2) or None, label (1, G))``, the groups
+    in the order of their keys (labels; groups of one: :data:`NO_LABEL`). Raises FloatingPointError
+    for a non-finite live input component.
+    """
+    n, d = m.shape[0], m.shape[-1]
+    ok = np.isfinite(w) & np.isfinite(m).all(-1) & np.isfinite(P).all((-1, -2))
+    if not ok[mask].all():
+        raise FloatingPointError("non-finite Gaussian component in average_map input")
+    keep = mask & (w_own >= prune)  # NaN (particles of weight 0) fails
+    if max_trace is not None:
+        k = min(pos_dims, d)
+        keep &= np.trace(P[:, :k, :k], axis1=-2, axis2=-1) <= max_trace
+    idx = np.flatnonzero(keep)
+    lab, part, wk = np.asarray(label, np.int64)[idx], idx // max(slots, 1), w[idx]
+    o = np.lexsort((-wk, part, lab))  # by label, particle, then the largest weight first
+    later = np.zeros(idx.size, bool)  # not the heaviest of its label in its particle
+    later[o[1:]] = (lab[o][1:] == lab[o][:-1]) & (part[o][1:] == part[o][:-1])
+    key = np.where(later | (lab < 0), -1 - np.arange(idx.size), lab)  # groups of one: distinct negative keys
+    order = np.lexsort((-wk, key))  # by key, the largest weight first (stable on ties)
+    members, key = idx[order], key[order]
+    heads = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if idx.size else np.zeros(0, np.int64)
+    G = heads.size
+    starts = np.r_[heads, idx.size].astype(np.int64)
+    wc, mc, Pc = (np.ascontiguousarray(a, dtype=float)[None] for a in (w, m, P))
+    ab_in = np.empty((1, n, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)[None]
+    out = (np.empty((1, G)), np.empty((1, G, d)), np.empty((1, G, d, d)), np.empty((1, G), bool),
+           np.empty((1, G, ab_in.shape[2])))
+    if _write_batch(wc, mc, Pc, ab_in, members[None], members[heads][None], starts[None],
+                    np.arange(G, dtype=np.int64)[None], np.array([G], np.int64), *out) != _OK:
+        raise FloatingPointError("non-finite Gaussian component after average_map's label pooling")
+    return out[0], out[1], out[2], None if ab is None else out[4], np.maximum(key[heads], NO_LABEL)[None]
+
+
 def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,
-                max_trace: float | None = None, pos_dims: int = 3) -> GM:
+                max_trace: float | None = None, pos_dims: int = 3, *, by_label: bool = False) -> GM:
     """Particle-weighted average of per-particle map PHDs, reduced (paper eq. (7)).
 
     ``D_bar(x) = sum_p w_p D^p(x)``: the union of all particles' components with weights
@@ -477,13 +557,26 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
     4. merged components with weight ``< prune`` are dropped (a landmark carried by too small a
        share of the particle weight), and the ``cap`` largest are kept.
 
+    With ``by_label`` (``fusion.average_by_label``; ``g.label`` required), after steps 1-2 the
+    copies of one landmark in the particles' maps, each particle's heaviest component of a label,
+    are moment-matched into one, particle-weighted and without a gate (:func:`_pool_labels`): their
+    means differ along the line of sight by the particles' clock-bias and position spread while
+    each covariance is thin there, so the gate of step 3 would split them into clusters that step
+    4 drops (docs/implementation-notes.md, "VA 2 and the averaged map"). Steps 3-4 then reduce the
+    pooled components; each output component takes its cluster leader's label.
+
     Args:
         g: particle maps, batch shape ``(P,)``, ``Q`` slots, dimension ``d``.
         particle_weights: ``(P,)`` non-negative particle weights (normalised to sum 1 here).
         prune, merge, cap, max_trace, pos_dims: as in :func:`prune_merge`.
+        by_label: the label pooling above.
 
     Returns:
         A single mixture (batch shape ``()``), compacted.
+
+    Raises:
+        ValueError: ``particle_weights`` not of the batch shape, or ``by_label`` without labels.
+        FloatingPointError: non-finite or negative particle weights, a non-finite live component.
     """
     if g.w.ndim != 2:
         raise ValueError(f"average_map expects a batch of shape (P,), got batch shape {g.batch_shape}")
@@ -510,8 +603,18 @@ def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float,
         w_own = np.where(pw[:, None] > 0, g.w, np.nan).reshape(1, n)
         with np.errstate(invalid="ignore"):  # inf * 0: NaN, a non-finite input the kernel reports
             w_merge = (g.w * pw[:, None]).reshape(1, n)
-    w, m, P, mask, ab = _reduce(w_own, w_merge, g.m.reshape(1, n, d),
-                                g.P.reshape(1, n, d, d), g.mask.reshape(1, n),
-                                None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2), prune, max_trace,
-                                pos_dims, merge, prune, cap, False, True, "average_map")
-    return GM(w[0], m[0], P[0], mask[0], None if ab is None else ab[0])
+    ab = None if g.pd_beta is None else g.pd_beta.reshape(1, n, 2)
+    lab = None if g.label is None else _labels_of(g).reshape(1, n)
+    m, P, mask, step1 = g.m.reshape(1, n, d), g.P.reshape(1, n, d, d), g.mask.reshape(1, n), prune
+    if by_label:
+        if lab is None:
+            raise ValueError("average_map(by_label=True) needs component labels (GM.label); the local filter "
+                             "labels its births when fusion.average_by_label is on")
+        w_merge, m, P, ab, lab = _pool_labels(w_own[0], w_merge[0], m[0], P[0], mask[0],
+                                              None if ab is None else ab[0], lab[0], g.capacity, prune, max_trace,
+                                              pos_dims)
+        mask = np.ones(w_merge.shape, bool)
+        w_own, max_trace, step1 = w_merge, None, -np.inf  # steps 1-2 done on the copies
+    w, m, P, mask, ab, lab = _reduce(w_own, w_merge, m, P, mask, ab, step1, max_trace, pos_dims, merge, prune, cap,
+                                     False, True, "average_map", label=lab)
+    return GM(w[0], m[0], P[0], mask[0], None if ab is None else ab[0], None if lab is None else lab[0])

@@ -152,7 +152,7 @@ class CooperativeRun:
             prior_mean = self.true[0, n] + prior_rng.standard_normal(7) * prior_std
             self.filters.append(LocalFilter(scn, self.variant, self.particles, prior_mean, R,
                                             float(self.meas.clutter_intensity), pd_fn,
-                                            np.random.default_rng(s_veh[n]), self.measurement_update))
+                                            np.random.default_rng(s_veh[n]), self.measurement_update, vehicle=n))
         self.center = FusionCenter(scn, self.variant) if self.measurement_update else None
         self.schedule = schedule(scn, n_veh, self.steps)
         self._acc_fov: list[list[np.ndarray]] = [[] for _ in range(n_veh)]

@@ -102,7 +102,7 @@ def process_noise(q_std: np.ndarray, dither: np.ndarray | None) -> np.ndarray:
 def predict_vs_into(g: GM, dt: float, p_survival: float, add: np.ndarray, out: GM, off: int) -> None:
     """:func:`predict_vs` of ``g`` (batch ``B``, ``Q`` slots) written to the slots ``off .. off + Q`` of
     ``out`` (batch ``B``, contiguous arrays; e.g. a predicted map and its births side by side);
-    ``add (7, 7)`` from :func:`process_noise`. ``out.pd_beta`` is not touched.
+    ``add (7, 7)`` from :func:`process_noise`. ``out.pd_beta`` and ``out.label`` are not touched.
 
     Raises FloatingPointError if a live predicted component is not finite; ValueError if ``out`` is
     not a contiguous float batch of shape ``B`` with room for ``Q`` slots at ``off``, or ``add`` not
@@ -145,13 +145,13 @@ def predict_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray,
         dither: ``(7,)`` dithering *variances* (diagonal of ``T_d``), or None for none.
 
     Returns:
-        The predicted batch (same shapes, the same ``pd_beta``), covariances exactly symmetric.
+        The predicted batch (same shapes, the same ``pd_beta`` and ``label``), covariances exactly symmetric.
     """
     if g.dim != VS_DIM:
         raise ValueError(f"predict_vs expects {VS_DIM}-D VS states, got dimension {g.dim}")
     add = process_noise(q_std, dither)
     out = GM(np.empty(g.w.shape), np.empty(g.m.shape), np.empty(g.P.shape), np.empty(g.mask.shape, bool),
-             g.pd_beta)
+             g.pd_beta, g.label)
     predict_vs_into(g, dt, p_survival, add, out, 0)
     return out
 
