@@ -250,3 +250,24 @@ def test_a_cooperative_run_with_labels_keeps_them_in_every_map():
     live = np.concatenate([g.label[g.mask] for g in maps])
     assert live.size and np.isin(live[live >= 0] >> LABEL_BITS, np.arange(len(scn.vehicles))).all()
     assert (run.center.maps[VS].label[run.center.maps[VS].mask] == NO_LABEL).any()  # an uploaded ego Gaussian
+
+
+def test_average_map_pooling_survives_a_particle_of_subnormal_weight():
+    """Particle 1's normalised weight is subnormal (its log-weight ~745 below the best one's): w_p eta
+    is 0 for eta = 0.3 (5e-324 * 0.3 rounds to 0) and keeps a few bits for 1e-320. Particle 1's
+    Gaussians (its own labels, a thin correlated covariance) carry no measurable mass: the result is
+    the unlabelled one, particle 0's Gaussian alone (the pooling once moment-matched w_i P_i / W in
+    subnormal arithmetic: a zero or indefinite covariance, FloatingPointError in the gated merge)."""
+    C = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1e-6]])
+    P = np.stack([np.broadcast_to(0.01 * np.eye(3), (1, 3, 3)), C[None]])
+    g = GM(np.array([[0.9], [0.3]]), np.array([[[0.0, 0, 0]], [[5.0, 0, 0]]]), P, np.ones((2, 1), bool),
+           label=np.array([[1], [2]]))
+    for p1 in (5e-324, 1e-320):
+        pw = np.array([1.0, p1])
+        plain = average_map(g, pw, 0.1, 4.0, 10)
+        pooled = average_map(g, pw, 0.1, 4.0, 10, by_label=True)
+        assert pooled.count() == plain.count() == 1
+        np.testing.assert_allclose(pooled.w[pooled.mask], [0.9], rtol=1e-15)
+        np.testing.assert_allclose(pooled.m[pooled.mask], plain.m[plain.mask], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(pooled.P[pooled.mask], plain.P[plain.mask], rtol=1e-15, atol=0)
+        assert pooled.label[pooled.mask].tolist() == [1]
