@@ -271,3 +271,16 @@ def test_average_map_pooling_survives_a_particle_of_subnormal_weight():
         np.testing.assert_allclose(pooled.m[pooled.mask], plain.m[plain.mask], rtol=0, atol=1e-15)
         np.testing.assert_allclose(pooled.P[pooled.mask], plain.P[plain.mask], rtol=1e-15, atol=0)
         assert pooled.label[pooled.mask].tolist() == [1]
+
+
+def test_type_terms_carries_the_labels_to_corrected_gm():
+    """corrected_gm(type_terms(g, ...)) of a labelled map has the labels without a caller putting them
+    on the contiguous copy (type_terms once dropped them: label None); a label array of another shape
+    is refused by type_terms with the other shapes."""
+    x0, x1 = np.array([-30.0, 25.0, 3.0]), np.array([40.0, 35.0, 6.0])
+    g = _gm([[0.8, 0.6]], [[x0, x1]], var=0.25, label=[[7, 9]])
+    Z = np.stack([measure(STATE, x0, VA, BS), measure(STATE, x1, VA, BS)])
+    tc = type_terms(g, VA, STATE[None], Z, R, BS, _pd(0.9))
+    np.testing.assert_array_equal(corrected_gm(tc, Z, np.zeros((1, 2))).label, [[7, 9, 7, 7, 9, 9]])
+    with pytest.raises(ValueError, match=r"VA correction: shapes .* label \(1, 1\); expected .*None or \(P, Q\)"):
+        type_terms(GM(g.w, g.m, g.P, g.mask, label=np.array([[7]])), VA, STATE[None], Z, R, BS, _pd(0.9))
