@@ -87,8 +87,8 @@ class LocalFilter:
             probability (typically :func:`mmslam.slam.sensor.fov_detect_prob`).
         rng: this filter's random generator.
         measurement_update: False for dead reckoning (no correction, births or map).
-        vehicle: the vehicle's index; with ``fusion.average_by_label`` its births are labelled
-            ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
+        vehicle: the vehicle's index in ``[0, 2^23)``; with ``fusion.average_by_label`` its births are
+            labelled ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
@@ -98,6 +98,8 @@ class LocalFilter:
         spec = get_variant(variant)
         if particles < 1:
             raise MmslamError(f"particles={particles}: expected at least 1 particle")
+        if not 0 <= int(vehicle) < 1 << (63 - LABEL_BITS):  # its labels: non-negative int64, none NO_LABEL
+            raise MmslamError(f"vehicle={vehicle}: expected a vehicle index in [0, {1 << (63 - LABEL_BITS)})")
         self.scn = scn
         self.fp = scn.filter
         self.variant = spec

@@ -284,3 +284,31 @@ def test_type_terms_carries_the_labels_to_corrected_gm():
     np.testing.assert_array_equal(corrected_gm(tc, Z, np.zeros((1, 2))).label, [[7, 9, 7, 7, 9, 9]])
     with pytest.raises(ValueError, match=r"VA correction: shapes .* label \(1, 1\); expected .*None or \(P, Q\)"):
         type_terms(GM(g.w, g.m, g.P, g.mask, label=np.array([[7]])), VA, STATE[None], Z, R, BS, _pd(0.9))
+
+
+def test_a_vehicle_index_outside_the_label_range_is_refused():
+    """vehicle = -1 once labelled its births from -2^40 (negative: treated as NO_LABEL, never pooled,
+    silently); 2^23 overflows int64. Both: a one-line error naming the index."""
+    from mmslam.errors import MmslamError
+
+    scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
+    for bad in (-1, 1 << 23):
+        with pytest.raises(MmslamError, match=rf"vehicle={bad}: expected a vehicle index in \[0, 8388608\)"):
+            LocalFilter(scn, "cm1", 2, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                        np.random.default_rng(0), vehicle=bad)
+    assert LocalFilter(scn, "cm1", 2, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                       np.random.default_rng(0), vehicle=(1 << 23) - 1)._next_label == ((1 << 23) - 1) << LABEL_BITS
+
+
+def test_average_map_pooling_ignores_a_particle_of_weight_zero_and_works_for_one_particle():
+    """Particle 1 (weight 0) holds a copy of label 5 at x = 40: it is no copy (its eta is NaN to the
+    prune rule), the result is particle 0's Gaussian. P = 1: the map itself, reduced."""
+    g = _gm([[0.6], [1.0]], [[[1.0, 2, 3]], [[40.0, 0, 0]]], label=[[5], [5]])
+    r = average_map(g, np.array([2.0, 0.0]), 0.1, 4.0, 10, by_label=True)
+    np.testing.assert_allclose(r.w[r.mask], [0.6], rtol=1e-15)
+    np.testing.assert_allclose(r.m[r.mask], [[1.0, 2, 3]], rtol=1e-15)
+    np.testing.assert_allclose(r.P[r.mask], [0.01 * np.eye(3)], rtol=1e-15)
+    assert r.label[r.mask].tolist() == [5]
+    one = average_map(g.take(np.array([0])), np.ones(1), 0.1, 4.0, 10, by_label=True)
+    np.testing.assert_allclose(one.w[one.mask], [0.6], rtol=1e-15)
+    assert one.label[one.mask].tolist() == [5]
