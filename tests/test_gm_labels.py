@@ -13,7 +13,7 @@ import pytest
 from mmslam.model import VA, VS
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam import fusion
-from mmslam.slam.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, empty, with_labels
+from mmslam.slam.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, ego_label, empty, with_labels
 from mmslam.slam.gmphd import correct, corrected_gm, type_terms
 from mmslam.slam.local_filter import LABEL_BITS, LocalFilter
 from mmslam.slam.measurement import measure
@@ -249,7 +249,8 @@ def test_a_cooperative_run_with_labels_keeps_them_in_every_map():
     assert all(g.label is not None and g.label.shape == g.w.shape for g in maps)
     live = np.concatenate([g.label[g.mask] for g in maps])
     assert live.size and np.isin(live[live >= 0] >> LABEL_BITS, np.arange(len(scn.vehicles))).all()
-    assert (run.center.maps[VS].label[run.center.maps[VS].mask] == NO_LABEL).any()  # an uploaded ego Gaussian
+    vs = run.center.maps[VS].label[run.center.maps[VS].mask]
+    assert np.isin([ego_label(n) for n in range(len(scn.vehicles))], vs).any()  # an uploaded ego Gaussian
 
 
 def test_average_map_pooling_survives_a_particle_of_subnormal_weight():
@@ -312,3 +313,42 @@ def test_average_map_pooling_ignores_a_particle_of_weight_zero_and_works_for_one
     one = average_map(g.take(np.array([0])), np.ones(1), 0.1, 4.0, 10, by_label=True)
     np.testing.assert_allclose(one.w[one.mask], [0.6], rtol=1e-15)
     assert one.label[one.mask].tolist() == [5]
+
+
+def test_an_ego_gaussian_keeps_its_vehicles_label_into_the_other_vehicles_averaged_maps():
+    """paper, proposed, P = 6, 12 analytic steps: the ego Gaussian that F'_AA (eq. 11) appends to a
+    vehicle's upload carries ego_label(vehicle) (the last label of its range), so the other vehicle's
+    particles, which hold it after the downlink, pool their copies of it in eq. (7): one Gaussian of
+    that label in its averaged VS map. It once had NO_LABEL: after the first downlink the receiving
+    vehicle's VS map was unlabelled (copies never pooled)."""
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.scenes.trajectory import true_trajectories
+    from mmslam.slam.run import CooperativeRun
+
+    assert ego_label(0) == (1 << LABEL_BITS) - 1 and ego_label(3) == (4 << LABEL_BITS) - 1
+    vs = GM(np.array([0.9]), np.zeros((1, 7)) + [[20, 0, 0, 1, 0, 0, 0]], np.eye(7)[None], np.ones(1, bool),
+            None, np.array([42]))
+    out = fusion.ego_vs_average(vs, np.zeros(7), np.eye(7), 20.0, ego_label(2))
+    assert sorted(out.label.tolist()) == [42, ego_label(2)]
+    scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
+    K = 12
+    states = true_trajectories(scn)[:K]
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(K)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    run = CooperativeRun(scn, states, paths, "proposed", 6, 3)
+    seen = 0
+    for k in range(K):
+        run.step(k)
+        for n, f in enumerate(run.filters):
+            g = f.maps[VS]
+            others = [ego_label(m) for m in range(len(scn.vehicles)) if m != n]
+            held = np.isin(g.label, others) & g.mask
+            if not held.any():
+                continue
+            seen += 1
+            assert (g.label[g.mask] != NO_LABEL).all()  # no unlabelled Gaussian in a VS map
+            lab = g.label[held][0]
+            avg = f.estimate(np.full(f.P, 1.0 / f.P))[2][VS]
+            assert (avg.label[avg.mask] == lab).sum() <= 1  # its copies pooled (at most one per label)
+    assert seen  # some vehicle received another's ego Gaussian
