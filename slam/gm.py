@@ -162,6 +162,8 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     slots are already in that order (e.g. the output of a previous ``compact``), the result
     holds views of the input's leading slots instead of gathered copies.
     """
+    if g.label is not None and np.shape(g.label) != g.w.shape:  # np.where would broadcast a (P, 1) label
+        raise ValueError(f"GM.label has shape {np.shape(g.label)}; expected the weights' {g.w.shape}")
     key = np.where(g.mask, -g.w, np.inf)
     cap = int(g.count().max(initial=0)) if capacity is None else capacity
     cap = max(cap, 0)

@@ -352,3 +352,11 @@ def test_an_ego_gaussian_keeps_its_vehicles_label_into_the_other_vehicles_averag
             avg = f.estimate(np.full(f.P, 1.0 / f.P))[2][VS]
             assert (avg.label[avg.mask] == lab).sum() <= 1  # its copies pooled (at most one per label)
     assert seen  # some vehicle received another's ego Gaussian
+
+
+def test_compact_refuses_a_label_array_of_another_shape():
+    """A (P, 1) label once broadcast silently over every slot of a compacted (P, Q) map (its fast path's
+    np.where): every Gaussian of a particle got one label. Now a ValueError naming both shapes."""
+    g = _gm([[1.0, 0.5, 0.2]] * 2, np.zeros((2, 3, 3)), label=[[7], [8]])
+    with pytest.raises(ValueError, match=r"GM.label has shape \(2, 1\); expected the weights' \(2, 3\)"):
+        compact(g)
