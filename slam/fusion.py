@@ -240,7 +240,8 @@ def remove_ego(vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: flo
     return out
 
 
-def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: float) -> GM:
+def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, threshold: float,
+                   ego_label: int = NO_LABEL) -> GM:
     """``F'_AA`` placing the ego vehicle in its averaged VS map (paper eqs. (11)-(14)).
 
     ``c_q = 1`` iff the MSM distance between the position marginals of component ``q`` and of
@@ -248,13 +249,16 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
     ``beta_1 = 0`` (removed: they are the ego vehicle seen as a VS by itself, e.g. through
     another vehicle's upload); the others keep their weight (``beta_1 = 1``); the ego Gaussian
     is appended with weight 1 (``beta_2 = 1``, a PHD of one unit-weight Gaussian; with labels, the
-    label :data:`~mmslam.slam.gm.NO_LABEL`: no particle copies to pool).
+    label ``ego_label``, :func:`mmslam.slam.gm.ego_label` of the vehicle: the same in each of its
+    uploads, so that the particles of another vehicle that receive it in the fused map pool their
+    copies of it).
 
     Args:
         avg_vs: averaged VS map of the vehicle (batch ``()``, ``d = 7``).
         ego_mean: ``(7,)`` ego state as a VS state ``[x, y, z, vx, vy, vz, xi]``.
         ego_cov: ``(7, 7)`` its covariance (SPD).
         threshold: ``T_MD^L`` (dimensionless).
+        ego_label: the ego Gaussian's label where ``avg_vs`` has labels.
 
     Returns:
         The resulting mixture (live components only, sorted by weight).
@@ -266,7 +270,7 @@ def ego_vs_average(avg_vs: GM, ego_mean: np.ndarray, ego_cov: np.ndarray, thresh
     lab = _label(avg_vs, w.shape[0])
     return _union(w, m, P, beta, np.ones(1), ego_mean[None], ego_cov[None], np.ones(1), d,
                   lab_b=lab,
-                  lab_u=None if lab is None else np.array([NO_LABEL], np.int64))
+                  lab_u=None if lab is None else np.array([ego_label], np.int64))
 
 
 def predict_bs_vs(g: GM, dt: float, p_survival: float, q_std: np.ndarray, n_steps: int,

@@ -66,7 +66,7 @@ class FusionCenter:
                 self.maps[t] = spec.predict_at_bs(self.maps[t], self.scn)
 
     def fuse(self, avg_maps: dict[int, GM], fov_positions: np.ndarray, ego_mean: np.ndarray,
-             ego_cov: np.ndarray) -> dict[int, GM]:
+             ego_cov: np.ndarray, vehicle: int | None = None) -> dict[int, GM]:
         """Fuse one vehicle's upload into the BS maps; returns the fused maps (for the downlink).
 
         Args:
@@ -74,12 +74,14 @@ class FusionCenter:
             fov_positions: ``(n, 3)`` the vehicle's estimated positions since its last upload
                 (accumulated FOV: radius ``fov_range`` for range-gated types, infinite otherwise).
             ego_mean, ego_cov: the vehicle's state posterior mean ``(7,)`` and covariance ``(7, 7)``.
+            vehicle: the vehicle's index: its ego Gaussian's label in the VS map
+                (:func:`mmslam.slam.gm.ego_label`, with ``fusion.average_by_label``); None: no label.
         """
         from .detection import expected_pd
         from .fusion import in_accumulated_fov
 
         gamma = self.scn.fusion.gamma_detect
-        ctx = FusionInput(self.scn, self.variant, ego_mean, ego_cov)
+        ctx = FusionInput(self.scn, self.variant, ego_mean, ego_cov, vehicle)
         for t, spec in self.specs.items():
             bs_map = self.maps[t]
             ue = avg_maps.get(t, empty((), 0, spec.state_dim))

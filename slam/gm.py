@@ -77,7 +77,19 @@ class GM:
 
 
 NO_LABEL = -1
-"""The ``label`` of a masked slot and of a component without identity (e.g. the ego Gaussian of eq. (11))."""
+"""The ``label`` of a masked slot and of a component without identity."""
+
+LABEL_BITS = 40
+"""Vehicle ``n``'s labels are ``n << LABEL_BITS`` ... ``(n + 1) << LABEL_BITS`` - 1: its births from the
+first (:class:`~mmslam.slam.local_filter.LocalFilter`), its own Gaussian in the VS maps the last
+(:func:`ego_label`)."""
+
+
+def ego_label(vehicle: int) -> int:
+    """The label of vehicle ``vehicle``'s own Gaussian in the VS maps (``F'_AA``, eq. (11)): the last of
+    its label range, which its births (from ``vehicle << LABEL_BITS`` on) do not reach. The same in
+    every upload: after a downlink another vehicle's particles hold copies of it, pooled by label."""
+    return ((int(vehicle) + 1) << LABEL_BITS) - 1
 
 
 def empty(batch: tuple[int, ...], capacity: int, dim: int, with_pd_beta: bool = False,
@@ -150,6 +162,8 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     slots are already in that order (e.g. the output of a previous ``compact``), the result
     holds views of the input's leading slots instead of gathered copies.
     """
+    if g.label is not None and np.shape(g.label) != g.w.shape:  # np.where would broadcast a (P, 1) label
+        raise ValueError(f"GM.label has shape {np.shape(g.label)}; expected the weights' {g.w.shape}")
     key = np.where(g.mask, -g.w, np.inf)
     cap = int(g.count().max(initial=0)) if capacity is None else capacity
     cap = max(cap, 0)

@@ -93,7 +93,6 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
-        tc.g.label = maps[tc.lm_type].label  # type_terms' contiguous copy of the map: the labels for 4.
         g = corrected_gm(tc, Z, lpsi, prune=prune, mass_check=(J, tc.lm_type, step))  # 4.
         check_phd_mass(tc.g, g, J, tc.lm_type, step)  # 5.
         out[tc.lm_type] = g
@@ -170,7 +169,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
-        of the map, its ``inn`` the posteriors of the ``N`` detectable Gaussians: ``loglik (N, J)``,
+        of the map (with its ``pd_beta`` and ``label``: :func:`corrected_gm` carries them), its ``inn`` the posteriors of the ``N`` detectable Gaussians: ``loglik (N, J)``,
         ``m_post (N, J, d)``, ``P_post (N, 1 or J, d, d)``.
 
     Raises:
@@ -184,14 +183,17 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     J = Z.shape[0]
     R = _per_measurement_cov(R, J)
     c = np.ascontiguousarray
-    g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta)
+    g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta,
+           g.label)
     P_, Q, d = g.m.shape
     beta_shape = None if g.pd_beta is None else np.shape(g.pd_beta)
+    label_shape = None if g.label is None else np.shape(g.label)
     if (d < 3 or g.P.shape != (P_, Q, d, d) or g.w.shape != (P_, Q) or g.mask.shape != (P_, Q)
-            or np.shape(states) != (P_, 7) or np.shape(bs) != (3,) or beta_shape not in (None, (P_, Q, 2))):
+            or np.shape(states) != (P_, 7) or np.shape(bs) != (3,) or beta_shape not in (None, (P_, Q, 2))
+            or label_shape not in (None, (P_, Q))):
         raise ValueError(f"{stage}: shapes w {g.w.shape}, m {g.m.shape}, P {g.P.shape}, states {np.shape(states)}, "
-                         f"bs {np.shape(bs)}, pd_beta {beta_shape}; expected (P, Q), (P, Q, d >= 3), (P, Q, d, d), "
-                         f"(P, 7), (3,), None or (P, Q, 2)")
+                         f"bs {np.shape(bs)}, pd_beta {beta_shape}, label {label_shape}; expected (P, Q), "
+                         f"(P, Q, d >= 3), (P, Q, d, d), (P, 7), (3,), None or (P, Q, 2), None or (P, Q)")
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
         pd = expected_pd(pd, g.pd_beta)

@@ -42,7 +42,7 @@ from mmslam.errors import MmslamError
 from mmslam.model import OTHER, Bounce, LandmarkType
 
 from .birth import birth_from_moments
-from .gm import GM, concat, concat_label, concat_pd_beta
+from .gm import NO_LABEL, GM, concat, concat_label, concat_pd_beta, ego_label
 from .gmphd import predict_static
 from .reduction import merge_pairs, prune_merge
 
@@ -64,13 +64,15 @@ def point_extent(scn: "Scenario") -> None:
 class FusionInput:
     """What a type's fusion operator gets besides the two maps (one vehicle's upload at the BS).
 
-    ``ego_mean (7,)``, ``ego_cov (7, 7)``: the uploading vehicle's state posterior.
+    ``ego_mean (7,)``, ``ego_cov (7, 7)``: the uploading vehicle's state posterior; ``vehicle``: its
+    index (the label of its ego Gaussian, :func:`mmslam.slam.gm.ego_label`), or None (no label).
     """
 
     scn: "Scenario"
     variant: "VariantSpec"
     ego_mean: np.ndarray
     ego_cov: np.ndarray
+    vehicle: int | None = None
 
 
 @dataclass(frozen=True)
@@ -249,7 +251,8 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
         if ext is not None:  # others see this car where its body reflects, not at its antenna
             ec = ec.copy()
             ec[0:3, 0:3] += ext
-        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position)
+        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position,
+                                   NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
     if v.vs_fusion:
         return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov,
                           with_pairs=True)

@@ -33,7 +33,7 @@ from mmslam.scenes.scenario import Scenario
 
 from .birth import birth_moments_by_kind
 from .dynamics import wrap_angle
-from .gm import GM, drop_dead_slots, empty, with_labels
+from .gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, with_labels
 from .gmphd import correct
 from .landmarks import LandmarkSpec
 from .measurement import BS
@@ -41,10 +41,6 @@ from .rbpf import (ess, init_particles, normalise_log_weights, propagate, system
                    weighted_state_cov, weighted_state_mean)
 from .reduction import average_map, prune_merge
 from .variants import VariantSpec, get_variant
-
-
-LABEL_BITS = 40
-"""Births of vehicle ``n`` are labelled from ``n << LABEL_BITS`` (``fusion.average_by_label``)."""
 
 
 def _broadcast_gm(g: GM, n: int) -> GM:
@@ -87,8 +83,8 @@ class LocalFilter:
             probability (typically :func:`mmslam.slam.sensor.fov_detect_prob`).
         rng: this filter's random generator.
         measurement_update: False for dead reckoning (no correction, births or map).
-        vehicle: the vehicle's index; with ``fusion.average_by_label`` its births are labelled
-            ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
+        vehicle: the vehicle's index in ``[0, 2^23)``; with ``fusion.average_by_label`` its births are
+            labelled ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
@@ -98,6 +94,8 @@ class LocalFilter:
         spec = get_variant(variant)
         if particles < 1:
             raise MmslamError(f"particles={particles}: expected at least 1 particle")
+        if not 0 <= int(vehicle) < 1 << (63 - LABEL_BITS):  # its labels: non-negative int64, none NO_LABEL
+            raise MmslamError(f"vehicle={vehicle}: expected a vehicle index in [0, {1 << (63 - LABEL_BITS)})")
         self.scn = scn
         self.fp = scn.filter
         self.variant = spec
@@ -123,6 +121,7 @@ class LocalFilter:
         self._prev_Z: np.ndarray | None = None
         self._k = -1
         self._next_label = int(vehicle) << LABEL_BITS
+        self._ego_label = ego_label(vehicle)  # the last of the vehicle's range: not a birth's
         """the label of the next birth (``fusion.average_by_label``)"""
 
     # ------------------------------------------------------------------ stages
@@ -138,6 +137,8 @@ class LocalFilter:
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn))
                 if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
                     births[t], self._next_label = with_labels(births[t], self._next_label)
+                    if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice
+                        raise MmslamError(f"vehicle {self._ego_label >> LABEL_BITS} ran out of birth labels")
         self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
                            self.rng)
         if not self.update:

@@ -506,7 +506,11 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
     corrected by another landmark's measurement, are other hypotheses; they and the unlabelled ones,
     ``label < 0``, are groups of one). Each group is moment-matched with the weights ``w``
     (:func:`moment_match_at`, offsets from its largest weight; Beta: ``beta_pool``): the copies of
-    one landmark in the particles' maps become one component whatever their spread.
+    one landmark in the particles' maps become one component whatever their spread. The moments
+    are taken with each group's weights divided by its largest (then ``W`` times it): a particle of
+    subnormal weight ``w_p`` would otherwise lose its covariances' digits in ``w_i P_i / W``. A copy
+    with ``w = 0`` (``w_p eta`` underflowed) carries no mass and is left out (without labels it
+    would fall below ``prune`` as a cluster of its own, or add nothing to a heavier one).
 
     Returns ``(w (1, G), m (1, G, d), P (1, G, d, d), ab (1, G, 2) or None, label (1, G))``, the groups
     in the order of their keys (labels; groups of one: :data:`NO_LABEL`). Raises FloatingPointError
@@ -516,7 +520,7 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
     ok = np.isfinite(w) & np.isfinite(m).all(-1) & np.isfinite(P).all((-1, -2))
     if not ok[mask].all():
         raise FloatingPointError("non-finite Gaussian component in average_map input")
-    keep = mask & (w_own >= prune)  # NaN (particles of weight 0) fails
+    keep = mask & (w_own >= prune) & (w > 0)  # NaN (particles of weight 0) fails; w = 0: no mass
     if max_trace is not None:
         k = min(pos_dims, d)
         keep &= np.trace(P[:, :k, :k], axis1=-2, axis2=-1) <= max_trace
@@ -531,14 +535,17 @@ def _pool_labels(w_own: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray,
     heads = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if idx.size else np.zeros(0, np.int64)
     G = heads.size
     starts = np.r_[heads, idx.size].astype(np.int64)
-    wc, mc, Pc = (np.ascontiguousarray(a, dtype=float)[None] for a in (w, m, P))
+    top = w[members[heads]]  # (G,) each group's largest weight, > 0
+    ws = np.zeros(n)
+    ws[members] = w[members] / np.repeat(top, np.diff(starts))  # in (0, 1], the head's 1
+    wc, mc, Pc = (np.ascontiguousarray(a, dtype=float)[None] for a in (ws, m, P))
     ab_in = np.empty((1, n, 0)) if ab is None else np.ascontiguousarray(ab, dtype=float)[None]
     out = (np.empty((1, G)), np.empty((1, G, d)), np.empty((1, G, d, d)), np.empty((1, G), bool),
            np.empty((1, G, ab_in.shape[2])))
     if _write_batch(wc, mc, Pc, ab_in, members[None], members[heads][None], starts[None],
                     np.arange(G, dtype=np.int64)[None], np.array([G], np.int64), *out) != _OK:
         raise FloatingPointError("non-finite Gaussian component after average_map's label pooling")
-    return out[0], out[1], out[2], None if ab is None else out[4], np.maximum(key[heads], NO_LABEL)[None]
+    return out[0] * top, out[1], out[2], None if ab is None else out[4], np.maximum(key[heads], NO_LABEL)[None]
 
 
 def average_map(g: GM, particle_weights: np.ndarray, prune: float, merge: float, cap: int,

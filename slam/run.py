@@ -200,7 +200,7 @@ class CooperativeRun:
         self._acc_fov[n].append(est.mean[0:3])
         if self.center is None or k not in self.schedule[n]:
             return False
-        fused = self.center.fuse(est.avg_maps, np.array(self._acc_fov[n]), est.mean, est.cov)
+        fused = self.center.fuse(est.avg_maps, np.array(self._acc_fov[n]), est.mean, est.cov, vehicle=n)
         self.filters[n].downlink(fused, ego_gaussian(est.mean, est.cov, self.scn.filter.vs_process_std))
         self._acc_fov[n] = []
         return True

@@ -13,7 +13,7 @@ import pytest
 from mmslam.model import VA, VS
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam import fusion
-from mmslam.slam.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, empty, with_labels
+from mmslam.slam.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, ego_label, empty, with_labels
 from mmslam.slam.gmphd import correct, corrected_gm, type_terms
 from mmslam.slam.local_filter import LABEL_BITS, LocalFilter
 from mmslam.slam.measurement import measure
@@ -249,4 +249,114 @@ def test_a_cooperative_run_with_labels_keeps_them_in_every_map():
     assert all(g.label is not None and g.label.shape == g.w.shape for g in maps)
     live = np.concatenate([g.label[g.mask] for g in maps])
     assert live.size and np.isin(live[live >= 0] >> LABEL_BITS, np.arange(len(scn.vehicles))).all()
-    assert (run.center.maps[VS].label[run.center.maps[VS].mask] == NO_LABEL).any()  # an uploaded ego Gaussian
+    vs = run.center.maps[VS].label[run.center.maps[VS].mask]
+    assert np.isin([ego_label(n) for n in range(len(scn.vehicles))], vs).any()  # an uploaded ego Gaussian
+
+
+def test_average_map_pooling_survives_a_particle_of_subnormal_weight():
+    """Particle 1's normalised weight is subnormal (its log-weight ~745 below the best one's): w_p eta
+    is 0 for eta = 0.3 (5e-324 * 0.3 rounds to 0) and keeps a few bits for 1e-320. Particle 1's
+    Gaussians (its own labels, a thin correlated covariance) carry no measurable mass: the result is
+    the unlabelled one, particle 0's Gaussian alone (the pooling once moment-matched w_i P_i / W in
+    subnormal arithmetic: a zero or indefinite covariance, FloatingPointError in the gated merge)."""
+    C = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1e-6]])
+    P = np.stack([np.broadcast_to(0.01 * np.eye(3), (1, 3, 3)), C[None]])
+    g = GM(np.array([[0.9], [0.3]]), np.array([[[0.0, 0, 0]], [[5.0, 0, 0]]]), P, np.ones((2, 1), bool),
+           label=np.array([[1], [2]]))
+    for p1 in (5e-324, 1e-320):
+        pw = np.array([1.0, p1])
+        plain = average_map(g, pw, 0.1, 4.0, 10)
+        pooled = average_map(g, pw, 0.1, 4.0, 10, by_label=True)
+        assert pooled.count() == plain.count() == 1
+        np.testing.assert_allclose(pooled.w[pooled.mask], [0.9], rtol=1e-15)
+        np.testing.assert_allclose(pooled.m[pooled.mask], plain.m[plain.mask], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(pooled.P[pooled.mask], plain.P[plain.mask], rtol=1e-15, atol=0)
+        assert pooled.label[pooled.mask].tolist() == [1]
+
+
+def test_type_terms_carries_the_labels_to_corrected_gm():
+    """corrected_gm(type_terms(g, ...)) of a labelled map has the labels without a caller putting them
+    on the contiguous copy (type_terms once dropped them: label None); a label array of another shape
+    is refused by type_terms with the other shapes."""
+    x0, x1 = np.array([-30.0, 25.0, 3.0]), np.array([40.0, 35.0, 6.0])
+    g = _gm([[0.8, 0.6]], [[x0, x1]], var=0.25, label=[[7, 9]])
+    Z = np.stack([measure(STATE, x0, VA, BS), measure(STATE, x1, VA, BS)])
+    tc = type_terms(g, VA, STATE[None], Z, R, BS, _pd(0.9))
+    np.testing.assert_array_equal(corrected_gm(tc, Z, np.zeros((1, 2))).label, [[7, 9, 7, 7, 9, 9]])
+    with pytest.raises(ValueError, match=r"VA correction: shapes .* label \(1, 1\); expected .*None or \(P, Q\)"):
+        type_terms(GM(g.w, g.m, g.P, g.mask, label=np.array([[7]])), VA, STATE[None], Z, R, BS, _pd(0.9))
+
+
+def test_a_vehicle_index_outside_the_label_range_is_refused():
+    """vehicle = -1 once labelled its births from -2^40 (negative: treated as NO_LABEL, never pooled,
+    silently); 2^23 overflows int64. Both: a one-line error naming the index."""
+    from mmslam.errors import MmslamError
+
+    scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
+    for bad in (-1, 1 << 23):
+        with pytest.raises(MmslamError, match=rf"vehicle={bad}: expected a vehicle index in \[0, 8388608\)"):
+            LocalFilter(scn, "cm1", 2, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                        np.random.default_rng(0), vehicle=bad)
+    assert LocalFilter(scn, "cm1", 2, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                       np.random.default_rng(0), vehicle=(1 << 23) - 1)._next_label == ((1 << 23) - 1) << LABEL_BITS
+
+
+def test_average_map_pooling_ignores_a_particle_of_weight_zero_and_works_for_one_particle():
+    """Particle 1 (weight 0) holds a copy of label 5 at x = 40: it is no copy (its eta is NaN to the
+    prune rule), the result is particle 0's Gaussian. P = 1: the map itself, reduced."""
+    g = _gm([[0.6], [1.0]], [[[1.0, 2, 3]], [[40.0, 0, 0]]], label=[[5], [5]])
+    r = average_map(g, np.array([2.0, 0.0]), 0.1, 4.0, 10, by_label=True)
+    np.testing.assert_allclose(r.w[r.mask], [0.6], rtol=1e-15)
+    np.testing.assert_allclose(r.m[r.mask], [[1.0, 2, 3]], rtol=1e-15)
+    np.testing.assert_allclose(r.P[r.mask], [0.01 * np.eye(3)], rtol=1e-15)
+    assert r.label[r.mask].tolist() == [5]
+    one = average_map(g.take(np.array([0])), np.ones(1), 0.1, 4.0, 10, by_label=True)
+    np.testing.assert_allclose(one.w[one.mask], [0.6], rtol=1e-15)
+    assert one.label[one.mask].tolist() == [5]
+
+
+def test_an_ego_gaussian_keeps_its_vehicles_label_into_the_other_vehicles_averaged_maps():
+    """paper, proposed, P = 6, 12 analytic steps: the ego Gaussian that F'_AA (eq. 11) appends to a
+    vehicle's upload carries ego_label(vehicle) (the last label of its range), so the other vehicle's
+    particles, which hold it after the downlink, pool their copies of it in eq. (7): one Gaussian of
+    that label in its averaged VS map. It once had NO_LABEL: after the first downlink the receiving
+    vehicle's VS map was unlabelled (copies never pooled)."""
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.scenes.trajectory import true_trajectories
+    from mmslam.slam.run import CooperativeRun
+
+    assert ego_label(0) == (1 << LABEL_BITS) - 1 and ego_label(3) == (4 << LABEL_BITS) - 1
+    vs = GM(np.array([0.9]), np.zeros((1, 7)) + [[20, 0, 0, 1, 0, 0, 0]], np.eye(7)[None], np.ones(1, bool),
+            None, np.array([42]))
+    out = fusion.ego_vs_average(vs, np.zeros(7), np.eye(7), 20.0, ego_label(2))
+    assert sorted(out.label.tolist()) == [42, ego_label(2)]
+    scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
+    K = 12
+    states = true_trajectories(scn)[:K]
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(K)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    run = CooperativeRun(scn, states, paths, "proposed", 6, 3)
+    seen = 0
+    for k in range(K):
+        run.step(k)
+        for n, f in enumerate(run.filters):
+            g = f.maps[VS]
+            others = [ego_label(m) for m in range(len(scn.vehicles)) if m != n]
+            held = np.isin(g.label, others) & g.mask
+            if not held.any():
+                continue
+            seen += 1
+            assert (g.label[g.mask] != NO_LABEL).all()  # no unlabelled Gaussian in a VS map
+            lab = g.label[held][0]
+            avg = f.estimate(np.full(f.P, 1.0 / f.P))[2][VS]
+            assert (avg.label[avg.mask] == lab).sum() <= 1  # its copies pooled (at most one per label)
+    assert seen  # some vehicle received another's ego Gaussian
+
+
+def test_compact_refuses_a_label_array_of_another_shape():
+    """A (P, 1) label once broadcast silently over every slot of a compacted (P, Q) map (its fast path's
+    np.where): every Gaussian of a particle got one label. Now a ValueError naming both shapes."""
+    g = _gm([[1.0, 0.5, 0.2]] * 2, np.zeros((2, 3, 3)), label=[[7], [8]])
+    with pytest.raises(ValueError, match=r"GM.label has shape \(2, 1\); expected the weights' \(2, 3\)"):
+        compact(g)
