@@ -112,17 +112,12 @@ def vehicle_ct(s: np.ndarray, dt: float) -> np.ndarray:
         ``y' = y + (zeta/xi)(cos alpha - cos(alpha + xi dt))``, ``alpha' = alpha + xi dt``;
         ``z, zeta, xi, B`` unchanged (noise is added by the caller).
     """
-    s = np.asarray(s, dtype=float)
-    x, y, z, a, v, w, b = np.moveaxis(s, -1, 0)
+    out = np.array(s, dtype=float)  # a copy: z, zeta, xi, B carried over
+    a, v, w = out[..., 3], out[..., 4], out[..., 5]
     sa, ca = np.sin(a), np.cos(a)
     # (sin(a + w dt) - sin a)/w = ca * sin(w dt)/w - sa * (1 - cos(w dt))/w, likewise for cos.
     s1, c1 = _sinc_terms(w, dt)
-    out = np.empty_like(s)
-    out[..., 0] = x + v * (ca * s1 - sa * c1)
-    out[..., 1] = y + v * (sa * s1 + ca * c1)
-    out[..., 2] = z
+    out[..., 0] += v * (ca * s1 - sa * c1)
+    out[..., 1] += v * (sa * s1 + ca * c1)
     out[..., 3] = a + w * dt
-    out[..., 4] = v
-    out[..., 5] = w
-    out[..., 6] = b
     return out
