@@ -26,7 +26,7 @@ import numpy as np
 
 from mmslam.model import Bounce
 
-from .ckf import cubature_points
+from .ckf import cubature_factor, cubature_point_set
 from .gm import GM, live_slots
 from .dynamics import VS_DIM
 from .measurement import MEAS_DIM, SP, VA, geometry_of
@@ -152,17 +152,22 @@ def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _moments_batch(geometries: np.ndarray, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
-                   cov: np.ndarray, ok: np.ndarray) -> None:
-    """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the cubature
-    points ``zpts (J, K, 5)``: ``geometries (G,)`` (:class:`mmslam.model.Bounce` codes), ``states (P, 7)``;
+def _moments_batch(geometries: np.ndarray, states: np.ndarray, Z: np.ndarray, Ls: np.ndarray, b: np.ndarray,
+                   mean: np.ndarray, cov: np.ndarray, ok: np.ndarray) -> None:
+    """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the ``K = 10``
+    cubature points of ``N(Z[j], R)`` (:func:`~mmslam.slam.ckf.cubature_point_set`; ``Ls (1, 5, 5)``
+    the factor of one ``R`` for all, or ``(J, 5, 5)`` one per measurement): ``Z (J, 5)``,
+    ``geometries (G,)`` (:class:`mmslam.model.Bounce` codes), ``states (P, 7)``, ``b (3,)``;
     writes ``mean (G, P, J, 3)``, ``cov (G, P, J, 3, 3)``, ``ok (G, P, J)``.
 
     The AOA direction of point ``k`` seen with heading ``h_p`` uses ``cos(a + h) = cos a cos h -
     sin a sin h`` (and the same for sin): the trigonometric functions are evaluated once per
     point and once per particle instead of per pair, and each direction once for all geometries.
     """
-    J, K, G = zpts.shape[0], zpts.shape[1], geometries.shape[0]
+    J, K, G = Z.shape[0], 2 * Z.shape[1], geometries.shape[0]
+    zpts = np.empty((J, K, Z.shape[1]))
+    for j in range(J):
+        cubature_point_set(Z[j], Ls[j if Ls.shape[0] > 1 else 0], zpts[j])
     ca, sa = np.cos(zpts[:, :, 3]), np.sin(zpts[:, :, 3])
     ce, se = np.cos(zpts[:, :, 4]), np.sin(zpts[:, :, 4])
     x = np.empty((G, K, 3))
@@ -196,17 +201,17 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     J, P_ = Z.shape[0], states.shape[0]
     R = np.asarray(R, dtype=float)
     if (np.shape(Z) != (J, MEAS_DIM) or R.shape not in ((MEAS_DIM, MEAS_DIM), (J, MEAS_DIM, MEAS_DIM))
-            or np.shape(states)[1:] != (7,)):
-        raise ValueError(f"birth moments: Z {np.shape(Z)}, R {R.shape}, states {np.shape(states)}; expected "
-                         f"(J, {MEAS_DIM}), ({MEAS_DIM}, {MEAS_DIM}) or (J, {MEAS_DIM}, {MEAS_DIM}), (P, 7)")
-    # a single R: one Cholesky factor for every measurement (the points broadcast over J)
-    zpts = np.ascontiguousarray(cubature_points(Z, R[None] if R.ndim == 2 else R, "birth cubature"))  # (J, 10, 5)
+            or np.shape(states)[1:] != (7,) or np.shape(bs) != (3,)):
+        raise ValueError(f"birth moments: Z {np.shape(Z)}, R {R.shape}, states {np.shape(states)}, bs {np.shape(bs)}; "
+                         f"expected (J, {MEAS_DIM}), ({MEAS_DIM}, {MEAS_DIM}) or (J, {MEAS_DIM}, {MEAS_DIM}), (P, 7), (3,)")
+    # a single R: one Cholesky factor for every measurement
+    Ls = np.ascontiguousarray(cubature_factor(R[None] if R.ndim == 2 else R, "birth cubature"))
     s = np.ascontiguousarray(states, dtype=float)
     b = np.ascontiguousarray(bs, dtype=float)
     geos = np.array([int(k) for k in kinds], dtype=np.int64)
     G = geos.shape[0]
     mean, cov, ok = np.empty((G, P_, J, 3)), np.empty((G, P_, J, 3, 3)), np.empty((G, P_, J), bool)
-    _moments_batch(geos, s, zpts, b, mean, cov, ok)
+    _moments_batch(geos, s, np.ascontiguousarray(Z, dtype=float), Ls, b, mean, cov, ok)
     return {int(k): (mean[g], cov[g], ok[g]) for g, k in enumerate(geos)}
 
 
