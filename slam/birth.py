@@ -202,8 +202,9 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     R = np.asarray(R, dtype=float)
     if (np.shape(Z) != (J, MEAS_DIM) or R.shape not in ((MEAS_DIM, MEAS_DIM), (J, MEAS_DIM, MEAS_DIM))
             or np.shape(states)[1:] != (7,) or np.shape(bs) != (3,)):
-        raise ValueError(f"birth moments: Z {np.shape(Z)}, R {R.shape}, states {np.shape(states)}, bs {np.shape(bs)}; "
-                         f"expected (J, {MEAS_DIM}), ({MEAS_DIM}, {MEAS_DIM}) or (J, {MEAS_DIM}, {MEAS_DIM}), (P, 7), (3,)")
+        raise ValueError(f"birth moments: Z {np.shape(Z)}, R {R.shape}, states {np.shape(states)}, bs "
+                         f"{np.shape(bs)}; expected (J, {MEAS_DIM}), ({MEAS_DIM}, {MEAS_DIM}) or (J, {MEAS_DIM}, "
+                         f"{MEAS_DIM}), (P, 7), (3,)")
     # a single R: one Cholesky factor for every measurement
     Ls = np.ascontiguousarray(cubature_factor(R[None] if R.ndim == 2 else R, "birth cubature"))
     s = np.ascontiguousarray(states, dtype=float)
@@ -282,9 +283,13 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     ok = np.ascontiguousarray(ok, dtype=bool)
     if spec.range_gated:  # e.g. not a VA: its image lies behind the wall
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
+        if np.shape(pd) != shape:
+            try:
+                pd = np.broadcast_to(pd, shape)
+            except ValueError:
+                raise ValueError(f"pd_fn returned shape {np.shape(pd)} for {shape} births; return one p_D "
+                                 f"per birth") from None
         ok = ok & (pd > 0.0)
-        if ok.shape != shape:
-            raise ValueError(f"pd_fn returned shape {np.shape(pd)} for {shape} births; return one p_D per birth")
     cols = np.arange(shape[1])
     if drop_dead and shape[1]:
         cols = cols[:live_slots(ok.reshape(-1, shape[1]), cols)]
