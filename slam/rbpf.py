@@ -36,13 +36,11 @@ def propagate(s: np.ndarray, speed: float, turn_rate: float, dt: float, noise_st
         ``(P, 7)`` particles at step k (heading wrapped to ``(-pi, pi]``; speed and turn rate
         equal to the known inputs).
     """
-    s = np.array(s, dtype=float, copy=True)
     std = np.asarray(noise_std, dtype=float)
-    if s.ndim != 2 or s.shape[1] != VEHICLE_DIM or std.shape != (VEHICLE_DIM,):
-        raise ValueError(f"propagate: particles {s.shape} and noise_std {std.shape}; expected (P, {VEHICLE_DIM}) "
-                         f"and ({VEHICLE_DIM},)")
-    s[:, 4:6] = speed, turn_rate
-    out = vehicle_ct(s, dt)
+    if np.ndim(s) != 2 or np.shape(s)[1] != VEHICLE_DIM or std.shape != (VEHICLE_DIM,):
+        raise ValueError(f"propagate: particles {np.shape(s)} and noise_std {std.shape}; expected "
+                         f"(P, {VEHICLE_DIM}) and ({VEHICLE_DIM},)")
+    out = vehicle_ct(s, dt, speed, turn_rate)  # a new array
     _add_noise(out, rng.standard_normal(out.shape), std, float(speed), float(turn_rate))
     out[:, 3] = wrap_angle(out[:, 3])
     return out
