@@ -100,29 +100,33 @@ def _sinc_terms(w: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def vehicle_ct(s: np.ndarray, dt: float) -> np.ndarray:
+def vehicle_ct(s: np.ndarray, dt: float, speed: float | None = None, turn_rate: float | None = None) -> np.ndarray:
     """Noise-free polar coordinated-turn transition of vehicle states.
 
     Args:
         s: ``(..., 7)`` states ``[x, y, z, alpha, zeta, xi, B]`` (global frame).
         dt: time step in seconds.
+        speed, turn_rate: known inputs (m/s, rad/s), both or neither: they replace ``zeta`` and ``xi``
+            of every state (the turn terms then evaluated once, for the one turn rate).
 
     Returns:
         ``(..., 7)`` next states: ``x' = x + (zeta/xi)(sin(alpha + xi dt) - sin alpha)``,
         ``y' = y + (zeta/xi)(cos alpha - cos(alpha + xi dt))``, ``alpha' = alpha + xi dt``;
         ``z, zeta, xi, B`` unchanged (noise is added by the caller).
     """
-    s = np.asarray(s, dtype=float)
-    x, y, z, a, v, w, b = np.moveaxis(s, -1, 0)
+    out = np.array(s, dtype=float)  # a copy: z, zeta, xi, B carried over
+    a = out[..., 3]
+    if speed is None and turn_rate is None:
+        v, w = out[..., 4], out[..., 5]
+    elif speed is None or turn_rate is None:
+        raise ValueError("vehicle_ct: pass both speed and turn_rate (the known inputs) or neither")
+    else:
+        v, w = np.float64(speed), np.float64(turn_rate)
+        out[..., 4], out[..., 5] = v, w
     sa, ca = np.sin(a), np.cos(a)
     # (sin(a + w dt) - sin a)/w = ca * sin(w dt)/w - sa * (1 - cos(w dt))/w, likewise for cos.
     s1, c1 = _sinc_terms(w, dt)
-    out = np.empty_like(s)
-    out[..., 0] = x + v * (ca * s1 - sa * c1)
-    out[..., 1] = y + v * (sa * s1 + ca * c1)
-    out[..., 2] = z
+    out[..., 0] += v * (ca * s1 - sa * c1)
+    out[..., 1] += v * (sa * s1 + ca * c1)
     out[..., 3] = a + w * dt
-    out[..., 4] = v
-    out[..., 5] = w
-    out[..., 6] = b
     return out

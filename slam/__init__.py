@@ -16,8 +16,8 @@ from pathlib import Path
 
 import mmslam.model as _model
 
-KERNEL_SOURCES = ("birth.py", "ckf.py", "detection.py", "dynamics.py", "gmphd.py", "linalg.py", "measurement.py",
-                  "reduction.py", "rbpf.py", "trig.py", "vs.py")
+KERNEL_SOURCES = ("birth.py", "ckf.py", "detection.py", "dynamics.py", "gm.py", "gmphd.py", "linalg.py",
+                  "measurement.py", "reduction.py", "rbpf.py", "trig.py", "vs.py")
 """The ``slam/`` modules that define numba kernels (one hash over all of them)."""
 
 _STAMP = "mmslam-kernels.sha256"

@@ -26,10 +26,10 @@ import numpy as np
 
 from mmslam.model import Bounce
 
-from .ckf import cubature_points
-from .gm import GM
+from .ckf import cubature_factor, cubature_point_set
+from .gm import GM, live_slots
 from .dynamics import VS_DIM
-from .measurement import SP, VA, geometry_of
+from .measurement import MEAS_DIM, SP, VA, geometry_of
 from .reduction import dead_gaussian
 from .vs import DEFAULT_TURN_MEAN, vs_birth_cov_point, vs_birth_mean_point
 
@@ -152,17 +152,22 @@ def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _moments_batch(geometries: np.ndarray, states: np.ndarray, zpts: np.ndarray, b: np.ndarray, mean: np.ndarray,
-                   cov: np.ndarray, ok: np.ndarray) -> None:
-    """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the cubature
-    points ``zpts (J, K, 5)``: ``geometries (G,)`` (:class:`mmslam.model.Bounce` codes), ``states (P, 7)``;
+def _moments_batch(geometries: np.ndarray, states: np.ndarray, Z: np.ndarray, Ls: np.ndarray, b: np.ndarray,
+                   mean: np.ndarray, cov: np.ndarray, ok: np.ndarray) -> None:
+    """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the ``K = 10``
+    cubature points of ``N(Z[j], R)`` (:func:`~mmslam.slam.ckf.cubature_point_set`; ``Ls (1, 5, 5)``
+    the factor of one ``R`` for all, or ``(J, 5, 5)`` one per measurement): ``Z (J, 5)``,
+    ``geometries (G,)`` (:class:`mmslam.model.Bounce` codes), ``states (P, 7)``, ``b (3,)``;
     writes ``mean (G, P, J, 3)``, ``cov (G, P, J, 3, 3)``, ``ok (G, P, J)``.
 
     The AOA direction of point ``k`` seen with heading ``h_p`` uses ``cos(a + h) = cos a cos h -
     sin a sin h`` (and the same for sin): the trigonometric functions are evaluated once per
     point and once per particle instead of per pair, and each direction once for all geometries.
     """
-    J, K, G = zpts.shape[0], zpts.shape[1], geometries.shape[0]
+    J, K, G = Z.shape[0], 2 * Z.shape[1], geometries.shape[0]
+    zpts = np.empty((J, K, Z.shape[1]))
+    for j in range(J):
+        cubature_point_set(Z[j], Ls[j if Ls.shape[0] > 1 else 0], zpts[j])
     ca, sa = np.cos(zpts[:, :, 3]), np.sin(zpts[:, :, 3])
     ce, se = np.cos(zpts[:, :, 4]), np.sin(zpts[:, :, 4])
     x = np.empty((G, K, 3))
@@ -194,13 +199,20 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     the inversion). Returns ``{geometry: (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))}``.
     """
     J, P_ = Z.shape[0], states.shape[0]
-    zpts = np.ascontiguousarray(cubature_points(Z, np.broadcast_to(R, (J, 5, 5)), "birth cubature"))  # (J, 10, 5)
+    R = np.asarray(R, dtype=float)
+    if (np.shape(Z) != (J, MEAS_DIM) or R.shape not in ((MEAS_DIM, MEAS_DIM), (J, MEAS_DIM, MEAS_DIM))
+            or np.shape(states)[1:] != (7,) or np.shape(bs) != (3,)):
+        raise ValueError(f"birth moments: Z {np.shape(Z)}, R {R.shape}, states {np.shape(states)}, bs "
+                         f"{np.shape(bs)}; expected (J, {MEAS_DIM}), ({MEAS_DIM}, {MEAS_DIM}) or (J, {MEAS_DIM}, "
+                         f"{MEAS_DIM}), (P, 7), (3,)")
+    # a single R: one Cholesky factor for every measurement
+    Ls = np.ascontiguousarray(cubature_factor(R[None] if R.ndim == 2 else R, "birth cubature"))
     s = np.ascontiguousarray(states, dtype=float)
     b = np.ascontiguousarray(bs, dtype=float)
     geos = np.array([int(k) for k in kinds], dtype=np.int64)
     G = geos.shape[0]
     mean, cov, ok = np.empty((G, P_, J, 3)), np.empty((G, P_, J, 3, 3)), np.empty((G, P_, J), bool)
-    _moments_batch(geos, s, zpts, b, mean, cov, ok)
+    _moments_batch(geos, s, np.ascontiguousarray(Z, dtype=float), Ls, b, mean, cov, ok)
     return {int(k): (mean[g], cov[g], ok[g]) for g, k in enumerate(geos)}
 
 
@@ -218,27 +230,31 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, weight: float, moving: bool, vel_var: np.ndarray,
-            turn_std: float, turn_mean: float, w: np.ndarray, m: np.ndarray, P: np.ndarray) -> None:
-    """Birth Gaussians of every particle ``p`` and measurement ``j``: where ``ok[p, j]`` weight
-    ``weight`` at the position moments ``mean[p, j] (3,)``, ``cov[p, j] (3, 3)`` (``moving``: the 7-D
-    VS birth :func:`~mmslam.slam.vs.vs_birth_mean_point`, :func:`~mmslam.slam.vs.vs_birth_cov_point`),
-    else ``w = 0``, ``m = 0``, ``P = I``. Writes ``w (P, J)``, ``m (P, J, d)``, ``P (P, J, d, d)``."""
+def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray, weight: float, moving: bool,
+            vel_var: np.ndarray, turn_std: float, turn_mean: float, w: np.ndarray, m: np.ndarray, P: np.ndarray,
+            mask: np.ndarray) -> None:
+    """Birth Gaussians of every particle ``p`` and kept measurement ``j = cols[c]`` (``cols (C,)``) in slot
+    ``c``: where ``ok[p, j]`` weight ``weight`` at the position moments ``mean[p, j] (3,)``,
+    ``cov[p, j] (3, 3)`` (``moving``: the 7-D VS birth :func:`~mmslam.slam.vs.vs_birth_mean_point`,
+    :func:`~mmslam.slam.vs.vs_birth_cov_point`), else ``w = 0``, ``m = 0``, ``P = I``.
+    Writes ``w (P, C)``, ``m (P, C, d)``, ``P (P, C, d, d)``, ``mask (P, C) = ok[:, cols]``."""
     for p in range(ok.shape[0]):
-        for j in range(ok.shape[1]):
+        for c in range(cols.shape[0]):
+            j = cols[c]
+            mask[p, c] = ok[p, j]
             if not ok[p, j]:
-                w[p, j] = 0.0
-                dead_gaussian(m[p, j], P[p, j])
+                w[p, c] = 0.0
+                dead_gaussian(m[p, c], P[p, c])
                 continue
-            w[p, j] = weight
+            w[p, c] = weight
             if moving:
-                vs_birth_mean_point(mean[p, j], turn_mean, m[p, j])
-                vs_birth_cov_point(cov[p, j], vel_var, turn_std, P[p, j])
+                vs_birth_mean_point(mean[p, j], turn_mean, m[p, c])
+                vs_birth_cov_point(cov[p, j], vel_var, turn_std, P[p, c])
             else:  # the position moments
                 for a in range(3):
-                    m[p, j, a] = mean[p, j, a]
+                    m[p, c, a] = mean[p, j, a]
                     for b in range(3):
-                        P[p, j, a, b] = cov[p, j, a, b]
+                        P[p, c, a, b] = cov[p, j, a, b]
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,
@@ -248,33 +264,45 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
                        vs_turn_std: float = np.pi / 2, *, drop_dead: bool = False) -> GM:
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
 
-    The type's spec (:func:`mmslam.slam.landmarks.landmark_type`) decides: a range-gated type's
-    births need ``p_D > 0`` at their mean; a 7-D (moving, VS) type gets the velocity / turn-rate
-    prior (:func:`~mmslam.slam.vs.vs_birth_mean`, :func:`~mmslam.slam.vs.vs_birth_covariance`).
-    Slot ``j`` holds the births of ``z_j``; with ``drop_dead`` the measurements without a birth in
-    any particle have no slot (the others keep their order).
+    ``states (P, 7)``, ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``. The type's spec
+    (:func:`mmslam.slam.landmarks.landmark_type`) decides: a range-gated type's births need
+    ``p_D > 0`` at their mean (``pd_fn (P, J)``, or an array that broadcasts to it); a 7-D (moving,
+    VS) type gets the velocity / turn-rate prior (:func:`~mmslam.slam.vs.vs_birth_mean`,
+    :func:`~mmslam.slam.vs.vs_birth_covariance`). Slot ``j`` holds the births of ``z_j``; with
+    ``drop_dead`` the measurements without a birth in any particle have no slot (the others keep
+    their order). Raises ValueError if the shapes do not fit (the compiled loop reads them unchecked).
     """
     from .landmarks import landmark_type  # lazy: the registry module imports this one
 
     spec = landmark_type(lm_type)
+    shape = np.shape(ok)
+    if (len(shape) != 2 or np.shape(mean) != shape + (3,) or np.shape(cov) != shape + (3, 3)
+            or np.shape(states)[:1] != shape[:1]):
+        raise ValueError(f"birth_from_moments: states {np.shape(states)}, mean {np.shape(mean)}, cov {np.shape(cov)} "
+                         f"and ok {shape} do not fit; expected (P, 7), (P, J, 3), (P, J, 3, 3), (P, J)")
+    ok = np.ascontiguousarray(ok, dtype=bool)
     if spec.range_gated:  # e.g. not a VA: its image lies behind the wall
         pd = pd_fn(np.broadcast_to(states[:, None, 0:3], mean.shape), mean, lm_type)
+        if np.shape(pd) != shape:
+            try:
+                pd = np.broadcast_to(pd, shape)
+            except ValueError:
+                raise ValueError(f"pd_fn returned shape {np.shape(pd)} for {shape} births; return one p_D "
+                                 f"per birth") from None
         ok = ok & (pd > 0.0)
-    if drop_dead:
-        cols = np.flatnonzero(ok.any(axis=0))
-        if cols.size < ok.shape[1]:
-            mean, cov, ok = np.take(mean, cols, 1), np.take(cov, cols, 1), np.take(ok, cols, 1)
+    cols = np.arange(shape[1])
+    if drop_dead and shape[1]:
+        cols = cols[:live_slots(ok.reshape(-1, shape[1]), cols)]
     moving = spec.state_dim == VS_DIM
     vel_var = np.asarray(vs_velocity_var, dtype=float)
     if moving and vel_var.shape != (3,):
         raise ValueError(f"vel_var must have shape (3,), got {vel_var.shape}")
     d = VS_DIM if moving else 3
-    shape = ok.shape
-    w, m, P = np.empty(shape), np.empty(shape + (d,)), np.empty(shape + (d, d))
-    _births(np.ascontiguousarray(mean, dtype=float), np.ascontiguousarray(cov, dtype=float),
-            np.ascontiguousarray(ok, dtype=bool), float(birth_weight), moving, vel_var, float(vs_turn_std),
-            DEFAULT_TURN_MEAN, w, m, P)
-    return GM(w, m, P, np.array(ok, dtype=bool))
+    out = (shape[0], cols.shape[0])
+    w, m, P, mask = np.empty(out), np.empty(out + (d,)), np.empty(out + (d, d)), np.empty(out, bool)
+    _births(np.ascontiguousarray(mean, dtype=float), np.ascontiguousarray(cov, dtype=float), ok, cols,
+            float(birth_weight), moving, vel_var, float(vs_turn_std), DEFAULT_TURN_MEAN, w, m, P, mask)
+    return GM(w, m, P, mask)
 
 
 def birth_gm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int, bs: np.ndarray,

@@ -334,20 +334,53 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
     return Innovation(loglik, m_post, P_post)
 
 
+def cubature_factor(P: np.ndarray, stage: str = "cubature points") -> np.ndarray:
+    """``sqrt(d) L`` ``(..., d, d)`` of covariances ``P (..., d, d)`` (``L`` the lower Cholesky factor):
+    the spread of the cubature points (:func:`cubature_point_set`). FloatingPointError naming ``stage``
+    if some ``P`` is not SPD."""
+    return safe_cholesky(P, stage) * np.sqrt(P.shape[-1])
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def cubature_point_set(m: np.ndarray, Ls: np.ndarray, out: np.ndarray) -> None:
+    """Third-degree spherical-radial cubature points of ``N(m, P)`` (Arasaratnam & Haykin 2009):
+    ``out[i] = m + Ls e_i`` and ``out[d + i] = m - Ls e_i`` for ``i < d``, with ``Ls = sqrt(d) L``
+    (:func:`cubature_factor`). ``m (d,)``, ``Ls (d, d)``, ``out (2d, d)``; every point has weight ``1 / (2d)``."""
+    d = m.shape[0]
+    for i in range(d):
+        for a in range(d):
+            out[i, a] = m[a] + Ls[a, i]
+            out[d + i, a] = m[a] - Ls[a, i]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _cubature_batch(m: np.ndarray, Ls: np.ndarray, out: np.ndarray) -> None:
+    for n in range(m.shape[0]):
+        cubature_point_set(m[n], Ls[n], out[n])
+
+
 def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points") -> np.ndarray:
-    """Third-degree spherical-radial cubature points of ``N(m, P)`` (Arasaratnam & Haykin 2009).
+    """Third-degree spherical-radial cubature points of ``N(m, P)`` (:func:`cubature_point_set`).
 
     Args:
-        m: means ``(..., d)``; P: covariances ``(..., d, d)`` (SPD).
+        m: means ``(..., d)``; P: covariances ``(..., d, d)`` (SPD); the batch shapes broadcast.
 
     Returns:
         ``(..., 2d, d)``: ``m + sqrt(d) L e_i`` for ``i < d`` and ``m - sqrt(d) L e_i`` after,
         with ``L`` the lower Cholesky factor of ``P``. All points carry weight ``1 / (2d)``.
     """
+    m = np.asarray(m, dtype=float)
     d = m.shape[-1]
-    L = safe_cholesky(P, stage) * np.sqrt(d)
-    cols = np.swapaxes(L, -1, -2)  # (..., d, d): row i = L e_i
-    return np.concatenate([m[..., None, :] + cols, m[..., None, :] - cols], axis=-2)
+    if np.shape(P)[-2:] != (d, d):
+        raise ValueError(f"cubature_points: means {m.shape} and covariances {np.shape(P)}; expected (..., d) and "
+                         f"(..., d, d)")
+    Ls = cubature_factor(np.asarray(P, dtype=float), stage)
+    batch = np.broadcast_shapes(m.shape[:-1], Ls.shape[:-2])
+    out = np.empty(batch + (2 * d, d))
+    _cubature_batch(np.ascontiguousarray(np.broadcast_to(m, batch + (d,))).reshape(-1, d),
+                    np.ascontiguousarray(np.broadcast_to(Ls, batch + (d, d))).reshape(-1, d, d),
+                    out.reshape(-1, 2 * d, d))
+    return out
 
 
 def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, state: np.ndarray, geometry: int,

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 
@@ -193,13 +194,33 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     return GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL))
 
 
+@nb.njit(cache=True)
+def live_slots(mask: np.ndarray, idx: np.ndarray) -> int:
+    """The slots ``q`` of ``mask (N, Q)`` live in some mixture, in order, written to ``idx[:count]``
+    (``idx (Q,)`` int64); returns the count."""
+    count = 0
+    for q in range(mask.shape[1]):
+        for n in range(mask.shape[0]):
+            if mask[n, q]:
+                idx[count] = q
+                count += 1
+                break
+    return count
+
+
 def drop_dead_slots(g: GM) -> GM:
     """``g`` without the slots that are masked in every mixture of the batch (the others keep their
     order); ``g`` itself if there are none."""
-    live = g.mask.any(axis=tuple(range(g.mask.ndim - 1)))
-    if live.all():
+    q = g.capacity
+    if np.shape(g.mask) != np.shape(g.w):
+        raise ValueError(f"GM.mask has shape {np.shape(g.mask)}; expected the weights' {np.shape(g.w)}")
+    if not q:
         return g
-    idx = np.flatnonzero(live)
+    idx = np.empty(q, np.int64)
+    n_live = live_slots(g.mask.reshape(-1, q), idx)
+    if n_live == q:
+        return g
+    idx = idx[:n_live]
     return GM(np.take(g.w, idx, -1), np.take(g.m, idx, -2), np.take(g.P, idx, -3), np.take(g.mask, idx, -1),
               None if g.pd_beta is None else np.take(g.pd_beta, idx, -2),
               None if g.label is None else np.take(g.label, idx, -1))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .dynamics import vehicle_ct, wrap_angle
+from .dynamics import VEHICLE_DIM, vehicle_ct, wrap_angle
 
 
 def init_particles(mean: np.ndarray, std: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -36,15 +36,25 @@ def propagate(s: np.ndarray, speed: float, turn_rate: float, dt: float, noise_st
         ``(P, 7)`` particles at step k (heading wrapped to ``(-pi, pi]``; speed and turn rate
         equal to the known inputs).
     """
-    s = np.array(s, dtype=float, copy=True)
-    s[:, 4] = speed
-    s[:, 5] = turn_rate
-    out = vehicle_ct(s, dt)
-    out += rng.standard_normal(out.shape) * np.asarray(noise_std, float)[None, :]
-    out[:, 4] = speed
-    out[:, 5] = turn_rate
+    std = np.asarray(noise_std, dtype=float)
+    if np.ndim(s) != 2 or np.shape(s)[1] != VEHICLE_DIM or std.shape != (VEHICLE_DIM,):
+        raise ValueError(f"propagate: particles {np.shape(s)} and noise_std {std.shape}; expected "
+                         f"(P, {VEHICLE_DIM}) and ({VEHICLE_DIM},)")
+    out = vehicle_ct(s, dt, speed, turn_rate)  # a new array
+    _add_noise(out, rng.standard_normal(out.shape), std, float(speed), float(turn_rate))
     out[:, 3] = wrap_angle(out[:, 3])
     return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _add_noise(s: np.ndarray, noise: np.ndarray, std: np.ndarray, speed: float, turn_rate: float) -> None:
+    """In place on particles ``s (P, 7)``: ``s[p] += noise[p] * std`` (``noise (P, 7)`` standard normal
+    draws, ``std (7,)``), then speed and turn rate set to the known inputs."""
+    for p in range(s.shape[0]):
+        for i in range(s.shape[1]):
+            s[p, i] += noise[p, i] * std[i]
+        s[p, 4] = speed
+        s[p, 5] = turn_rate
 
 
 def normalise_log_weights(logw: np.ndarray, stage: str = "particle weights") -> tuple[np.ndarray, np.ndarray]:

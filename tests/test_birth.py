@@ -149,3 +149,54 @@ def test_birth_from_moments_equals_the_masked_formula(lm_type):
     short = birth_from_moments(s, mean, cov, ok, lm_type, 2e-5, _pd, (100.0, 100.0, 0.09), 1.5, drop_dead=True)
     for a, b in ((short.w, g.w), (short.m, g.m), (short.P, g.P), (short.mask, g.mask)):
         assert np.array_equal(a, b[:, cols])
+
+
+def test_birth_kernels_reject_shapes_that_do_not_fit():
+    """The compiled birth loops read their arrays unchecked (a short ``bs`` or ``mean``, a ``pd_fn``
+    answer of another shape read past the arrays): a one-line ValueError naming the shapes first."""
+    from mmslam.slam.birth import birth_from_moments, birth_moments, birth_moments_by_kind
+
+    rng = np.random.default_rng(5)
+    s = _random_states(rng, 4)
+    Z = np.stack([measure(s[0], rng.uniform(-60, 60, 3) + [0, 0, 5], SP, BS_POS) for _ in range(3)])
+    with pytest.raises(ValueError, match="bs"):
+        birth_moments_by_kind(s, Z, R, (1, 2), BS_POS[:2])
+    with pytest.raises(ValueError, match="Z"):
+        birth_moments(s, Z[:, :4], R, SP, BS_POS)
+    mean, cov, ok = birth_moments(s, Z, R, SP, BS_POS)
+    with pytest.raises(ValueError, match="birth_from_moments"):
+        birth_from_moments(s, mean[:, :2], cov, ok, SP, 1e-4, _pd)
+    with pytest.raises(ValueError, match="pd_fn"):
+        birth_from_moments(s, mean, cov, ok, SP, 1e-4, lambda u, x, t: np.ones((4, 3, 2)))
+
+
+def test_birth_moments_of_one_r_equal_those_of_r_per_measurement():
+    """One Cholesky factor of ``R`` for every measurement gives the same bits as a stacked ``(J, 5, 5)`` R."""
+    from mmslam.slam.birth import birth_moments_by_kind
+
+    rng = np.random.default_rng(6)
+    s = _random_states(rng, 9)
+    Z = np.stack([measure(s[0], rng.uniform(-60, 60, 3) + [0, 0, 5], SP, BS_POS) for _ in range(4)])
+    one = birth_moments_by_kind(s, Z, R, (1, 2), BS_POS)
+    per = birth_moments_by_kind(s, Z, np.broadcast_to(R, (4, 5, 5)), (1, 2), BS_POS)
+    for g in (1, 2):
+        for a, b in zip(one[g], per[g]):
+            assert np.array_equal(a, b)
+
+
+def test_cubature_points_equal_the_numpy_form_bit_for_bit():
+    """The compiled cubature point set (:func:`mmslam.slam.ckf.cubature_point_set`) gives the bits of
+    the NumPy form it replaced, ``m +- sqrt(d) L e_i``, also when one ``P`` broadcasts over the means."""
+    from mmslam.slam.ckf import cubature_points
+    from mmslam.slam.linalg import safe_cholesky
+
+    rng = np.random.default_rng(7)
+    m = rng.normal(0, 30, (6, 5))
+    A = rng.normal(size=(6, 5, 5))
+    for P in (A @ np.swapaxes(A, -1, -2) + np.eye(5), R[None], R):
+        L = safe_cholesky(P, "test") * np.sqrt(5)
+        cols = np.swapaxes(L, -1, -2)
+        ref = np.concatenate([m[..., None, :] + cols, m[..., None, :] - cols], axis=-2)
+        assert np.array_equal(cubature_points(m, P), ref)
+    with pytest.raises(ValueError, match="cubature_points"):
+        cubature_points(m, R[:3, :3])

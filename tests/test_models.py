@@ -93,3 +93,16 @@ def test_measure_scatter_body_frame():
 def test_residual_wraps_azimuth():
     r = residual(np.array([0, math.pi - 0.01, 0, -math.pi + 0.01, 0]), np.array([0, -math.pi + 0.01, 0, math.pi - 0.01, 0]))
     assert np.allclose(r, [0, -0.02, 0, 0.02, 0])
+
+
+def test_vehicle_ct_with_known_inputs_equals_the_states_carrying_them():
+    """``vehicle_ct(s, dt, speed, turn_rate)`` (the turn terms once, for the one turn rate) gives the bits
+    of ``vehicle_ct`` of the states with ``zeta, xi`` set to the inputs; one input alone is refused."""
+    rng = np.random.default_rng(2)
+    s = rng.normal(size=(50, 7)) * [50, 50, 1, 3, 20, 0.3, 200]
+    for v, w in ((22.22, math.pi / 10), (5.0, 0.0), (5.0, -3e-6)):
+        ref = s.copy()
+        ref[:, 4], ref[:, 5] = v, w
+        assert np.array_equal(vehicle_ct(s, 0.5, v, w), vehicle_ct(ref, 0.5))
+    with pytest.raises(ValueError, match="both"):
+        vehicle_ct(s, 0.5, 1.0)

@@ -350,3 +350,14 @@ def test_drop_dead_slots_keeps_the_live_columns_in_order():
     none = empty((2,), 0, 3)
     assert drop_dead_slots(none) is none
     assert drop_dead_slots(empty((), 2, 3)).capacity == 0
+
+
+def test_drop_dead_slots_rejects_a_mask_of_another_shape():
+    """The compiled live-slot search reads ``mask (N, Q)`` with ``Q`` from the weights: a mask of another
+    shape raises a one-line ValueError first."""
+    from mmslam.slam.gm import GM, drop_dead_slots
+
+    g = GM(np.zeros((2, 3)), np.zeros((2, 3, 3)), np.broadcast_to(np.eye(3), (2, 3, 3, 3)).copy(),
+           np.zeros((2, 2), bool))
+    with pytest.raises(ValueError, match="mask"):
+        drop_dead_slots(g)
