@@ -202,7 +202,8 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     pd = pd_fn(np.broadcast_to(states[:, None, 0:3], g.m.shape[:-1] + (3,)), g.m[..., 0:3], lm_type)
     if g.pd_beta is not None:  # the Beta-Gaussian PHD: E[p_D] = s / (s + t) inside the FOV
         pd = expected_pd(pd, g.pd_beta)
-    pd = c(np.broadcast_to(pd, g.w.shape), dtype=float)
+    pd = np.asarray(pd, dtype=float)
+    pd = c(pd if pd.shape == g.w.shape else np.broadcast_to(pd, g.w.shape))
     ext = np.zeros((3, 3)) if extent is None else c(np.asarray(extent, float).reshape(3, 3))
     det_index, missed_w, logq = np.empty((P_, Q), np.int64), np.empty((P_, Q)), np.empty((P_, Q, J))
     pred_mass = np.empty(P_)
