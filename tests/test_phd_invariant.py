@@ -72,6 +72,10 @@ def test_check_phd_mass_bound_by_hand():
     with pytest.raises(FloatingPointError, match=r"VA correction at step 3, particle 1: corrected mass 2\.3 > "
                                                  r"predicted mass 0\.2 \+ 2 measurements \(1 of 2 particles\)"):
         gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.3])))
+    with pytest.raises(FloatingPointError, match="particle 1: corrected mass nan"):
+        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, np.nan])))
+    with pytest.raises(FloatingPointError, match="particle 0: corrected mass 3.5 > predicted mass nan"):
+        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([np.nan, 0.2]), np.array([3.5, 2.2])))
 
 
 @pytest.mark.parametrize("particles", [20, 1])
