@@ -102,6 +102,7 @@ class LocalFilter:
         self.P = int(particles)
         self.R = np.asarray(R, float)
         self.bs = scn.bs_array
+        self._bs_rows = np.broadcast_to(self.bs, (self.P, 3))  # the BS position of every particle (read-only view)
         self.dt = scn.dt
         self.pd_fn = pd_fn
         self.rng = rng
@@ -161,7 +162,7 @@ class LocalFilter:
         # J = 0 still corrects: every detectable Gaussian was missed, w <- (1 - p_D) w (eq. (5) with
         # an empty set); the particle weights are unchanged (an empty product)
         R = self.R if R_z is None or J == 0 else np.asarray(R_z, float).reshape(J, 5, 5)
-        p_bs = self.pd_fn(self.s[:, 0:3], np.broadcast_to(self.bs, (self.P, 3)), BS)
+        p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k)
         self.maps.update(corrected)

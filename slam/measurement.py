@@ -18,6 +18,7 @@ import math
 import numba as nb
 import numpy as np
 
+from mmslam.errors import MmslamError
 from mmslam.model import (ANGLE_COMPONENTS, AZIMUTH_COMPONENTS, BS, MEAS_DIM, OTHER, SP, TYPE_CODES,  # noqa: F401
                           TYPE_NAMES, VA, VS, direction_angles, mirror_point, wrap_angle)
 from mmslam.model import Bounce
@@ -32,14 +33,18 @@ def geometry_of(lm_type: int) -> int:
     """The :class:`~mmslam.model.Bounce` code of a landmark type, from its spec in the registry of
     :mod:`mmslam.slam.landmarks` (the one owner of the type -> geometry mapping; a VS bounces like a
     scatter point on its position). ValueError for an unknown type."""
-    from mmslam.errors import MmslamError
-
-    from .landmarks import landmark_type  # lazy: the registry module imports the kernels
-
+    global _landmark_type
+    if _landmark_type is None:  # lazy: the registry module imports the kernels (imported once: ~3 us a call)
+        from .landmarks import landmark_type
+        _landmark_type = landmark_type
     try:
-        return int(landmark_type(int(lm_type)).geometry)
+        return int(_landmark_type(int(lm_type)).geometry)
     except (MmslamError, TypeError, ValueError) as e:
         raise ValueError(f"unknown landmark type {lm_type!r}: {e}") from None
+
+
+_landmark_type = None
+""":func:`mmslam.slam.landmarks.landmark_type`, once :func:`geometry_of` imported it."""
 
 
 @nb.njit(cache=True, error_model="numpy")

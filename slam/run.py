@@ -139,10 +139,12 @@ class CooperativeRun:
         sensor = scn.sensor
         pd_type = filter_detect_probs(scn)
 
+        # the sensor's FOV (where its p_detect > 0) with the filter's per-type probability inside
+        pd_inside = {t: float(p) if sensor.p_detect > 0 else 0.0 for t, p in pd_type.items()}
+
         def pd_fn(u: np.ndarray, x: np.ndarray, t: int) -> np.ndarray:
             """The filter's p_D: its per-type probability inside the FOV (sensor's range gate), 0 outside."""
-            inside = np.asarray(fov_detect_prob(u, x, t, sensor), float) > 0
-            return np.where(inside, pd_type[int(t)], 0.0)
+            return fov_detect_prob(u, x, t, sensor, p_inside=pd_inside[int(t)])
 
         self.pd_fn = pd_fn
         prior_rng = np.random.default_rng(s_prior)

@@ -30,6 +30,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+import numba as nb
 import numpy as np
 
 from mmslam.errors import MmslamError
@@ -201,7 +202,7 @@ class LinkBudget:
 
 
 def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | np.ndarray,
-                    params: SensorParams) -> np.ndarray:
+                    params: SensorParams, p_inside: float | None = None) -> np.ndarray:
     """Detection probability ``p_D`` of landmarks for the filter (broadcasting over leading axes).
 
     Args:
@@ -209,21 +210,57 @@ def fov_detect_prob(vehicle_pos: np.ndarray, lm_pos: np.ndarray, lm_type: int | 
         lm_pos: ``(..., 3)`` landmark positions (VA: image source; SP / VS: scatter point), m.
         lm_type: landmark type code(s), scalar or broadcastable to the leading shape.
         params: sensor parameters (``p_detect``, ``fov_range`` in m).
+        p_inside: the value inside the FOV instead of ``params.p_detect`` (e.g. the filter's
+            per-type ``p_D``); None: ``params.p_detect``.
 
     Returns:
-        ``(...)``: ``p_detect`` for BS / VA (always in the FOV) and for SP / VS within
-        ``fov_range`` (distance <= range) of the vehicle; 0 for SP / VS beyond it.
+        ``(...)`` float64: ``p_detect`` (or ``p_inside``) for BS / VA (always in the FOV) and for
+        SP / VS within ``fov_range`` (distance <= range) of the vehicle; 0 for SP / VS beyond it.
     """
     x, u = np.asarray(lm_pos, float), np.asarray(vehicle_pos, float)
+    value = float(params.p_detect if p_inside is None else p_inside)
     gated = is_range_gated(lm_type)  # the type specs' FOV rule (SP, VS: range-gated)
-    if np.ndim(gated) == 0 and not gated:  # one type, never range-gated (BS, VA): no distances needed
-        return np.full(np.broadcast_shapes(x.shape[:-1], u.shape[:-1]), float(params.p_detect))
+    if np.ndim(gated) == 0:
+        if not gated:  # one type, never range-gated (BS, VA): no distances needed
+            lead = x.shape[:-1] if x.shape == u.shape else np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+            return np.full(lead, value)
+        if x.shape[-1:] == u.shape[-1:] == (3,):  # one range-gated type: one compiled pass
+            return _range_gate(u, x, float(params.fov_range), value)
     # component-wise distance: the same arithmetic as np.linalg.norm(x - u, axis=-1), without
     # NumPy's slow inner loops over the length-3 axis
     dx, dy, dz = x[..., 0] - u[..., 0], x[..., 1] - u[..., 1], x[..., 2] - u[..., 2]
     d = np.sqrt(dx * dx + dy * dy + dz * dz)
     inside = ~gated | (d <= params.fov_range)
-    return np.where(inside, params.p_detect, 0.0)
+    return np.where(inside, value, 0.0)
+
+
+def _range_gate(u: np.ndarray, x: np.ndarray, fov_range: float, value: float) -> np.ndarray:
+    """``value`` where ``|x - u| <= fov_range`` else 0, for ``u, x (..., 3)`` broadcast to each other.
+
+    The leading axes are viewed as two (``(A, B, 3)``, a view for up to two leading axes) for
+    :func:`_range_gate_kernel`; the result has the broadcast leading shape.
+    """
+    shape = x.shape
+    if u.shape != shape:
+        shape = np.broadcast_shapes(x.shape, u.shape)
+        x, u = np.broadcast_to(x, shape), np.broadcast_to(u, shape)
+    lead = shape[:-1]
+    view = (1,) * (2 - len(lead)) + lead if len(lead) <= 2 else (-1, lead[-1])
+    out = np.empty(lead)
+    _range_gate_kernel(u.reshape(view + (3,)), x.reshape(view + (3,)), fov_range, value, out.reshape(view))
+    return out
+
+
+@nb.njit(cache=True)
+def _range_gate_kernel(u: np.ndarray, x: np.ndarray, fov_range: float, value: float, out: np.ndarray) -> None:
+    """``out[a, b] = value`` if ``sqrt(dx^2 + dy^2 + dz^2) <= fov_range`` else 0, ``d = x[a, b] - u[a, b]``
+    (``u, x (A, B, 3)``, any strides; the arithmetic of ``np.linalg.norm(x - u, axis=-1)``)."""
+    for a in range(out.shape[0]):
+        for b in range(out.shape[1]):
+            dx = x[a, b, 0] - u[a, b, 0]
+            dy = x[a, b, 1] - u[a, b, 1]
+            dz = x[a, b, 2] - u[a, b, 2]
+            out[a, b] = value if math.sqrt(dx * dx + dy * dy + dz * dz) <= fov_range else 0.0
 
 
 def _used_types(scn: Scenario, include_types: Sequence[int] | None) -> np.ndarray:

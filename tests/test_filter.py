@@ -461,3 +461,31 @@ def test_propagate_rejects_a_noise_std_of_another_length():
         propagate(s, 1.0, 0.1, 0.5, np.ones(3), np.random.default_rng(0))
     with pytest.raises(ValueError, match="particles"):
         propagate(np.zeros((4, 6)), 1.0, 0.1, 0.5, np.ones(7), np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("p_detect", [0.95, 0.0])
+def test_run_pd_fn_is_the_filters_type_probability_inside_the_sensors_fov(paper, p_detect):
+    """``CooperativeRun.pd_fn`` == ``filter.p_detect_<type>`` where ``fov_detect_prob > 0`` else 0
+    (its definition), bit for bit, for every type and a sensor that never detects."""
+    import dataclasses
+
+    from mmslam.slam.fusion_center import filter_detect_probs
+    from mmslam.slam.measurement import BS, SP, VA, VS
+    from mmslam.slam.run import CooperativeRun
+    from mmslam.slam.sensor import fov_detect_prob
+
+    scn, states, paths = paper
+    scn = dataclasses.replace(scn, sensor=dataclasses.replace(scn.sensor, p_detect=p_detect),
+                              filter=dataclasses.replace(scn.filter, p_detect_va=0.5))
+    run = CooperativeRun(scn, states, paths, "proposed", 3, 0, 2, evaluate=False)
+    rng = np.random.default_rng(2)
+    u = np.broadcast_to(rng.normal(size=(4, 1, 3)), (4, 5, 3))
+    x = rng.normal(size=(4, 5, 3)) * scn.sensor.fov_range
+    pd_type = filter_detect_probs(scn)
+    for t in (BS, VA, SP, VS):
+        want = np.where(fov_detect_prob(u, x, t, scn.sensor) > 0, pd_type[t], 0.0)
+        got = run.pd_fn(u, x, t)
+        assert got.dtype == np.float64
+        np.testing.assert_array_equal(got, want)
+        if p_detect == 0.0:
+            assert not got.any()

@@ -118,6 +118,20 @@ def test_nan_in_a_map_raises_floating_point_error():
         type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, _pd)
 
 
+def test_a_non_finite_mean_anywhere_in_a_map_raises():
+    """A NaN / inf mean in a masked slot or in a slot outside the FOV (no CKF update) is refused
+    too (the check runs in the compiled slot pass, over every slot)."""
+    s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
+    m = np.zeros((1, 3, 3)) + 10.0
+    m[0, 2] = 1e4  # far outside the SP range gate: p_D = 0
+    for slot, bad in ((1, np.nan), (2, np.inf)):
+        mb = m.copy()
+        mb[0, slot, 1] = bad
+        g = GM(np.ones((1, 3)), mb, np.broadcast_to(np.eye(3), (1, 3, 3, 3)).copy(), np.array([[True, False, True]]))
+        with pytest.raises(FloatingPointError, match="non-finite mean or covariance in SP correction"):
+            type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, lambda u, x, t: np.where(np.abs(x[..., 0]) < 100, 0.9, 0.0))
+
+
 def test_cholesky_and_triangular_solves_match_lapack():
     from scipy.linalg import solve_triangular
 

@@ -580,6 +580,9 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
         logq, missed, upd = ref[tc.lm_type]
         _close_scalar(tc.logq, logq, "type_terms logq")
         _close_weights(tc.missed_w, missed, "type_terms missed_w")
+        g = maps[tc.lm_type]  # the predicted mass of the live slots (the PHD-mass check's left side)
+        _close_weights(tc.pred_mass, [sum(g.w[p, q] for q in range(g.capacity) if g.mask[p, q]) for p in range(P_)],
+                       "type_terms pred_mass")
         detectable = np.array([[(p, q) in upd for q in range(tc.g.capacity)] for p in range(P_)], bool)
         assert np.array_equal(tc.det_index >= 0, detectable.reshape(P_, tc.g.capacity))
         for (p, q), r in upd.items():  # the flat innovation entry of each detectable Gaussian
@@ -587,13 +590,16 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
             _close_scalar(tc.inn.loglik[i], r["loglik"], "type_terms innovation loglik")
             _close(tc.inn.m_post[i], r["m_post"], 1, "type_terms innovation m_post")
             _close(tc.inn.P_post[i, 0], r["P_post"], 2, "type_terms innovation P_post")
-    term_snaps = [_snapshot(tc.logq, tc.missed_w, tc.det_index, tc.inn.loglik, tc.inn.m_post, tc.inn.P_post)
-                  for tc in terms]
+    term_snaps = [_snapshot(tc.logq, tc.missed_w, tc.det_index, tc.inn.loglik, tc.inn.m_post, tc.inn.P_post,
+                            tc.pred_mass) for tc in terms]
     lpsi_snap = _snapshot(lpsi)
     for tc in terms:
         g = maps[tc.lm_type]
         logq, missed, upd = ref[tc.lm_type]
         out = gmphd.corrected_gm(tc, Z, lpsi, prune=prune)
+        out2, mass = gmphd._corrected_gm(tc, Z, lpsi, prune, None)  # with the corrected mass per particle
+        assert np.array_equal(out2.w, out.w) and np.array_equal(out2.mask, out.mask)
+        assert np.array_equal(mass, np.where(out.mask, out.w, 0.0).sum(-1))  # NumPy's sums, bit for bit
         for p in range(P_):
             comps = _ref_corrected_components(g, logq, missed, upd, ref_lpsi, p, J)
             if prune is None:

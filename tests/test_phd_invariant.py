@@ -67,6 +67,15 @@ def test_check_phd_mass_bound_by_hand():
     # no measurement: the correction cannot add mass
     with pytest.raises(FloatingPointError, match="particle 1"):
         gmphd.check_phd_mass(pred, _gm([[1.0], [0.3]]), 0, VA, 0)
+    # masses summed by the correction's kernels are used instead of the maps' weights
+    gmphd.check_phd_mass(pred, bad, 2, VS, 4, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.2])))
+    with pytest.raises(FloatingPointError, match=r"VA correction at step 3, particle 1: corrected mass 2\.3 > "
+                                                 r"predicted mass 0\.2 \+ 2 measurements \(1 of 2 particles\)"):
+        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.3])))
+    with pytest.raises(FloatingPointError, match="particle 1: corrected mass nan"):
+        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, np.nan])))
+    with pytest.raises(FloatingPointError, match="particle 0: corrected mass 3.5 > predicted mass nan"):
+        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([np.nan, 0.2]), np.array([3.5, 2.2])))
 
 
 @pytest.mark.parametrize("particles", [20, 1])
@@ -75,9 +84,13 @@ def test_invariant_is_checked_and_silent_on_a_normal_run(paper8, particles, monk
     calls = []
     real = gmphd.check_phd_mass
 
-    def spy(pred, corr, J, t, k):
+    def spy(pred, corr, J, t, k, masses=None):
         calls.append((t, k, J))
-        real(pred, corr, J, t, k)
+        # the masses the correction's kernels summed == NumPy's sums of the maps, bit for bit
+        assert masses is not None
+        np.testing.assert_array_equal(masses[0], np.where(pred.mask, pred.w, 0.0).sum(-1))
+        np.testing.assert_array_equal(masses[1], np.where(corr.mask, corr.w, 0.0).sum(-1))
+        real(pred, corr, J, t, k, masses=masses)
 
     monkeypatch.setattr(gmphd, "check_phd_mass", spy)  # called by gmphd.correct
     res = run_filter(scn, states, paths, variant="proposed", particles=particles, seed=3, steps=STEPS)
@@ -110,7 +123,7 @@ def test_without_the_check_the_old_kernel_corrupts_the_map_silently(paper8, monk
     monkeypatch.setattr(gmphd, "_skip_floors", lambda log_clutter, prune: (-np.inf, -np.inf))
     excess = []
 
-    def record(pred, corr, J, t, k):
+    def record(pred, corr, J, t, k, masses=None):
         p = np.where(pred.mask, pred.w, 0.0).sum(-1)
         c = np.where(corr.mask, corr.w, 0.0).sum(-1)
         excess.append(float((c - p - J).max()))
@@ -127,6 +140,6 @@ def test_a_corrupted_log_weight_never_reads_a_skipped_mean(paper8, monkeypatch):
     error at once instead of carrying whatever the buffer held."""
     scn, states, paths = paper8
     monkeypatch.setattr(gmphd, "_logsumexp_slots", _old_logsumexp_slots)
-    monkeypatch.setattr(gmphd, "check_phd_mass", lambda *a: None)
+    monkeypatch.setattr(gmphd, "check_phd_mass", lambda *a, **kw: None)
     with pytest.raises(FloatingPointError, match="non-finite"):
         run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)

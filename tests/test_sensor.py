@@ -237,6 +237,25 @@ def test_fov_detect_prob_matches_norm_reference(paper):
         np.testing.assert_array_equal(fov_detect_prob(u, lm, t, sp), ref)
 
 
+def test_fov_detect_prob_broadcasts_strided_views_and_takes_p_inside(paper):
+    """The compiled range gate (one range-gated type) == the norm rule on broadcast and strided
+    views with 0 to 3 leading axes; ``p_inside`` replaces ``p_detect`` inside the FOV only."""
+    sp = paper.sensor
+    rng = np.random.default_rng(11)
+    for lead in [(), (5,), (4, 6), (2, 3, 4)]:
+        x = rng.normal(size=lead + (7,)) * sp.fov_range
+        u = rng.normal(size=lead[:-1] + (1, 3)) * 5.0 if lead else rng.normal(size=(3,))
+        xv = x[..., 2:5]  # a strided view of the landmark positions
+        d = np.linalg.norm(xv - u, axis=-1)
+        for t in (VA, SP, VS):
+            for p_inside, val in ((None, sp.p_detect), (0.25, 0.25)):
+                got = fov_detect_prob(u, xv, t, sp, p_inside=p_inside)
+                ref = np.where((t in (SP, VS)) & (d > sp.fov_range), 0.0, val)
+                assert got.shape == lead and got.dtype == np.float64
+                np.testing.assert_array_equal(got, ref)
+    assert 0.0 < (d <= sp.fov_range).mean() < 1.0  # both sides of the gate were exercised
+
+
 # ---------------------------------------------------------------- power-aware model (issue 11)
 def test_link_budget_crb_scaling_and_hand_values():
     from mmslam.slam.sensor import LinkBudget
