@@ -115,6 +115,8 @@ def vehicle_ct(s: np.ndarray, dt: float, speed: float | None = None, turn_rate: 
         ``z, zeta, xi, B`` unchanged (noise is added by the caller).
     """
     out = np.array(s, dtype=float)  # a copy: z, zeta, xi, B carried over
+    if out.shape[-1:] != (7,):
+        raise ValueError(f"vehicle_ct: states of shape {out.shape}; expected (..., 7) [x, y, z, alpha, zeta, xi, B]")
     a = out[..., 3]
     if speed is None and turn_rate is None:
         v, w = out[..., 4], out[..., 5]

@@ -730,8 +730,11 @@ def check_phd_mass(predicted: GM, corrected: GM, n_meas: int, lm_type: int, step
         pred = np.where(predicted.mask, predicted.w, 0.0).sum(axis=-1)
         corr = np.where(corrected.mask, corrected.w, 0.0).sum(axis=-1)
     else:
-        pred, corr = masses
-        if _mass_bound_holds(pred, corr, float(n_meas), PHD_MASS_RTOL):  # the usual case: one compiled pass
+        pred, corr = (np.asarray(a, float) for a in masses)
+        if not pred.shape == corr.shape == predicted.w.shape[:-1]:  # the kernel reads corr[p] unchecked
+            raise ValueError(f"check_phd_mass: masses of shapes {pred.shape}, {corr.shape}; expected the maps' "
+                             f"batch shape {predicted.w.shape[:-1]} for both")
+        if _mass_bound_holds(pred.reshape(-1), corr.reshape(-1), float(n_meas), PHD_MASS_RTOL):  # one compiled pass
             return
     bound = pred + n_meas
     bad = ~(corr <= bound * (1.0 + PHD_MASS_RTOL))  # NaN fails too

@@ -245,7 +245,7 @@ def _range_gate(u: np.ndarray, x: np.ndarray, fov_range: float, value: float) ->
         shape = np.broadcast_shapes(x.shape, u.shape)
         x, u = np.broadcast_to(x, shape), np.broadcast_to(u, shape)
     lead = shape[:-1]
-    view = (1,) * (2 - len(lead)) + lead if len(lead) <= 2 else (-1, lead[-1])
+    view = (1,) * (2 - len(lead)) + lead if len(lead) <= 2 else (math.prod(lead[:-1]), lead[-1])
     out = np.empty(lead)
     _range_gate_kernel(u.reshape(view + (3,)), x.reshape(view + (3,)), fov_range, value, out.reshape(view))
     return out

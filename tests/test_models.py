@@ -106,3 +106,13 @@ def test_vehicle_ct_with_known_inputs_equals_the_states_carrying_them():
         assert np.array_equal(vehicle_ct(s, 0.5, v, w), vehicle_ct(ref, 0.5))
     with pytest.raises(ValueError, match="both"):
         vehicle_ct(s, 0.5, 1.0)
+
+
+@pytest.mark.parametrize("shape", [(2, 6), (2, 8), (7, 3)])
+def test_vehicle_ct_rejects_states_without_seven_components(shape):
+    """The CT model reads columns 3-5 of a ``(..., 7)`` state: any other length is a one-line error
+    (the in-place version returned a (2, 6) or (2, 8) array silently)."""
+    from mmslam.model import vehicle_ct
+
+    with pytest.raises(ValueError, match="expected \\(..., 7\\)"):
+        vehicle_ct(np.ones(shape), 0.1)

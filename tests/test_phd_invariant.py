@@ -143,3 +143,15 @@ def test_a_corrupted_log_weight_never_reads_a_skipped_mean(paper8, monkeypatch):
     monkeypatch.setattr(gmphd, "check_phd_mass", lambda *a, **kw: None)
     with pytest.raises(FloatingPointError, match="non-finite"):
         run_filter(scn, states, paths, variant="proposed", particles=1, seed=3, steps=STEPS)
+
+
+def test_check_phd_mass_rejects_masses_of_another_shape():
+    """``masses`` from the kernels must match the maps' batch: a short corrected-mass array was read past
+    its end by the compiled test (and passed); now a one-line ValueError."""
+    g = _gm([[0.5, 1.0], [0.2, 0.0], [0.1, 0.1]])  # P = 3
+    gmphd.check_phd_mass(g, g, 0, VA, 0, masses=(np.ones(3), np.ones(3)))  # equal masses: the bound holds
+    for bad in ((np.ones(3), np.ones(2)), (np.ones(2), np.ones(2)), (np.ones(3), np.ones((3, 1)))):
+        with pytest.raises(ValueError, match="check_phd_mass: masses of shapes"):
+            gmphd.check_phd_mass(g, g, 0, VA, 0, masses=bad)
+    with pytest.raises(FloatingPointError, match="particle 2"):
+        gmphd.check_phd_mass(g, g, 1, VA, 0, masses=(np.ones(3), np.array([1.0, 2.0, 2.5])))  # 2.5 > 1 + 1

@@ -372,3 +372,16 @@ def test_sensor_model_link_is_a_scenario_option(paper):
     assert not np.array_equal(a.z, simulate_measurements(paper, states, paths, np.random.default_rng(4)).z)
     with pytest.raises(MmslamError):
         with_overrides(paper, ["sensor.model=fancy"])
+
+
+@pytest.mark.parametrize("lead", [(2, 3, 0), (0, 2, 2), (2, 0, 3), (2, 2, 2)])
+def test_fov_detect_prob_with_three_leading_axes_equals_the_norm_rule(lead):
+    """The compiled range gate views >= 3 leading axes as two; empty ones included (a (2, 3, 0) batch
+    failed to reshape). Reference: ``np.linalg.norm`` against ``fov_range``."""
+    sensor = load_preset("paper").sensor
+    rng = np.random.default_rng(4)
+    u = rng.uniform(-60, 60, lead + (3,))
+    x = rng.uniform(-60, 60, lead + (3,))
+    got = fov_detect_prob(u, x, SP, sensor)
+    ref = np.where(np.linalg.norm(x - u, axis=-1) <= sensor.fov_range, sensor.p_detect, 0.0)
+    assert got.shape == lead and np.array_equal(got, ref)
