@@ -116,3 +116,31 @@ def test_vehicle_ct_rejects_states_without_seven_components(shape):
 
     with pytest.raises(ValueError, match="expected \\(..., 7\\)"):
         vehicle_ct(np.ones(shape), 0.1)
+
+
+def test_vehicle_ct_equals_the_textbook_coordinated_turn():
+    """An independent reference (paper eq. (1) written directly, the straight-line limit for xi = 0):
+    ``x' = x + zeta/xi (sin(a + xi dt) - sin a)``, ``y' = y + zeta/xi (cos a - cos(a + xi dt))``,
+    ``a' = a + xi dt``, other components carried; for both the per-state and the known-input forms."""
+    rng = np.random.default_rng(7)
+    s = rng.normal(size=(40, 7)) * [50, 50, 1, 3, 20, 0.3, 200]
+    s[:5, 5] = 0.0
+    dt = 0.5
+
+    def ref(st):
+        out = st.copy()
+        for r in out:
+            a, v, w = r[3], r[4], r[5]
+            if w == 0.0:
+                r[0] += v * dt * math.cos(a)
+                r[1] += v * dt * math.sin(a)
+            else:
+                r[0] += v / w * (math.sin(a + w * dt) - math.sin(a))
+                r[1] += v / w * (math.cos(a) - math.cos(a + w * dt))
+            r[3] = a + w * dt
+        return out
+
+    np.testing.assert_allclose(vehicle_ct(s, dt), ref(s), rtol=1e-9, atol=1e-9)
+    known = s.copy()
+    known[:, 4], known[:, 5] = 12.0, 0.2
+    np.testing.assert_allclose(vehicle_ct(s, dt, 12.0, 0.2), ref(known), rtol=1e-9, atol=1e-9)
