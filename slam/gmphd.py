@@ -30,6 +30,7 @@ import numpy as np
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, OK, Innovation, ckf_update, gaussian_loglik, workspace
 from .detection import detected_beta, expected_pd, missed_beta
 from .gm import GM
+from .jit import batch_kernel
 from .linalg import safe_cholesky
 from .measurement import MEAS_DIM, TYPE_NAMES, geometry_of, measure_point
 
@@ -214,7 +215,7 @@ def type_terms(g: GM, lm_type: int, states: np.ndarray, Z: np.ndarray, R: np.nda
     floor_q, floor_post = _skip_floors(log_clutter, prune)
     code = _TYPE_TERMS[geometry_of(lm_type)](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
-                                             loglik, m_post, P_post, floor_q, floor_post)
+                                             loglik, m_post, P_post, floor_q, floor_post, workspace(d))
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {_tname(lm_type)} correction")
     if code == BAD_INNOVATION_COV:
@@ -290,9 +291,10 @@ def _all_finite(a: np.ndarray) -> bool:
 def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray, P: np.ndarray,
                      states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
                      det_index: np.ndarray, logq: np.ndarray, loglik: np.ndarray, m_post: np.ndarray,
-                     P_post: np.ndarray, floor_q: float, floor_post: float) -> int:
+                     P_post: np.ndarray, floor_q: float, floor_post: float, work: tuple) -> int:
     """The CKF loop of :func:`type_terms` (after :func:`_detection_slots`); returns ``OK`` or the
-    failure code of :func:`~mmslam.slam.ckf.ckf_update`.
+    failure code of :func:`~mmslam.slam.ckf.ckf_update`. ``work``: the scratch arrays of
+    :func:`~mmslam.slam.ckf.workspace` (``d``), allocated by the caller (a :func:`~mmslam.slam.jit.batch_kernel`).
 
     For each particle ``p`` and Gaussian ``q`` with ``n = det_index[p, q] >= 0``: the CKF update
     into ``loglik[n]``, ``m_post[n]``, ``P_post[n]`` and ``logq[p, q, j] = log(p_D w) + log N(z_j; zhat, S)``;
@@ -300,7 +302,6 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
     (:func:`_skip_floors`; the floors of :func:`~mmslam.slam.ckf.ckf_update` less ``log(p_D w)``).
     """
     Pn, Q, d = m.shape
-    work = workspace(d)
     for p in range(Pn):
         for q in range(Q):
             n = det_index[p, q]
@@ -318,22 +319,22 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
 
 # One kernel per path geometry (the Bounce code a constant: ckf_update inlined once per kernel),
 # compiled only when a map of that geometry is first corrected; see mmslam.slam.ckf._CKF_BATCH.
-@nb.njit(cache=True, error_model="numpy")
-def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+@batch_kernel
+def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
     return _type_terms_loop(0, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
-                            fq, fp)  # Bounce.DIRECT
+                            fq, fp, work)  # Bounce.DIRECT
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+@batch_kernel
+def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
     return _type_terms_loop(1, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
-                            fq, fp)  # Bounce.MIRROR
+                            fq, fp, work)  # Bounce.MIRROR
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp):  # noqa
+@batch_kernel
+def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
     return _type_terms_loop(2, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
-                            fq, fp)  # Bounce.SCATTER
+                            fq, fp, work)  # Bounce.SCATTER
 
 
 _TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)
