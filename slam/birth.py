@@ -28,6 +28,7 @@ from mmslam.model import Bounce
 
 from .ckf import cubature_factor, cubature_point_set
 from .gm import GM, live_slots
+from .jit import batch_kernel
 from .dynamics import VS_DIM
 from .measurement import MEAS_DIM, SP, VA, geometry_of
 from .reduction import dead_gaussian
@@ -151,9 +152,9 @@ def image_moments(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> bool:
     return det > 0.0
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _moments_batch(geometries: np.ndarray, states: np.ndarray, Z: np.ndarray, Ls: np.ndarray, b: np.ndarray,
-                   mean: np.ndarray, cov: np.ndarray, ok: np.ndarray) -> None:
+                   mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, scratch: tuple) -> None:
     """Birth moments of every geometry ``g``, particle ``p`` and measurement ``j`` from the ``K = 10``
     cubature points of ``N(Z[j], R)`` (:func:`~mmslam.slam.ckf.cubature_point_set`; ``Ls (1, 5, 5)``
     the factor of one ``R`` for all, or ``(J, 5, 5)`` one per measurement): ``Z (J, 5)``,
@@ -163,15 +164,15 @@ def _moments_batch(geometries: np.ndarray, states: np.ndarray, Z: np.ndarray, Ls
     The AOA direction of point ``k`` seen with heading ``h_p`` uses ``cos(a + h) = cos a cos h -
     sin a sin h`` (and the same for sin): the trigonometric functions are evaluated once per
     point and once per particle instead of per pair, and each direction once for all geometries.
+    ``scratch``: :func:`_moments_scratch` (a runtime-free kernel allocates nothing, :mod:`mmslam.slam.jit`).
     """
     J, K, G = Z.shape[0], 2 * Z.shape[1], geometries.shape[0]
-    zpts = np.empty((J, K, Z.shape[1]))
+    zpts, ca, sa, ce, se, x, valid = scratch
     for j in range(J):
         cubature_point_set(Z[j], Ls[j if Ls.shape[0] > 1 else 0], zpts[j])
-    ca, sa = np.cos(zpts[:, :, 3]), np.sin(zpts[:, :, 3])
-    ce, se = np.cos(zpts[:, :, 4]), np.sin(zpts[:, :, 4])
-    x = np.empty((G, K, 3))
-    valid = np.empty(G, np.bool_)
+        for k in range(K):
+            ca[j, k], sa[j, k] = math.cos(zpts[j, k, 3]), math.sin(zpts[j, k, 3])
+            ce[j, k], se[j, k] = math.cos(zpts[j, k, 4]), math.sin(zpts[j, k, 4])
     for p in range(states.shape[0]):
         s = states[p]
         ch, sh = math.cos(s[3]), math.sin(s[3])
@@ -189,6 +190,15 @@ def _moments_batch(geometries: np.ndarray, states: np.ndarray, Z: np.ndarray, Ls
                         valid[g] = invert_ray(_SCATTER, s, d0, d1, se[j, k], L, b, x[g, k]) and valid[g]
             for g in range(G):
                 ok[g, p, j] = image_moments(x[g], mean[g, p, j], cov[g, p, j]) and valid[g]
+
+
+def _moments_scratch(J: int, G: int) -> tuple[np.ndarray, ...]:
+    """Scratch of :func:`_moments_batch` for ``J`` measurements and ``G`` geometries: the ``K = 10``
+    cubature points ``(J, K, 5)``, cos / sin of their AOA azimuth and elevation ``(J, K)`` each, the
+    images ``(G, K, 3)`` and their validity ``(G,)``."""
+    K = 2 * MEAS_DIM
+    return (np.empty((J, K, MEAS_DIM)), np.empty((J, K)), np.empty((J, K)), np.empty((J, K)), np.empty((J, K)),
+            np.empty((G, K, 3)), np.empty(G, np.bool_))
 
 
 def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kinds: tuple[int, ...],
@@ -212,7 +222,7 @@ def birth_moments_by_kind(states: np.ndarray, Z: np.ndarray, R: np.ndarray, kind
     geos = np.array([int(k) for k in kinds], dtype=np.int64)
     G = geos.shape[0]
     mean, cov, ok = np.empty((G, P_, J, 3)), np.empty((G, P_, J, 3, 3)), np.empty((G, P_, J), bool)
-    _moments_batch(geos, s, np.ascontiguousarray(Z, dtype=float), Ls, b, mean, cov, ok)
+    _moments_batch(geos, s, np.ascontiguousarray(Z, dtype=float), Ls, b, mean, cov, ok, _moments_scratch(J, G))
     return {int(k): (mean[g], cov[g], ok[g]) for g, k in enumerate(geos)}
 
 
@@ -229,7 +239,7 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, lm_type: int
     return birth_moments_by_kind(states, Z, R, (geo,), bs)[geo]
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray, weight: float, moving: bool,
             vel_var: np.ndarray, turn_std: float, turn_mean: float, w: np.ndarray, m: np.ndarray, P: np.ndarray,
             mask: np.ndarray) -> None:

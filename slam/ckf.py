@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from .jit import batch_kernel
 from .linalg import cholesky, forward_solve, safe_cholesky
 from .measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_frame, measure_point, path_vectors, wrap
 from .trig import atan2
@@ -223,9 +224,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     return OK
 
 
-@nb.njit(cache=True, error_model="numpy")
 def workspace(d: int) -> tuple:
-    """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian."""
+    """Scratch arrays of :func:`ckf_update` for a ``d``-dimensional Gaussian (allocated by the Python
+    caller of a :func:`~mmslam.slam.jit.batch_kernel`, once per batch)."""
     return (np.empty((3, 3)), np.empty((3, 3)), np.empty(24), np.empty(24), np.empty(6),
             np.empty((6, MEAS_DIM)), np.empty((6, MEAS_DIM)), np.empty(MEAS_DIM), np.empty((MEAS_DIM, MEAS_DIM)),
             np.empty((MEAS_DIM, MEAS_DIM)), np.empty((MEAS_DIM, MEAS_DIM)), np.empty(MEAS_DIM),
@@ -235,9 +236,8 @@ def workspace(d: int) -> tuple:
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _ckf_loop(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
               extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
-              loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray) -> tuple[int, int]:
+              loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple) -> tuple[int, int]:
     """:func:`ckf_update` of every Gaussian ``n``; returns ``(n, code)`` of the first failure or ``(-1, OK)``."""
-    work = workspace(m.shape[1])
     for n in range(m.shape[0]):
         code = ckf_update(geometry, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
         if code != OK:
@@ -251,19 +251,19 @@ def _ckf_loop(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.
 # Only ckf_update and this loop are inlined at numba IR level (inline="always"); the per-point
 # functions it calls (measurement, trig, linalg, the log-likelihood) are left to LLVM: IR-inlining them
 # too made each geometry's kernel take ~20 s instead of ~6 s to compile cold, for 3% of CKF speed.
-@nb.njit(cache=True, error_model="numpy")
-def _ckf_batch_direct(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
-    return _ckf_loop(0, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.DIRECT
+@batch_kernel
+def _ckf_batch_direct(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(0, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.DIRECT
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _ckf_batch_mirror(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
-    return _ckf_loop(1, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.MIRROR
+@batch_kernel
+def _ckf_batch_mirror(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(1, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.MIRROR
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _ckf_batch_scatter(m, P, s, b, extent, Z, R, loglik, m_post, P_post):  # noqa: ANN001, ANN202
-    return _ckf_loop(2, m, P, s, b, extent, Z, R, loglik, m_post, P_post)  # Bounce.SCATTER
+@batch_kernel
+def _ckf_batch_scatter(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(2, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.SCATTER
 
 
 _CKF_BATCH = (_ckf_batch_direct, _ckf_batch_mirror, _ckf_batch_scatter)
@@ -326,7 +326,7 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
     P_post = np.empty((n, R.shape[0], d, d))
     bad, code = _CKF_BATCH[int(geometry)](m, P, np.ascontiguousarray(states, dtype=float),
                            np.ascontiguousarray(bs, dtype=float), ext, Z, np.ascontiguousarray(R),
-                           loglik, m_post, P_post)
+                           loglik, m_post, P_post, workspace(d))
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {stage}")
     if code == BAD_INNOVATION_COV:

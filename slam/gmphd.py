@@ -341,13 +341,13 @@ _TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)
 """The :func:`type_terms` kernel of each :class:`mmslam.model.Bounce` code."""
 
 
-@nb.njit(cache=True)
-def _bs_loglik(states: np.ndarray, Z: np.ndarray, L: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out[p, j] = log N(z_j; h(s_p, b), R_j)`` (line of sight), ``R_j = L_j L_j^T`` (``L (1 or J, 5, 5)``)."""
-    zhat = np.empty(MEAS_DIM)
-    y = np.empty(MEAS_DIM)
-    half_logdet = np.zeros(L.shape[0])
+@batch_kernel(error_model="python")
+def _bs_loglik(states: np.ndarray, Z: np.ndarray, L: np.ndarray, b: np.ndarray, out: np.ndarray,
+               zhat: np.ndarray, y: np.ndarray, half_logdet: np.ndarray) -> None:
+    """``out[p, j] = log N(z_j; h(s_p, b), R_j)`` (line of sight), ``R_j = L_j L_j^T`` (``L (1 or J, 5, 5)``).
+    Scratch: ``zhat, y (5,)``, ``half_logdet (1 or J,)``."""
     for r in range(L.shape[0]):
+        half_logdet[r] = 0.0
         for a in range(MEAS_DIM):
             half_logdet[r] += math.log(L[r, a, a])
     for p in range(states.shape[0]):
@@ -379,7 +379,7 @@ def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
     L = safe_cholesky(R, "BS likelihood")
     ll = np.empty((states.shape[0], J))
     _bs_loglik(np.ascontiguousarray(states, dtype=float), np.ascontiguousarray(Z, dtype=float), L,
-               np.ascontiguousarray(bs, dtype=float), ll)
+               np.ascontiguousarray(bs, dtype=float), ll, np.empty(MEAS_DIM), np.empty(MEAS_DIM), np.empty(len(L)))
     with np.errstate(divide="ignore"):
         return np.log(p_d)[:, None] + ll
 
@@ -640,6 +640,26 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
     lab = label.shape[0] > 0
     out_label = np.full((Pn if lab else 0, K), -1, np.int64)
     mass = np.empty(Pn)
+    finite = _write_corrected(mask, missed_w, logq, lpsi, m, P, det_index, m_post, P_post, pd_beta, beta, prune,
+                              dense, label, out_w, out_m, out_P, out_mask, out_beta, out_label)
+    for p in range(Pn):
+        mass[p] = _pairwise_sum(out_w[p])
+    return out_w, out_m, out_P, out_mask, out_beta, out_label, mass, finite
+
+
+@batch_kernel
+def _write_corrected(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarray, lpsi: np.ndarray, m: np.ndarray,
+                     P: np.ndarray, det_index: np.ndarray, m_post: np.ndarray, P_post: np.ndarray,
+                     pd_beta: np.ndarray, beta: bool, prune: float, dense: bool, label: np.ndarray,
+                     out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray,
+                     out_beta: np.ndarray, out_label: np.ndarray) -> bool:
+    """The component loop of :func:`_corrected_components` into its allocated outputs (``out_w``,
+    ``out_m``, ``out_mask`` zeroed, ``out_beta`` ones, ``out_label`` -1); returns ``finite``."""
+    Pn, Q, d = m.shape
+    J = logq.shape[2]
+    K = out_w.shape[1]
+    log_prune = math.log(prune) if prune > 0.0 else -np.inf
+    lab = label.shape[0] > 0
     finite = True
     jr = P_post.shape[1] > 1  # one posterior covariance per measurement
     for p in range(Pn):
@@ -679,8 +699,7 @@ def _corrected_components(mask: np.ndarray, missed_w: np.ndarray, logq: np.ndarr
                 for i in range(d):
                     for e in range(d):
                         out_P[p, at, i, e] = 1.0 if i == e else 0.0
-        mass[p] = _pairwise_sum(out_w[p])
-    return out_w, out_m, out_P, out_mask, out_beta, out_label, mass, finite
+    return finite
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

@@ -26,6 +26,7 @@ import numpy as np
 
 from .detection import beta_pool
 from .gm import GM, NO_LABEL
+from .jit import batch_kernel
 from .linalg import _cholesky_once, forward_solve
 
 # linalg's Cholesky factor (no jitter: a singular covariance is an error; finiteness is checked
@@ -243,26 +244,23 @@ def cluster_order(W: np.ndarray, K: int, min_weight: float, by_weight: bool, ord
     return n
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, prune: float,
                 max_trace: float, pos_dims: int, merge: float, min_weight: float, cap: int, sort_input: bool,
                 sort_output: bool, members: np.ndarray, heads: np.ndarray, starts: np.ndarray, order: np.ndarray,
-                count: np.ndarray) -> int:
+                count: np.ndarray, scratch: tuple) -> int:
     """Clusters of every mixture ``n`` of a flat batch ``(N, Q, ...)``: :func:`survivors` of
     ``w_prune`` (sorted by descending ``w`` if ``sort_input``: the slot order of a compacted
     mixture), :func:`greedy_clusters` with weights ``w``, :func:`cluster_order` (``min_weight``,
     ``sort_output``), at most ``cap``. Writes ``members, heads, order (N, Q)``, ``starts (N, Q + 1)``,
-    ``count (N,)`` (clusters kept).
+    ``count (N,)`` (clusters kept). ``scratch``: :func:`_plan_scratch` (a runtime-free kernel
+    allocates nothing, :mod:`mmslam.slam.jit`).
 
     Returns the largest ``count`` (0 for ``N = 0``), or ``_NONFINITE`` (a live component, ``mask``, has a non-finite ``w``, ``m`` or ``P``)
     or ``_SINGULAR``.
     """
     N, q, d = m.shape
-    L = np.empty((q, d, d))
-    r2 = np.empty(q)
-    D = np.empty(d)
-    rem = np.empty(q, np.int64)
-    W = np.empty(q)
+    L, r2, D, rem, W = scratch
     most = 0
     for n in range(N):
         ns = survivors(w_prune[n], w[n], m[n], P[n], mask[n], prune, max_trace, pos_dims, rem)
@@ -279,7 +277,7 @@ def _plan_batch(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray
     return most
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, members: np.ndarray,
                  heads: np.ndarray, starts: np.ndarray, order: np.ndarray, count: np.ndarray, out_w: np.ndarray,
                  out_m: np.ndarray, out_P: np.ndarray, out_mask: np.ndarray, out_ab: np.ndarray) -> int:
@@ -310,6 +308,13 @@ def _write_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, ab: np.ndarray, me
     return _OK
 
 
+def _plan_scratch(q: int, d: int) -> tuple[np.ndarray, ...]:
+    """Scratch of :func:`_plan_batch` for ``Q`` slots of dimension ``d``: ``(L (Q, d, d), r2 (Q,), D (d,),
+    rem (Q,) int64, W (Q,))`` (the Cholesky factors, distances, a difference, survivors, cluster weights
+    of :func:`greedy_clusters`)."""
+    return np.empty((q, d, d)), np.empty(q), np.empty(d), np.empty(q, np.int64), np.empty(q)
+
+
 def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray,
             ab: np.ndarray | None, prune: float, max_trace: float | None, pos_dims: int, merge: float,
             min_weight: float, cap: int, sort_input: bool, sort_output: bool, stage: str,
@@ -335,7 +340,7 @@ def _reduce(w_prune: np.ndarray, w: np.ndarray, m: np.ndarray, P: np.ndarray, ma
     status = _plan_batch(np.ascontiguousarray(w_prune, dtype=float), w, m, P, np.ascontiguousarray(mask, dtype=bool),
                          float(prune), np.inf if max_trace is None else float(max_trace), int(pos_dims),
                          float(merge), float(min_weight), max(int(cap), 0), sort_input, sort_output, members, heads,
-                         starts, order, count)
+                         starts, order, count, _plan_scratch(q, d))
     if status == _NONFINITE:
         raise FloatingPointError(f"non-finite Gaussian component in {stage} input")
     if status == _SINGULAR:
@@ -434,7 +439,7 @@ def _labels_of(g: GM) -> np.ndarray:
     return np.asarray(g.label, np.int64)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _merge_pairs(w: np.ndarray, m: np.ndarray, P: np.ndarray, pairs: np.ndarray,
                  out_w: np.ndarray, out_m: np.ndarray, out_P: np.ndarray, ab: np.ndarray, out_ab: np.ndarray) -> None:
     """:func:`moment_match` of each pair ``(i, j)`` into slot ``i``; slot ``j`` set to ``w = 0, m = 0, P = I``

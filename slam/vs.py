@@ -14,6 +14,7 @@ import numpy as np
 from .dynamics import VS_DIM, vs_ct_point
 from .reduction import dead_gaussian, finite_gaussian
 from .gm import GM
+from .jit import batch_kernel
 
 DEFAULT_TURN_MEAN = 0.0
 """Mean of the Gaussian birth turn rate (rad/s); see :func:`vs_birth_mean`."""
@@ -59,14 +60,13 @@ def ekf_predict_point(m: np.ndarray, P: np.ndarray, dt: float, add: np.ndarray, 
             P_out[k, i] = v
 
 
-@nb.njit(cache=True, error_model="numpy")
+@batch_kernel
 def _predict_batch(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, dt: float, p_survival: float,
                    add: np.ndarray, off: int, w_out: np.ndarray, m_out: np.ndarray, P_out: np.ndarray,
-                   mask_out: np.ndarray) -> bool:
+                   mask_out: np.ndarray, work: np.ndarray) -> bool:
     """:func:`ekf_predict_point` and ``w' = p_survival w`` of every live slot ``(n, q)`` of a flat batch
     ``(N, Q, ...)`` into output slot ``(n, off + q)``; dead slots ``w = 0``, ``m = 0``, ``P = I``.
-    Returns False if a live predicted component is not finite."""
-    work = np.empty((3, VS_DIM, VS_DIM))
+    ``work (3, 7, 7)``: scratch. Returns False if a live predicted component is not finite."""
     ok = True
     for n in range(w.shape[0]):
         for q in range(w.shape[1]):
@@ -124,7 +124,8 @@ def predict_vs_into(g: GM, dt: float, p_survival: float, add: np.ndarray, out: G
                           np.ascontiguousarray(g.P, dtype=float).reshape(n, q, VS_DIM, VS_DIM),
                           np.ascontiguousarray(g.mask, dtype=bool).reshape(n, q), float(dt), float(p_survival),
                           np.ascontiguousarray(add, dtype=float), int(off), out.w.reshape(n, k),
-                          out.m.reshape(n, k, VS_DIM), out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k)):
+                          out.m.reshape(n, k, VS_DIM), out.P.reshape(n, k, VS_DIM, VS_DIM), out.mask.reshape(n, k),
+                          np.empty((3, VS_DIM, VS_DIM))):
         raise FloatingPointError("non-finite Gaussian component after VS prediction")
 
 

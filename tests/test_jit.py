@@ -7,7 +7,7 @@ import numba as nb
 import numpy as np
 import pytest
 
-from mmslam.slam import gmphd
+from mmslam.slam import birth, ckf, gmphd, reduction, vs
 from mmslam.slam.jit import RUNTIME_FREE, batch_kernel
 
 
@@ -67,7 +67,9 @@ def test_batch_kernel_cannot_allocate() -> None:
         batch_kernel(cache=False)(alloc)(3)
 
 
-def test_ckf_kernels_are_batch_kernels() -> None:
-    """The CKF loops take their scratch from the caller (they would not compile otherwise)."""
-    for fn in gmphd._TYPE_TERMS:
-        assert fn.targetoptions.get("_nrt", True) is (not RUNTIME_FREE)
+def test_hot_loops_are_batch_kernels() -> None:
+    """The filter's hot loops take their scratch from the caller (they would not compile otherwise)."""
+    hot = (*gmphd._TYPE_TERMS, *ckf._CKF_BATCH, gmphd._write_corrected, gmphd._bs_loglik, reduction._plan_batch,
+           reduction._write_batch, reduction._merge_pairs, birth._moments_batch, birth._births, vs._predict_batch)
+    for fn in hot:
+        assert fn.targetoptions.get("_nrt", True) is (not RUNTIME_FREE), fn
