@@ -7,8 +7,10 @@ import numba as nb
 import numpy as np
 import pytest
 
-from mmslam.slam import birth, ckf, gmphd, reduction, vs
+from mmslam.slam import birth, ckf, gmphd, jit, reduction, vs
+from mmslam.slam.gm import GM
 from mmslam.slam.jit import RUNTIME_FREE, batch_kernel
+from mmslam.slam.measurement import SP, VA
 
 
 @nb.njit
@@ -63,8 +65,9 @@ def test_batch_kernel_cannot_allocate() -> None:
     def alloc(n: int) -> float:
         return np.zeros(n).sum()
 
-    with pytest.raises(Exception):
+    with pytest.raises(nb.core.errors.TypingError, match="zeros"):  # the allocation itself is refused
         batch_kernel(cache=False)(alloc)(3)
+    assert nb.njit(cache=False)(alloc)(3) == 0.0  # the same function compiles with the runtime
 
 
 def test_hot_loops_are_batch_kernels() -> None:
@@ -73,3 +76,67 @@ def test_hot_loops_are_batch_kernels() -> None:
            reduction._write_batch, reduction._merge_pairs, birth._moments_batch, birth._births, vs._predict_batch)
     for fn in hot:
         assert fn.targetoptions.get("_nrt", True) is (not RUNTIME_FREE), fn
+
+
+def test_without_the_runtime_option_batch_kernel_is_plain_njit(monkeypatch) -> None:
+    """The fallback for a numba without ``_nrt`` (``RUNTIME_FREE`` False): plain ``njit`` with the same
+    options, reference counting back in, the same results (the filter runs on it unchanged: the kernels
+    take their scratch from the caller either way)."""
+    monkeypatch.setattr(jit, "RUNTIME_FREE", False)
+    fb = jit.batch_kernel(cache=False)(_norms)
+    assert "_nrt" not in fb.targetoptions and fb.targetoptions["error_model"] == "numpy"
+    assert jit.batch_kernel(error_model="python", cache=False)(_norms).targetoptions["error_model"] == "python"
+    x = np.random.default_rng(2).normal(size=(20, 7))
+    out = np.empty(20)
+    assert fb(x, out, (np.empty(7), np.empty(7))) == -1
+    np.testing.assert_allclose(out, np.linalg.norm(x, axis=1), rtol=1e-14)
+    assert _increfs(fb) > 0  # compiled with the runtime
+
+
+_S = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
+_BS = np.array([0.0, 0.0, 40.0])
+_R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+
+
+def _one(m: list[float], P: np.ndarray, w: float = 1.0) -> GM:
+    return GM(np.array([[w]]), np.array([[m]], float), P[None, None].astype(float), np.ones((1, 1), bool))
+
+
+def _pd(u, x, t):  # noqa: ANN001, ANN202
+    return np.full(np.shape(x)[:-1], 0.9)
+
+
+_INDEFINITE = np.diag([1.0, -1.0, 1.0])
+_HUGE7 = GM(np.ones((1, 1)), np.full((1, 1, 7), 1e308), 1e308 * np.eye(7)[None, None], np.ones((1, 1), bool))
+_SINGULAR = GM(np.array([0.5, 0.5]), np.array([[0.0, 0, 0], [1, 1, 1]]), np.stack([np.eye(3), np.zeros((3, 3))]),
+               np.ones(2, bool))
+_OVERFLOW = GM(np.array([1e308, 1e308]), np.zeros((2, 3)), np.stack([np.eye(3)] * 2), np.ones(2, bool))
+
+# (call, the whole message): each an error code of a runtime-free kernel turned into its Python error
+_KERNEL_ERRORS = {
+    "type_terms position": (lambda: gmphd.type_terms(_one([10.0, 0, 0], _INDEFINITE), SP, _S, np.zeros((1, 5)), _R,
+                                                     _BS, _pd), "covariance not positive definite in SP correction"),
+    "type_terms innovation": (lambda: gmphd.type_terms(_one([10.0, 0, 0], np.eye(3)), VA, _S, np.zeros((1, 5)),
+                                                       -np.eye(5), _BS, _pd),
+                              "covariance not positive definite in VA correction (innovation covariance)"),
+    "innovate position": (lambda: ckf.innovate(np.array([[10.0, 0, 0]]), _INDEFINITE[None], _S, 1, _BS,
+                                               np.zeros((1, 5)), _R, "stage X"),
+                          "covariance not positive definite in stage X"),
+    "innovate innovation": (lambda: ckf.innovate(np.array([[10.0, 0, 0]]), np.eye(3)[None], _S, 2, _BS,
+                                                 np.zeros((1, 5)), -np.eye(5), "stage X"),
+                            "covariance not positive definite in stage X (innovation covariance)"),
+    "merge singular": (lambda: reduction.prune_merge(_SINGULAR, 1e-4, 49.0, 5),
+                       "singular or indefinite covariance in Gaussian-mixture merging"),
+    "merge overflow": (lambda: reduction.prune_merge(_OVERFLOW, 1e-4, 49.0, 5),
+                       "non-finite Gaussian component after prune_merge"),
+    "vs prediction": (lambda: vs.predict_vs(_HUGE7, 0.1, 0.9, np.full(7, 0.1), None),
+                      "non-finite Gaussian component after VS prediction"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_KERNEL_ERRORS))
+def test_error_codes_of_runtime_free_kernels_are_one_line_errors(case: str) -> None:
+    call, message = _KERNEL_ERRORS[case]
+    with pytest.raises(FloatingPointError) as err:
+        call()
+    assert str(err.value) == message
