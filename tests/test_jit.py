@@ -233,3 +233,21 @@ def _callees(kernels) -> list:  # noqa: ANN001
                 if f.targetoptions.get("inline", "never") != "always":
                     out.append(f)
     return out
+
+
+def test_no_compiled_function_indexes_with_a_bare_none() -> None:
+    """``a[None]`` in compiled code fails to lower on numba 0.60-0.61 (numba#10370; pyproject allows 0.60):
+    ``merge_pairs``, so the ``proposed`` variant, raised NotImplementedError there. ``a[None, ...]`` works."""
+    import ast
+    from pathlib import Path
+
+    import mmslam.slam as slam_pkg
+
+    bad = []
+    for path in sorted(Path(slam_pkg.__file__).parent.glob("*.py")):
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if isinstance(fn, ast.FunctionDef) and any(re.search(r"njit|batch_kernel", ast.unparse(d))
+                                                       for d in fn.decorator_list):
+                bad += [f"{path.name}:{s.lineno}" for s in ast.walk(fn) if isinstance(s, ast.Subscript)
+                        and isinstance(s.slice, ast.Constant) and s.slice.value is None]
+    assert not bad
