@@ -43,9 +43,11 @@ def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
     """Delete the cached numba kernels of ``pkg`` wherever they are when any kernel source changed.
 
     Compares a SHA-256 of :data:`KERNEL_SOURCES` (plus ``mmslam/model.py``) with the stamp kept in
-    each of :func:`kernel_cache_dirs` that exists (``__pycache__`` is always checked); on a mismatch
-    removes every ``*.nbi`` / ``*.nbc`` there and writes the new stamp (atomically). A folder that
-    cannot be written is skipped. Returns True if cached kernels were removed.
+    each of :func:`kernel_cache_dirs` that exists or that numba will write this time (``__pycache__``,
+    ``$NUMBA_CACHE_DIR``'s folder when set, the user-wide one when ``__pycache__`` cannot be written:
+    created and stamped now, or the next process would take the kernels this one caches there for
+    stale); on a mismatch removes every ``*.nbi`` / ``*.nbc`` there and writes the new stamp
+    (atomically). A folder that cannot be written is skipped. Returns True if cached kernels were removed.
 
     Not covered: a process that imported the old sources and compiles a kernel after the edit.
     """
@@ -57,21 +59,25 @@ def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
         return False
     digest = h.hexdigest()
     removed = False
-    for i, cache in enumerate(kernel_cache_dirs(pkg)):
-        if i and not cache.is_dir():
+    dirs = kernel_cache_dirs(pkg)
+    user_dir = bool(os.environ.get("NUMBA_CACHE_DIR"))  # numba's first choice when set
+    in_tree = False  # __pycache__ written (numba's next choice)
+    for i, cache in enumerate(dirs):
+        numba_writes = i == 0 or (i == 1 and user_dir) or (i == len(dirs) - 1 and not (user_dir or in_tree))
+        if not (numba_writes or cache.is_dir()):
             continue
         try:
             stamp = cache / _STAMP
-            if stamp.is_file() and stamp.read_text().strip() == digest:
-                continue
-            cache.mkdir(parents=True, exist_ok=True)
-            stale = list(cache.glob("*.nbi")) + list(cache.glob("*.nbc"))
-            for p in stale:
-                p.unlink(missing_ok=True)
-            tmp = cache / f".{_STAMP}.{os.getpid()}"
-            tmp.write_text(digest + "\n")
-            os.replace(tmp, stamp)
-            removed = removed or bool(stale)
+            if not (stamp.is_file() and stamp.read_text().strip() == digest):
+                cache.mkdir(parents=True, exist_ok=True)
+                stale = list(cache.glob("*.nbi")) + list(cache.glob("*.nbc"))
+                for p in stale:
+                    p.unlink(missing_ok=True)
+                tmp = cache / f".{_STAMP}.{os.getpid()}"
+                tmp.write_text(digest + "\n")
+                os.replace(tmp, stamp)
+                removed = removed or bool(stale)
+            in_tree = in_tree or (i == 0 and os.access(cache, os.W_OK))
         except OSError:  # read-only folder: numba does not write there either
             continue
     return removed

@@ -147,9 +147,10 @@ def moment_match_at(w: np.ndarray, m: np.ndarray, P: np.ndarray, n: int, members
 def moment_match(w: np.ndarray, m: np.ndarray, P: np.ndarray, members: np.ndarray, ref: int,
                  out_m: np.ndarray, out_P: np.ndarray) -> float:
     """:func:`moment_match_at` of the components ``members (K,)`` of one mixture ``w (Q,)``, ``m (Q, d)``,
-    ``P (Q, d, d)`` (offsets from the component ``ref``) into ``out_m (d,)``, ``out_P (d, d)``; returns ``W``."""
-    return moment_match_at(w[None], m[None], P[None], 0, members[None], 0, members.shape[0], ref, out_m[None, None],
-                           out_P[None, None], 0)
+    ``P (Q, d, d)`` (offsets from the component ``ref``) into ``out_m (d,)``, ``out_P (d, d)``; returns ``W``.
+    (``a[None, ...]``, not ``a[None]``: numba 0.60 and 0.61 have no lowering of a bare ``None`` index, numba#10370.)"""
+    return moment_match_at(w[None, ...], m[None, ...], P[None, ...], 0, members[None, ...], 0, members.shape[0], ref,
+                           out_m[None, None, ...], out_P[None, None, ...], 0)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

@@ -67,3 +67,42 @@ def test_every_slam_module_with_a_numba_kernel_is_a_kernel_source():
     with_kernels = {p.name for p in pkg.glob("*.py") if re.search(r"@(nb\.njit|batch_kernel)\b", p.read_text())}
     # jit.py: the compile options of the batch kernels (a change there must drop the cached ones too)
     assert with_kernels | {"jit.py"} == set(slam_pkg.KERNEL_SOURCES)
+
+
+def test_a_new_numba_cache_dir_keeps_the_first_process_kernels(tmp_path, monkeypatch):
+    """NUMBA_CACHE_DIR naming a folder that does not exist yet (a fresh CI cache, a new worker): the first
+    process finds no folder, numba creates it and writes its kernels; the next process must keep them (same
+    sources), not take the unstamped folder for stale and compile everything again (~20 s)."""
+    pkg = _copy_pkg(tmp_path)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "fresh-cache"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    user = slam_pkg.kernel_cache_dirs(pkg)[1]
+    assert not user.exists()
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False  # first process: nothing cached yet
+    user.mkdir(parents=True, exist_ok=True)  # numba compiles and caches into it
+    (user / "ckf.innovate-1.py311.nbi").write_bytes(b"index")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False  # second process, same sources: kept
+    assert (user / "ckf.innovate-1.py311.nbi").exists()
+    with open(pkg / "ckf.py", "a") as f:
+        f.write("\n# edited\n")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is True  # still dropped after a source change
+    assert not (user / "ckf.innovate-1.py311.nbi").exists()
+    assert not (tmp_path / "xdg").exists()  # a folder numba does not use is not created
+
+
+def test_the_user_wide_cache_of_a_read_only_install_keeps_the_first_process_kernels(tmp_path, monkeypatch):
+    """Where ``__pycache__`` cannot be written numba caches in the user-wide folder: the same rule."""
+    pkg = _copy_pkg(tmp_path)
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    (pkg / "__pycache__").write_bytes(b"")  # not a folder: cannot be written (also as root)
+    user = slam_pkg.kernel_cache_dirs(pkg)[-1]
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False
+    user.mkdir(parents=True, exist_ok=True)
+    (user / "ckf.innovate-1.py311.nbi").write_bytes(b"index")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is False
+    assert (user / "ckf.innovate-1.py311.nbi").exists()
+    with open(pkg / "ckf.py", "a") as f:
+        f.write("\n# edited\n")
+    assert slam_pkg._invalidate_stale_kernels(pkg) is True
+    assert not (user / "ckf.innovate-1.py311.nbi").exists()
