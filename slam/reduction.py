@@ -111,31 +111,45 @@ def moment_match_at(w: np.ndarray, m: np.ndarray, P: np.ndarray, n: int, members
     accumulated as offsets ``o_i = m_i - m_ref`` from the component ``ref`` (less cancellation far
     from the origin): ``dbar = sum w_i o_i / W``, ``m = m_ref + dbar``,
     ``P = sum w_i (P_i + o_i o_i^T) / W - dbar dbar^T``. ``out_m[n, r]`` and ``out_P[n, r]``
-    (exactly symmetric) hold the sums meanwhile (no scratch); ``W`` is returned.
+    (exactly symmetric) hold the sums meanwhile (no scratch); ``W`` is returned. The sums use the
+    weights relative to the cluster's largest, ``w_i / w_max`` (the same moments: without pruning,
+    ``prune = 0``, subnormal weights made ``w_i P_i`` lose its digits and the merged covariance
+    indefinite). A cluster whose members all weigh 0 (kept only without pruning) has no weighted
+    moments: it gets the moments of ``ref`` (a zero covariance would break the next merge's Cholesky).
     Shapes: ``w (N, Q)``, ``m (N, Q, d)``, ``P (N, Q, d, d)``, ``members (N, K)`` slot indices.
     Indexed on the batch arrays, not on per-mixture views: numba's inlined views cost about as
     much as the arithmetic here.
     """
     d = m.shape[2]
-    W = 0.0
+    W = wmax = 0.0
+    for t in range(lo, hi):
+        W += w[n, members[n, t]]
+        wmax = max(wmax, w[n, members[n, t]])
+    if not wmax > 0.0:  # every member weighs 0 (no pruning, prune = 0): no moments to match; the head's own
+        for a in range(d):
+            out_m[n, r, a] = m[n, ref, a]
+            for b in range(d):
+                out_P[n, r, a, b] = 0.5 * (P[n, ref, a, b] + P[n, ref, b, a])
+        return W
+    U = 0.0  # the sums in weights relative to the largest, u_i = w_i / w_max in (0, 1]: no subnormal products
     for a in range(d):
-        out_m[n, r, a] = 0.0  # sum w_i o_i
+        out_m[n, r, a] = 0.0  # sum u_i o_i
         for b in range(d):
-            out_P[n, r, a, b] = 0.0  # sum w_i (P_i + o_i o_i^T)
+            out_P[n, r, a, b] = 0.0  # sum u_i (P_i + o_i o_i^T)
     for t in range(lo, hi):
         i = members[n, t]
-        W += w[n, i]
+        u = w[n, i] / wmax
+        U += u
         for a in range(d):
             oa = m[n, i, a] - m[n, ref, a]
-            out_m[n, r, a] += w[n, i] * oa
+            out_m[n, r, a] += u * oa
             for b in range(d):
-                out_P[n, r, a, b] += w[n, i] * (P[n, i, a, b] + oa * (m[n, i, b] - m[n, ref, b]))
-    Wsafe = W if W > 0.0 else 1.0
+                out_P[n, r, a, b] += u * (P[n, i, a, b] + oa * (m[n, i, b] - m[n, ref, b]))
     for a in range(d):
-        out_m[n, r, a] /= Wsafe  # dbar
+        out_m[n, r, a] /= U  # dbar
     for a in range(d):
         for b in range(a + 1):
-            v = 0.5 * (out_P[n, r, a, b] + out_P[n, r, b, a]) / Wsafe - out_m[n, r, a] * out_m[n, r, b]
+            v = 0.5 * (out_P[n, r, a, b] + out_P[n, r, b, a]) / U - out_m[n, r, a] * out_m[n, r, b]
             out_P[n, r, a, b] = v
             out_P[n, r, b, a] = v
     for a in range(d):

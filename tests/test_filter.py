@@ -489,3 +489,16 @@ def test_run_pd_fn_is_the_filters_type_probability_inside_the_sensors_fov(paper,
         np.testing.assert_array_equal(got, want)
         if p_detect == 0.0:
             assert not got.any()
+
+
+@pytest.mark.parametrize("variant", ["baseline", "proposed"])
+def test_no_pruning_runs(paper, variant):
+    """``filter.prune = 0`` is inside its bounds: the filter keeps zero-weight and subnormal-weight
+    components and still runs (it raised "singular or indefinite covariance in Gaussian-mixture
+    merging" at step 2: a zero-weight cluster got a zero covariance; at step 5: subnormal weights)."""
+    from mmslam.scenes.scenario import with_overrides
+
+    scn, states, paths = paper
+    res = run_filter(with_overrides(scn, ["filter.prune=0"]), states, paths, variant=variant, particles=20, seed=1,
+                     steps=8)
+    assert np.isfinite(_rmse(res, lo=0, hi=8))

@@ -361,3 +361,23 @@ def test_drop_dead_slots_rejects_a_mask_of_another_shape():
            np.zeros((2, 2), bool))
     with pytest.raises(ValueError, match="mask"):
         drop_dead_slots(g)
+
+
+def test_merge_without_pruning_zero_and_subnormal_weights():
+    """prune = 0 keeps every live component: a cluster of zero weights gets its head's moments (it had a
+    zero covariance, which broke the next merge's Cholesky), and subnormal weights merge to the same
+    moments as the same weights scaled to normal numbers (``w_i P_i`` had lost its digits: an indefinite P)."""
+    P0 = np.array([[2e-4, 1e-5], [1e-5, 1e-4]])
+    m = [[0.0, 0.0], [0.01, 0.0], [5.0, 5.0], [5.01, 5.0]]
+    ref = prune_merge(_gm([1.0, 0.5, 0.0, 0.0], m, [P0] * 4), prune=0.0, merge=4.0, cap=10)
+    w, mm, P = _live(ref)
+    assert w.tolist() == [1.5, 0.0]
+    np.testing.assert_array_equal(mm[1], [5.0, 5.0])  # the head of the zero-weight cluster (first on ties)
+    np.testing.assert_array_equal(P[1], P0)
+    tiny = prune_merge(_gm([2 * 5e-324, 5e-324, 0.0, 0.0], m, [P0] * 4), prune=0.0, merge=4.0, cap=10)
+    wt, mt, Pt = _live(tiny)
+    np.testing.assert_allclose(mt, mm, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(Pt, P, rtol=1e-9)
+    assert np.all(np.linalg.eigvalsh(Pt) > 0)
+    # and again: the merged map merges (it raised "singular or indefinite covariance")
+    prune_merge(tiny, prune=0.0, merge=4.0, cap=10)
