@@ -15,8 +15,10 @@ the results are otherwise the same (``tests/test_jit.py``).
 
 A kernel built with :func:`batch_kernel` cannot allocate (``np.empty`` inside fails to compile),
 return an array, or call a function that does; it may call ordinary ``njit`` functions that
-allocate nothing. The switch is numba's ``_nrt`` target option (present since numba 0.2x, used by
-numba's own tests); where a numba has no such option, :func:`batch_kernel` is plain ``njit``.
+allocate nothing and return no array (a callee first compiled from such a kernel inherits its
+no-runtime flags and is cached so: ``tests/test_jit.py`` checks every callee the kernels reach).
+The switch is numba's private ``_nrt`` target option (numba 0.60 to 0.68 tested; numba's own tests
+use it); where a numba has no such option, :func:`batch_kernel` is plain ``njit``.
 """
 from __future__ import annotations
 
