@@ -237,8 +237,10 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
     """VS fusion: the variant's countermeasures, else plain AA fusion.
 
     ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
-    (eq. 11; the ego Gaussian of :func:`mmslam.slam.fusion_center.ego_gaussian`, widened by
-    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 16-20 (``fuse_vs``).
+    (eq. 11; the ego Gaussian of :func:`mmslam.slam.fusion_center.ego_gaussian`: the car's antenna
+    position, the VS state; the body's scatter extent :func:`vs_extent` is not added here, it enters
+    once, in every vehicle's VS likelihood, ``ckf.ckf_update``); ``vs_fusion``: the fused VS mixture of
+    eqs. 16-20 (``fuse_vs``).
     """
     from . import fusion as fm
     from .fusion_center import ego_gaussian
@@ -247,10 +249,6 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
     fu = scn.fusion
     if v.ego_vs_average:
         em, ec = ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
-        ext = vs_extent(scn)
-        if ext is not None:  # others see this car where its body reflects, not at its antenna
-            ec = ec.copy()
-            ec[0:3, 0:3] += ext
         upload = fm.ego_vs_average(upload, em, ec, fu.msm_position,
                                    NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
     if v.vs_fusion:

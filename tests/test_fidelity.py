@@ -1,0 +1,45 @@
+"""Model defects of issue 23: each test fails on the code before its fix."""
+from __future__ import annotations
+
+import numpy as np
+
+from mmslam.scenes.scenario import load_preset, with_overrides
+from mmslam.slam.ckf import kalman_update
+from mmslam.slam.fusion_center import ego_gaussian
+from mmslam.slam.gm import empty
+from mmslam.slam.landmarks import VS_SPEC, FusionInput, fuse_vs_map, vs_extent
+from mmslam.slam.measurement import measure
+from mmslam.slam.variants import get_variant
+
+
+def test_vs_extent_enters_once() -> None:
+    """The body extent is added once: in the VS likelihood, not also to the uploaded ego Gaussian.
+
+    Vehicle 2 sees vehicle 1's uploaded ego Gaussian as a VS; the innovation covariance of that
+    scatter path must be ``H (P_ego + E) H^T + R`` with the extent ``E`` once (``ckf_update``
+    adds it), so the upload must carry ``P_ego`` (the antenna position, the VS state) unchanged.
+    """
+    scn = with_overrides(load_preset("paper"), ["filter.vs_extent_std=[1.0,0.3]"])
+    E = vs_extent(scn)
+    assert E is not None and np.allclose(np.diag(E), [1.0, 1.0, 0.09])
+    mean = np.array([70.0, 5.0, 0.0, 1.5, 22.0, 0.3, 300.0])
+    cov = np.diag([0.04, 0.04, 0.0, 1e-4, 0.0, 0.0, 0.04])
+    em, ec = ego_gaussian(mean, cov, scn.filter.vs_process_std)
+    ctx = FusionInput(scn, get_variant("proposed"), mean, cov, vehicle=0)
+    fused, _ = fuse_vs_map(empty((), 0, 7), empty((), 0, 7), np.zeros(0, bool), ctx)
+    live = np.flatnonzero(fused.w > 0)
+    assert live.size == 1
+    P_up = fused.P[live[0]]
+    np.testing.assert_allclose(P_up, ec, rtol=1e-12, atol=1e-15)
+    # vehicle 2's likelihood of a path bouncing off vehicle 1: the scatter point's covariance is
+    # P_ego + E (E once: the CKF's cubature points of P + E), not P_ego + 2 E
+    s = np.array([60.0, 0.0, 0.0, 1.6, 19.0, 0.3, 300.0])
+    bs = scn.bs_array
+    R = np.diag([0.01, 1e-4, 1e-4, 1e-4, 1e-4])
+    z = measure(s, fused.m[live[0], :3] + np.array([0.5, -0.3, 0.2]), VS_SPEC.code, bs)
+    E7 = np.zeros((7, 7))
+    E7[:3, :3] = E
+    _, _, ll = kalman_update(fused.m[live[0]], P_up, z, R, s, VS_SPEC.geometry, bs, E)
+    _, _, ll_once = kalman_update(em, ec + E7, z, R, s, VS_SPEC.geometry, bs, None)
+    _, _, ll_twice = kalman_update(em, ec + 2 * E7, z, R, s, VS_SPEC.geometry, bs, None)
+    assert abs(ll - ll_once) < 1e-9 and abs(ll - ll_twice) > 1e-3
