@@ -43,3 +43,47 @@ def test_vs_extent_enters_once() -> None:
     _, _, ll_once = kalman_update(em, ec + E7, z, R, s, VS_SPEC.geometry, bs, None)
     _, _, ll_twice = kalman_update(em, ec + 2 * E7, z, R, s, VS_SPEC.geometry, bs, None)
     assert abs(ll - ll_once) < 1e-9 and abs(ll - ll_twice) > 1e-3
+
+
+def _mimo_ofdm_mean(theta: np.ndarray, nt: int, nr: int, freqs: np.ndarray) -> np.ndarray:
+    """Noise-free samples ``(K, nt^2, nr^2)`` of one path: gain ``theta[0] + j theta[1]``, delay
+    ``theta[2]`` (s), AOD az / el ``theta[3:5]``, AOA az / el ``theta[5:7]`` (rad); UPAs of
+    half-wavelength spacing in the plane normal to broadside, element indices centred."""
+    def upa(n: int, az: float, el: float) -> np.ndarray:
+        p = np.arange(n) - (n - 1) / 2
+        P, Q = np.meshgrid(p, p, indexing="ij")
+        return np.exp(1j * np.pi * (P * np.sin(az) * np.cos(el) + Q * np.sin(el))).ravel()
+
+    a = theta[0] + 1j * theta[1]
+    f = np.exp(-2j * np.pi * freqs * theta[2])
+    return a * f[:, None, None] * np.conj(upa(nt, *theta[3:5]))[None, :, None] * upa(nr, *theta[5:7])[None, None, :]
+
+
+def test_link_angle_bound_matches_numerical_fisher_information() -> None:
+    """``LinkBudget.stds`` against the CRB of a numerical Fisher information (finite differences of
+    the MIMO-OFDM path response, complex white noise, unknown complex gain).
+
+    SNR := received energy over all samples / noise variance per sample (what a link budget with
+    both array gains computes). The old bound (array gain counted twice) was ``sqrt(2 N)`` too small.
+    """
+    from mmslam.slam.sensor import SPEED_OF_LIGHT, LinkBudget
+
+    nt, nr, K, B = 3, 4, 64, 400e6
+    freqs = (np.arange(K) - (K - 1) / 2) * B / K
+    theta = np.array([1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0])
+    mu = _mimo_ofdm_mean(theta, nt, nr, freqs)
+    snr = 100.0
+    sigma2 = float(np.sum(np.abs(mu) ** 2)) / snr
+    steps = np.array([1e-6, 1e-6, 1e-13, 1e-6, 1e-6, 1e-6, 1e-6])
+    D = np.empty((mu.size, theta.size), complex)
+    for i, h in enumerate(steps):
+        e = np.zeros_like(theta)
+        e[i] = h
+        D[:, i] = ((_mimo_ofdm_mean(theta + e, nt, nr, freqs) - _mimo_ofdm_mean(theta - e, nt, nr, freqs)) / (2 * h)).ravel()
+    fim = 2.0 / sigma2 * np.real(D.conj().T @ D)
+    crb = np.sqrt(np.diag(np.linalg.inv(fim)))
+    lb = LinkBudget(tx_array=nt, rx_array=nr, bandwidth_hz=B)
+    got = lb.stds(10 * np.log10(snr))
+    # K discrete tones: mean f^2 = B^2 (K^2 - 1) / (12 K^2), the bound's B^2 / 12 in the limit
+    np.testing.assert_allclose(crb[2] * SPEED_OF_LIGHT * np.sqrt((K * K - 1) / K**2), got[0], rtol=1e-5)
+    np.testing.assert_allclose(crb[3:7], got[1:5], rtol=1e-5)

@@ -264,11 +264,13 @@ def test_link_budget_crb_scaling_and_hand_values():
     snr = np.array([-5.0, 10.0, 20.0, 35.0])
     half = lb.stds(snr - 10 * math.log10(2.0))  # halving the SNR
     np.testing.assert_allclose(half, math.sqrt(2.0) * lb.stds(snr), rtol=1e-12)
-    # hand values at SNR 20 dB (100): std_toa = c sqrt(3) / (pi B sqrt(200)); ULA of N: sqrt(6 / (pi^2 N (N^2-1) 200))
+    # hand values at SNR 20 dB (100): std_toa = c sqrt(3) / (pi B sqrt(200)); N x N array, the SNR holding
+    # the array gain: sqrt(6 / (pi^2 (N^2-1) 100)) (issue 23: the old sqrt(6 / (pi^2 N (N^2-1) 200)) counted
+    # the gain twice; tests/test_fidelity.py checks it against a numerical Fisher information)
     s = lb.stds(20.0)
     assert s[0] == pytest.approx(299_792_458.0 * math.sqrt(3) / (math.pi * 400e6 * math.sqrt(200)), rel=1e-12)
-    assert s[1] == s[2] == pytest.approx(math.sqrt(6 / (math.pi**2 * 8 * 63 * 200)), rel=1e-12)
-    assert s[3] == s[4] == pytest.approx(math.sqrt(6 / (math.pi**2 * 4 * 15 * 200)), rel=1e-12)
+    assert s[1] == s[2] == pytest.approx(math.sqrt(6 / (math.pi**2 * 63 * 100)), rel=1e-12)
+    assert s[3] == s[4] == pytest.approx(math.sqrt(6 / (math.pi**2 * 15 * 100)), rel=1e-12)
     # twice the bandwidth halves the delay std; angles do not care
     s2 = dataclasses.replace(lb, bandwidth_hz=800e6).stds(20.0)
     assert s2[0] == pytest.approx(s[0] / 2) and s2[1] == pytest.approx(s[1])
