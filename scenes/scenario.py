@@ -158,8 +158,14 @@ class FilterParams:
                             "closer than the VA position uncertainty lets U = 49 tell apart (canyon: two "
                             "image sources 1.53 m apart, merge_va = 4)", "", lo=-1.0, hi=1e6)
     max_gaussians: int = param(50, "at most this many Gaussians per type and particle", "", lo=1, hi=10_000)
-    max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this", "m^2",
-                             lo=0.0, lo_open=True, hi=1e9)
+    max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this "
+                             "(the types of filter.max_trace_scope)", "m^2", lo=0.0, lo_open=True, hi=1e9)
+    max_trace_scope: str = param("moving", "which landmark types filter.max_trace applies to: moving (the "
+                                 "VS, whose covariance grows by process noise; a static VA / SP Gaussian only "
+                                 "shrinks after its birth, so a cap in m^2 only drops births the sensor cannot "
+                                 "resolve that well: with 2x the paper's noise every VA birth) or all (every "
+                                 "type, the behaviour before issue 23); see docs/implementation-notes.md",
+                                 choices=("moving", "all"))
     threshold_va: float = param(0.7, "estimate-extraction weight threshold for VAs", "", lo=0.0, hi=10.0)
     threshold_sp: float = param(0.55, "estimate-extraction weight threshold for SPs", "", lo=0.0, hi=10.0)
     threshold_vs: float = param(0.55, "estimate-extraction weight threshold for VSs", "", lo=0.0, hi=10.0)

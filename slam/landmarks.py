@@ -257,6 +257,17 @@ def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) ->
     return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
 
 
+def trace_cap(spec: LandmarkSpec, scn: "Scenario") -> float | None:
+    """The position-trace cap (m^2) of ``spec``'s maps: ``filter.max_trace`` for a moving type (its
+    Gaussians grow by process noise), None (no cap) for a static one unless
+    ``filter.max_trace_scope = "all"``. A static Gaussian's covariance only shrinks after its birth,
+    whose covariance is what one measurement resolves (``r_scale R`` mapped to position at the
+    landmark's range): an absolute cap then only drops births, all of them once the noise grows
+    (2x the `paper` noise: every VA birth above 50 m^2, no VA mapped)."""
+    fp = scn.filter
+    return float(fp.max_trace) if spec.moving or fp.max_trace_scope == "all" else None
+
+
 def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
     """The merge gate ``filter.<merge_param>``; a negative value (e.g. ``merge_va``'s default) means
     ``filter.merge``, so an override of ``filter.merge`` reaches every type that does not set its own."""
@@ -266,11 +277,11 @@ def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
 
 def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", merge_param: str = "merge") -> GM:
     """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``,
-    :func:`merge_gate`)."""
+    :func:`merge_gate`; a static type: the trace cap only with ``filter.max_trace_scope = "all"``)."""
     fp, fu = scn.filter, scn.fusion
     if fused.capacity:
         fused = prune_merge(fused, fu.average_prune, merge_gate(scn, merge_param), fp.max_gaussians,
-                            fp.max_trace, pos_dims=3)
+                            fp.max_trace if fp.max_trace_scope == "all" else None, pos_dims=3)
     return fused
 
 

@@ -35,7 +35,7 @@ from .birth import birth_moments_by_kind
 from .dynamics import wrap_angle
 from .gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, with_labels
 from .gmphd import correct
-from .landmarks import LandmarkSpec
+from .landmarks import LandmarkSpec, trace_cap
 from .measurement import BS
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
                    weighted_state_cov, weighted_state_mean)
@@ -169,13 +169,14 @@ class LocalFilter:
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 
     def reduce(self) -> None:
-        """``prune_merge`` of every map (prune, merge, cap, max position trace)."""
+        """``prune_merge`` of every map (prune, merge, cap, max position trace of the moving types,
+        :func:`~mmslam.slam.landmarks.trace_cap`)."""
         fp = self.fp
         for t in self.types:
             g = self.maps[t]
             if g.capacity:  # prune_merge prunes first and trims the slots to the live count
-                g = prune_merge(g, fp.prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians, fp.max_trace,
-                                pos_dims=3)
+                g = prune_merge(g, fp.prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
+                                trace_cap(self.specs[t], self.scn), pos_dims=3)
             self.maps[t] = g
 
     def estimate(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, GM]]:
@@ -187,7 +188,7 @@ class LocalFilter:
         for t in self.types:
             g = self.maps[t]
             avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
-                                  fp.max_trace, by_label=fu.average_by_label)
+                                  trace_cap(self.specs[t], self.scn), by_label=fu.average_by_label)
                       if g.capacity else empty((), 0, self.specs[t].state_dim, with_label=self._labels))
         return mean, cov, avg
 
