@@ -247,8 +247,11 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
 
 # ====================================================================== the worker side
 def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int | None,
-            overrides: Sequence[str] = ()) -> Any:
+            overrides: Sequence[str] = (), truth_file: str | None = None) -> Any:
     """Run one filter job (in a worker process) and return its :class:`Result`.
+
+    ``truth_file``: per-run truth (:mod:`mmslam.pipelines.truth`): the run's world is ``truth_file``
+    resolved with ``seed``, traced analytically in memory; None: the cache's truth.
 
     Pins BLAS/OpenMP pools to one thread when ``threadpoolctl`` is available (the environment
     variables are set by the parent for the local pool; dask's nanny sets them for its workers).
@@ -261,8 +264,42 @@ def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int 
         threadpool_limits(1)
     from mmslam.slam.filter import run_slam
 
-    return run_slam(cache_dir, variant=variant, particles=int(particles), seed=int(seed),
-                    steps=None if steps is None else int(steps), overrides=tuple(overrides))
+    if truth_file is None:
+        return run_slam(cache_dir, variant=variant, particles=int(particles), seed=int(seed),
+                        steps=None if steps is None else int(steps), overrides=tuple(overrides))
+    from mmslam.pipelines.truth import truth_of_run, truth_scenario
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.scenes.scenario import with_overrides
+    from mmslam.slam.filter import run_filter
+
+    cache = load_cache(cache_dir)
+    n = int(cache.steps) if steps is None else int(steps)
+    scn = truth_scenario(truth_file, int(seed), with_overrides(cache.scenario, list(overrides)))
+    states, paths = truth_of_run(scn, n)
+    meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
+            "cache_path": str(cache.path), "overrides": list(overrides), "truth": "per_run", "truth_seed": int(seed)}
+    return run_filter(scn, states, paths, variant=variant, particles=int(particles), seed=int(seed), steps=n,
+                      meta=meta)
+
+
+def _truth_mode(out: Path, info: dict[str, Any], truth: str, truth_scenario: str | Path | None
+                ) -> tuple[str, str, str | None]:
+    """``(mode, note, truth file or None)`` of an ablation (see :func:`run_ablation`'s ``truth``)."""
+    from mmslam.pipelines.truth import TRUTH_MODES, check_truth_file
+    from mmslam.scenes.scenario import scenario_from_resolved
+
+    if truth not in TRUTH_MODES:
+        raise ConfigError(f"--truth {truth!r}: expected one of {', '.join(TRUTH_MODES)}")
+    if truth == "fixed":
+        return "fixed", "every run uses the cache's truth, drawn once from the scenario seed (--truth fixed)", None
+    if info["source"] != "analytic":
+        return "fixed", (f"{info['source']} cache: every run uses the traced truth (scenario seed); per-run truth "
+                         "would need one trace per run"), None
+    if truth_scenario is None:
+        return "fixed", "no scenario file given (a Scenario object): every run uses the cache's truth", None
+    dst = Path(truth_scenario).resolve()
+    check_truth_file(dst, scenario_from_resolved(info["scenario"]))
+    return "per_run", "run s draws its own truth (trajectory noise, random scatterer heights / routes) from seed s", str(dst)
 
 
 @contextlib.contextmanager
@@ -511,10 +548,10 @@ def _jsonable(o: Any) -> Any:
 def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
     for key, flag in (("config_hash", "the trace (scenario / source)"), ("scenario_name", "the scenario"),
                       ("source", "--source"), ("particles", "--particles"), ("steps", "--steps"),
-                      ("sets", "--set")):
+                      ("sets", "--set"), ("truth", "--truth")):
         if key not in new:
             continue
-        if old.get(key, [] if key == "sets" else None) != new.get(key):
+        if old.get(key, {"sets": [], "truth": "fixed"}.get(key)) != new.get(key):
             raise ConfigError(f"{out_dir} holds an ablation with {key}={old.get(key)} but this run asks "
                               f"{key}={new.get(key)} ({flag}); use another --out or delete "
                               f"{out_dir / JOBS_DIR}")
@@ -596,7 +633,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
                  mc: int = 10, particles: int | None = None, steps: int | None = None,
                  executor: str = "local", scheduler: str | None = None, workers: int | None = None,
                  progress: bool = True, command: str | None = None, seed0: int = 0,
-                 sets: Sequence[str] = (), grid: Sequence[str] = ()) -> AblationRun:
+                 sets: Sequence[str] = (), grid: Sequence[str] = (), truth: str = "per-run",
+                 truth_scenario: str | Path | None = None) -> AblationRun:
     """Run the (variant x seed) grid on ``cache_dir``, store each job under ``out_dir/jobs``.
 
     Finished jobs are skipped. When all jobs are stored, :func:`aggregate` writes the summary.
@@ -622,6 +660,12 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             sensor and evaluation parameters; never ones that change the trace).
         grid: ``section.key=v1,v2`` (``--grid``): every variant runs once per combination of
             the listed values; the summary labels each arm ``variant[key=value,...]``.
+        truth: ``per-run`` (default): on an analytic cache, run ``s`` draws its own truth from seed ``s``
+            (:mod:`mmslam.pipelines.truth`; needs ``truth_scenario``); ``fixed``: every run uses the
+            cache's truth. A Sionna cache, or no ``truth_scenario``, is always ``fixed``; ``config.truth``
+            of the summary says which was used, ``config.truth_note`` why.
+        truth_scenario: the scenario file (TOML) the cache was traced from (checked against the cache's
+            geometry with the cache's seed).
 
     Raises:
         MmslamError: bad arguments, a results directory made with other settings, an unreachable
@@ -645,8 +689,9 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     if n_steps > info["cache_steps"]:
         raise ConfigError(f"--steps {n_steps}: the cache {info['cache_dir']} holds only "
                           f"{info['cache_steps']} steps; trace more steps first")
+    truth_mode, truth_note, truth_file = _truth_mode(out, info, truth, truth_scenario)
     seeds = list(range(int(seed0), int(seed0) + int(mc)))
-    spec = {**info, "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
+    spec = {**info, "truth": truth_mode, "truth_note": truth_note, "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
             "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
             "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
@@ -674,15 +719,16 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
         with pool_cm as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
-                         None if steps is None else n_steps, progress, len(done), len(jobs), sets)
+                         None if steps is None else n_steps, progress, len(done), len(jobs), sets, truth_file)
     summary = aggregate(out)
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
 
 
 def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
-           steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
+           steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = (),
+           truth_file: str | None = None) -> list[Job]:
     """Submit ``pending``, save each result as it arrives; cancel the rest on error."""
-    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm): j
+    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm, truth_file): j
             for j in pending}
     ran: list[Job] = []
     bar = None
@@ -916,7 +962,7 @@ def aggregate(out_dir: str | Path) -> Summary:
              for k, v in rows.items()}
     table["step"] = table["step"].astype(np.int32)
     table["n"] = table["n"].astype(np.int32)
-    config = {**{k: v for k, v in spec.items() if k != "scenario"}, "fusion_start": fusion_start,
+    config = {**{k: v for k, v in spec.items() if k != "scenario"}, "fusion_start": fusion_start, "truth": spec.get("truth", "fixed"),
               "dt": spec.get("scenario", {}).get("dt"),
               "seeds_found": {v: sorted(j.seed for j in jobs if j.label == v) for v in labels}}
     summary = Summary(table, headline, config)

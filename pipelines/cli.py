@@ -22,6 +22,13 @@ def _check_source(source: str) -> None:
         raise ConfigError(f"--source '{source}': unknown; expected one of {', '.join(SOURCES)}")
 
 
+def _scenario_file(scenario: str) -> Path:
+    """The TOML file of a preset name or a scenario path (per-run truth resolves it again per run)."""
+    from mmslam.scenes.scenario import preset_path
+
+    return Path(scenario) if scenario.endswith(".toml") or Path(scenario).is_file() else preset_path(scenario)
+
+
 def _print_summary(summary, title: str, extra: list[str]) -> None:
     from rich.console import Console
 
@@ -93,6 +100,11 @@ def register(app: typer.Typer) -> None:
                                        "run (repeatable), e.g. --set fusion.vs_reduction=gate; see docs/scenario.md."),
         grid: list[str] = typer.Option([], "--grid", help="section.key=v1,v2: run every variant once per value "
                                        "(repeatable: all combinations), e.g. --grid filter.vs_dither_scope=newborn,all."),
+        truth: str = typer.Option("per-run", "--truth", help="per-run: with --source analytic, run s draws its own "
+                                  "true trajectories (process noise, random SP heights) from seed s; fixed: every run "
+                                  "uses the cache's truth (drawn once from the scenario seed). Sionna caches are "
+                                  "always fixed (per-run truth would need a trace per run); summary.json's "
+                                  "config.truth says which."),
     ) -> None:
         """Run the (variant x grid arm x seed) jobs; finished jobs are kept and skipped on re-runs."""
         from mmslam.outputs import locked
@@ -108,6 +120,8 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
         check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
         sets_c, _ = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
+        if truth not in ("per-run", "fixed"):
+            raise ConfigError(f"--truth {truth!r}: expected per-run or fixed")
         scn = resolve_scenario(scenario)
         particles = particles_for(scn, sets_c, particles)
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
@@ -119,7 +133,8 @@ def register(app: typer.Typer) -> None:
                                   sets=sets_c, grid=grid)
             run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
                                scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
-                               seed0=seed0, sets=sets_c, grid=grid)
+                               seed0=seed0, sets=sets_c, grid=grid, truth=truth,
+                               truth_scenario=_scenario_file(scenario))
             extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
                      f"{run.wall_time_s:.1f} s",
                      f"summary: {Path(out) / 'summary.parquet'}"]

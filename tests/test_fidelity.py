@@ -124,3 +124,32 @@ def test_va_mapped_with_twice_the_noise() -> None:
 
     assert true_vas_found(scn) >= 4  # of 2 x 4
     assert true_vas_found(with_overrides(scn, ["filter.max_trace_scope=all"])) == 0
+
+
+def test_per_run_truth(tmp_path) -> None:
+    """Run s's truth is the scenario file resolved with seed s (trajectory noise, SP heights): the
+    scenario's own seed gives the cache's truth, other seeds another one, the same seed the same."""
+    from mmslam.pipelines.ablate import _truth_mode
+    from mmslam.pipelines.truth import truth_of_run, truth_scenario
+    from mmslam.scenes.scenario import preset_path
+    from mmslam.scenes.trajectory import true_trajectories
+
+    base = load_preset("paper")
+    f = preset_path("paper")
+    s7 = truth_scenario(f, base.seed, base)
+    st7, _ = truth_of_run(s7, 6)
+    np.testing.assert_array_equal(st7, true_trajectories(base, 6))
+    assert [s.position for s in s7.scatterers] == [s.position for s in base.scatterers]
+    a, b, a2 = (truth_scenario(f, s, base) for s in (100, 101, 100))
+    (sa, pa), (sb, _), (sa2, pa2) = (truth_of_run(x, 6) for x in (a, b, a2))
+    assert np.abs(sa - sb)[1:].max() > 0.05 and np.abs(sa - st7)[1:].max() > 0.05
+    assert a.scatterers[0].position[2] != b.scatterers[0].position[2]
+    assert a.scatterers[0].position[:2] == base.scatterers[0].position[:2]
+    np.testing.assert_array_equal(sa, sa2)
+    for c in pa:
+        np.testing.assert_array_equal(pa[c], pa2[c])
+    assert a.filter == base.filter  # only the drawn world changes, not the filter
+    info = {"source": "sionna", "scenario": base.to_dict()}
+    assert _truth_mode(tmp_path, info, "per-run", f)[0] == "fixed"
+    assert _truth_mode(tmp_path, {**info, "source": "analytic"}, "per-run", f)[0] == "per_run"
+    assert _truth_mode(tmp_path, {**info, "source": "analytic"}, "fixed", f)[0] == "fixed"
