@@ -815,13 +815,29 @@ class Summary:
         ``_ci`` of the mean over runs (per-run scores: mean GOSPA, RMSE), the paired difference
         ``_diff`` to ``reference`` (baseline on the same seeds) with its CI ``_diff_ci`` and
         ``_sig`` (True when that CI excludes 0); ``card_<type>``: mean PHD mass (estimated
-        number of landmarks) over the same steps and runs.
+        number of landmarks) over the same steps and runs. Each score is the mean over runs of the
+        per-run score, the statistic its CI is of (the RMSE: mean of the per-run RMSEs; a pooled
+        RMSE over all runs, printed before issue 23 with this CI, is ``pos_rmse_pooled``).
     ``config``: the ablation settings (:data:`ABLATION_FILE`) plus ``fusion_start``.
     """
 
     table: dict[str, np.ndarray]
     headline: list[dict[str, Any]]
     config: dict[str, Any] = field(default_factory=dict)
+    paired: dict[str, list] = field(default_factory=dict)
+    """Per-step paired differences to the reference arm (:func:`paired_steps`): columns variant,
+    reference, quantity (``gospa_VA``, ``gospa_SP``, ``gospa_VS`` of the fused map; ``pos_err``, the
+    position error averaged over the vehicles), step, diff (mean over the common seeds of the per-run
+    difference), ci (95% Student-t half-width), n (seeds), sig (the CI excludes 0)."""
+
+    def paired_series(self, variant: str, quantity: str) -> dict[str, np.ndarray]:
+        """Per-step columns (step, diff, ci, n) of ``variant`` minus its reference for ``quantity``."""
+        p = self.paired
+        if not p:
+            return {k: np.zeros(0) for k in ("step", "diff", "ci", "n")}
+        m = (np.asarray(p["variant"], object) == variant) & (np.asarray(p["quantity"], object) == quantity)
+        order = np.argsort(np.asarray(p["step"])[m], kind="stable")
+        return {k: np.asarray(p[k], float)[m][order] for k in ("step", "diff", "ci", "n")}
 
     def series(self, variant: str, map: str, type: str, quantity: str) -> dict[str, np.ndarray]:
         """Per-step columns (step, mean, std, rms, n) of one (variant, map, type, quantity)."""
@@ -958,6 +974,9 @@ def aggregate(out_dir: str | Path) -> Summary:
                             for i, r in enumerate(res)}
         headline += _headline_rows(variant, res, names, fusion_start)
     _add_intervals(headline, per_run)
+    paired = paired_steps({lab: {int(r.meta.get("seed", i)): _run_series(r)
+                                 for i, r in enumerate(jobs[j] for j in sorted(jobs) if j.label == lab)}
+                           for lab in labels})
     table = {k: np.asarray(v, dtype=object if k in ("variant", "map", "type", "quantity") else None)
              for k, v in rows.items()}
     table["step"] = table["step"].astype(np.int32)
@@ -965,7 +984,7 @@ def aggregate(out_dir: str | Path) -> Summary:
     config = {**{k: v for k, v in spec.items() if k != "scenario"}, "fusion_start": fusion_start, "truth": spec.get("truth", "fixed"),
               "dt": spec.get("scenario", {}).get("dt"),
               "seeds_found": {v: sorted(j.seed for j in jobs if j.label == v) for v in labels}}
-    summary = Summary(table, headline, config)
+    summary = Summary(table, headline, config, paired)
     _write_summary(out, summary)
     return summary
 
@@ -1003,6 +1022,52 @@ def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[s
     return out
 
 
+PAIRED_QUANTITIES: tuple[str, ...] = tuple(f"gospa_{t}" for t in TYPES) + ("pos_err",)
+"""Per-step quantities of :func:`paired_steps`: the fused map's GOSPA per type, the position error."""
+
+
+def _run_series(r: Any) -> dict[str, dict[int, float]]:
+    """One run's per-step values of :data:`PAIRED_QUANTITIES`: step -> fused GOSPA per type, and the
+    position error (m) averaged over the vehicles."""
+    m, vt = r.metrics, r.vehicles
+    out: dict[str, dict[int, float]] = {}
+    fused = np.asarray(m["map"]).astype(str) == "fused"
+    ty_col, st = np.asarray(m["type"]).astype(str), np.asarray(m["step"]).astype(int)
+    g = np.asarray(m["gospa"], float)
+    for ty in TYPES:
+        sel = fused & (ty_col == ty)
+        out[f"gospa_{ty}"] = dict(zip(st[sel].tolist(), g[sel].tolist()))
+    vs, e = np.asarray(vt["step"]).astype(int), np.asarray(vt["pos_err"], float)
+    out["pos_err"] = {int(k): float(e[vs == k].mean()) for k in np.unique(vs)}
+    return out
+
+
+def paired_steps(series: dict[str, dict[int, dict[str, dict[int, float]]]]) -> dict[str, list]:
+    """Per step, the paired difference of each label to its reference (:func:`_reference`) over the seeds
+    both ran: mean and 95% Student-t half-width of ``value(label, seed, step) - value(ref, seed, step)``.
+
+    ``series``: label -> seed -> quantity -> step -> value (:func:`_run_series`). Returns the long table
+    of :attr:`Summary.paired`.
+    """
+    cols: dict[str, list] = {k: [] for k in ("variant", "reference", "quantity", "step", "diff", "ci", "n", "sig")}
+    labels = list(series)
+    for lab in labels:
+        ref = _reference(lab, labels)
+        if ref is None:
+            continue
+        seeds = sorted(set(series[lab]) & set(series[ref]))
+        for q in PAIRED_QUANTITIES:
+            steps = sorted({k for s in seeds for k in series[lab][s].get(q, {})})
+            for k in steps:
+                d = np.array([series[lab][s].get(q, {}).get(k, math.nan) - series[ref][s].get(q, {}).get(k, math.nan)
+                              for s in seeds])
+                mean, half = ci95(d)
+                for c, v in zip(cols, (lab, ref, q, k, mean, half, int(np.isfinite(d).sum()),
+                                       bool(math.isfinite(half) and abs(mean) > half) if math.isfinite(mean) else None)):
+                    cols[c].append(v)
+    return cols
+
+
 SCORED: tuple[str, ...] = tuple(f"gospa_{t}" for t in TYPES) + ("pos_rmse",)
 """Headline scores that get a 95% CI over runs and a paired difference to ``baseline``."""
 
@@ -1031,8 +1096,9 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
         row["reference"] = ref
         for ty in TYPES:
             row[f"card_{ty}"] = ci95(np.array([runs[s][mp][f"card_{ty}"] for s in runs]))[0]
+        row["pos_rmse_pooled"] = row["pos_rmse"]
         for q in SCORED:
-            row[q + "_ci"] = ci95(np.array([runs[s][mp][q] for s in runs]))[1]
+            row[q], row[q + "_ci"] = ci95(np.array([runs[s][mp][q] for s in runs]))
             row[q + "_diff"] = row[q + "_diff_ci"] = math.nan
             row[q + "_sig"] = None
             if ref is None:
@@ -1089,7 +1155,10 @@ def _write_summary(out: Path, s: Summary) -> None:
                 for k, v in s.table.items()}
     head = [{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in r.items()}
             for r in s.headline]
-    _write_json(out / SUMMARY_JSON, {"config": s.config, "headline": head, "per_step": per_step})
+    paired = {k: [None if isinstance(x, float) and not math.isfinite(x) else x for x in v]
+              for k, v in s.paired.items()}
+    _write_json(out / SUMMARY_JSON, {"config": s.config, "headline": head, "per_step": per_step,
+                                     "per_step_paired": paired})
 
 
 def load_summary(out_dir: str | Path) -> Summary:
@@ -1110,5 +1179,7 @@ def load_summary(out_dir: str | Path) -> Summary:
     for k in ("variant", "map", "type", "quantity"):
         table[k] = np.asarray(table[k], dtype=object)
     head = [{k: (math.nan if x is None else x) for k, x in r.items()} for r in j["headline"]]
-    return Summary(table, head, j["config"])
+    paired = {k: [math.nan if x is None and k in ("diff", "ci") else x for x in v]
+              for k, v in j.get("per_step_paired", {}).items()}
+    return Summary(table, head, j["config"], paired)
 

@@ -8,6 +8,7 @@ variant name as their label; the fusion-start marker is a vertical line labelled
 - :func:`fig_gospa` (the paper's Fig. 2a with ``type="VS"``, Fig. 2b with ``type="VA"``, and
   the SP plot with ``type="SP"``): mean GOSPA of one map (default the fused BS map) vs step.
 - :func:`fig_position_rmse` (the paper's Fig. 3): position RMSE over runs and vehicles vs step.
+- :func:`fig_paired`: Figs. 2-3 as per-step paired differences to ``baseline`` with 95% CIs.
 - :func:`fig_map`: top-down view of one run at its last step: true and estimated VA / SP / VS,
   true and estimated trajectories, the BS.
 
@@ -115,6 +116,44 @@ def fig_position_rmse(summary: Summary, map: str = ALL_VEHICLES) -> Any:
     ax.set_ylabel("position RMSE [m]")
     ax.set_ylim(bottom=0)
     return fig
+
+
+PAIRED_TITLES = {"gospa_VS": "fused VS GOSPA", "gospa_VA": "fused VA GOSPA", "gospa_SP": "fused SP GOSPA",
+                 "pos_err": "position error (mean over vehicles)"}
+
+
+def fig_paired(summary: Summary, quantity: str = "gospa_VS") -> Any:
+    """Per step, each variant minus its reference (baseline, same seeds): mean paired difference with its
+    95% Student-t band (:attr:`~mmslam.pipelines.ablate.Summary.paired`); filled markers where the band
+    excludes 0 (significantly better below the zero line, worse above). ``quantity``: ``gospa_VS``,
+    ``gospa_VA``, ``gospa_SP`` (fused map) or ``pos_err`` [m]."""
+    fig, ax = _figure()
+    for v in summary.variants:
+        s = summary.paired_series(v, quantity)
+        if s["step"].size == 0:
+            continue
+        st = dict(VARIANT_STYLE.get(parse_variant(v), {}))
+        mk = st.pop("marker", "o")
+        ci = np.where(np.isfinite(s["ci"]), s["ci"], 0.0)
+        ax.plot(s["step"], s["diff"], label=v, gid=f"variant:{v}", linewidth=1.4, **st)
+        ax.fill_between(s["step"], s["diff"] - ci, s["diff"] + ci, color=st.get("color"), alpha=0.18, linewidth=0)
+        sig = np.isfinite(s["ci"]) & (np.abs(s["diff"]) > s["ci"])
+        ax.plot(s["step"][sig], s["diff"][sig], linestyle="none", marker=mk, markersize=4, color=st.get("color"),
+                gid=f"significant:{v}")
+    ax.axhline(0.0, color=OKABE_ITO["black"], linewidth=0.8)
+    ax.grid(True, alpha=0.3)
+    _mark_fusion(ax, summary.config.get("fusion_start"))
+    _relabel_legend(ax)
+    ax.set_title(f"{PAIRED_TITLES.get(quantity, quantity)} minus baseline, paired, 95% CI ({_runs_text(summary)})",
+                 fontsize=9)
+    ax.set_xlabel(_step_label(summary))
+    ax.set_ylabel("paired difference [m]")
+    return fig
+
+
+def parse_variant(label: str) -> str:
+    """The variant of a summary label (``proposed[fusion.x=y]`` -> ``proposed``)."""
+    return label.split("[", 1)[0]
 
 
 def fig_cardinality(summary: Summary, type: str = "VS", map: str = "fused") -> Any:

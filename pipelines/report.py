@@ -66,6 +66,9 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
     plots = (("fig2a_gospa_vs", lambda: F.fig_gospa(summary, "VS")),
              ("fig2b_gospa_va", lambda: F.fig_gospa(summary, "VA")),
              ("fig3_position_rmse", lambda: F.fig_position_rmse(summary)),
+             ("fig2a_paired_vs", lambda: F.fig_paired(summary, "gospa_VS")),
+             ("fig2b_paired_va", lambda: F.fig_paired(summary, "gospa_VA")),
+             ("fig3_paired_position", lambda: F.fig_paired(summary, "pos_err")),
              ("gospa_sp", lambda: F.fig_gospa(summary, "SP")),
              ("cardinality_vs", lambda: F.fig_cardinality(summary, "VS")),
              ("cardinality_va", lambda: F.fig_cardinality(summary, "VA")))
@@ -86,6 +89,12 @@ FIGURE_CAPTIONS = {
     "fig2a_gospa_vs": "Fig. 2a: mean GOSPA of the VS map (fused at the BS) vs time step; shaded: ±1 std over runs.",
     "fig2b_gospa_va": "Fig. 2b: mean GOSPA of the VA map (fused at the BS) vs time step; shaded: ±1 std over runs.",
     "fig3_position_rmse": "Fig. 3: vehicle position RMSE over Monte Carlo runs and vehicles vs time step.",
+    "fig2a_paired_vs": "Fig. 2a, paired: per step, fused VS GOSPA of each variant minus baseline's on the same "
+                       "seeds (mean, 95% Student-t band); filled markers: the band excludes 0.",
+    "fig2b_paired_va": "Fig. 2b, paired: per step, fused VA GOSPA minus baseline's (mean, 95% band); filled "
+                       "markers: significant.",
+    "fig3_paired_position": "Fig. 3, paired: per step, the position error (mean over vehicles) minus baseline's on "
+                            "the same seeds (mean, 95% band); filled markers: significant.",
     "gospa_sp": "Mean GOSPA of the SP map (fused at the BS) vs time step.",
     "cardinality_vs": "Estimated number of VSs (PHD mass of the fused VS map) vs time step, mean over runs; "
                       "dotted: the true number of vehicles. A merge of two vehicles shows as a drop.",

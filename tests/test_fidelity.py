@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.ckf import kalman_update
@@ -153,3 +154,36 @@ def test_per_run_truth(tmp_path) -> None:
     assert _truth_mode(tmp_path, info, "per-run", f)[0] == "fixed"
     assert _truth_mode(tmp_path, {**info, "source": "analytic"}, "per-run", f)[0] == "per_run"
     assert _truth_mode(tmp_path, {**info, "source": "analytic"}, "fixed", f)[0] == "fixed"
+
+
+def test_paired_steps_by_hand() -> None:
+    """Per step, the paired difference to baseline over the common seeds, with the Student-t half-width."""
+    from scipy.stats import t as student_t
+
+    from mmslam.pipelines.ablate import paired_steps
+
+    base = {s: {"pos_err": {0: 1.0, 1: 2.0}} for s in (0, 1, 2)}
+    prop = {0: {"pos_err": {0: 1.5, 1: 1.0}}, 1: {"pos_err": {0: 1.0, 1: 1.5}}, 2: {"pos_err": {0: 1.0, 1: 1.2}},
+            3: {"pos_err": {0: 9.0, 1: 9.0}}}  # seed 3: no baseline run, not paired
+    p = paired_steps({"baseline": base, "proposed": prop})
+    rows = [i for i, q in enumerate(p["quantity"]) if q == "pos_err"]
+    assert [p["step"][i] for i in rows] == [0, 1] and all(p["reference"][i] == "baseline" for i in rows)
+    d1 = np.array([-1.0, -0.5, -0.8])
+    i1 = rows[1]
+    assert p["diff"][i1] == pytest.approx(d1.mean()) and p["n"][i1] == 3
+    assert p["ci"][i1] == pytest.approx(student_t.ppf(0.975, 2) * d1.std(ddof=1) / np.sqrt(3))
+    assert p["sig"][i1] is True and p["sig"][rows[0]] is False  # step 0: +0.5, 0, 0
+
+
+def test_headline_rmse_is_the_statistic_of_its_ci() -> None:
+    """The headline position RMSE is the mean over runs of the per-run RMSE, the quantity its CI is of
+    (before: the RMSE pooled over all runs and steps, printed with that CI); the pooled one is kept."""
+    from mmslam.pipelines.ablate import _add_intervals, ci95
+
+    runs = {s: {"fused": {"pos_rmse": r, **{f"gospa_{t}": 1.0 for t in ("VA", "SP", "VS")},
+                          **{f"card_{t}": 1.0 for t in ("VA", "SP", "VS")}}} for s, r in ((0, 0.3), (1, 0.5), (2, 1.6))}
+    head = [{"variant": "baseline", "map": "fused", "pos_rmse": 1.0, "gospa_VA": 1.0, "gospa_SP": 1.0, "gospa_VS": 1.0}]
+    _add_intervals(head, {"baseline": runs})
+    mean, half = ci95(np.array([0.3, 0.5, 1.6]))
+    assert head[0]["pos_rmse"] == pytest.approx(0.8) == pytest.approx(mean)
+    assert head[0]["pos_rmse_ci"] == pytest.approx(half) and head[0]["pos_rmse_pooled"] == 1.0
