@@ -855,6 +855,20 @@ class Summary:
         return sorted(present, key=lambda lab: (order.get(parse_label(lab)[0], 99), present.index(lab)))
 
 
+def upload_steps(scenario: dict[str, Any], steps: int) -> list[int] | None:
+    """The steps with an upload (any vehicle's ``fusion.start + i fusion.period``) when the scenario's
+    ``evaluation.fused_steps`` is ``uploads`` (the fused map's headline GOSPA is their mean), else None."""
+    from mmslam.scenes.scenario import scenario_from_resolved
+
+    if not scenario:
+        return None
+    scn = scenario_from_resolved(scenario)
+    if scn.evaluation.fused_steps != "uploads":
+        return None
+    fu = scn.fusion
+    return sorted({k for st in fu.start for k in range(int(st), int(steps), int(fu.period))})
+
+
 def _fusion_start(scenario: dict[str, Any]) -> int:
     try:
         return int(min(scenario["fusion"]["start"]))
@@ -929,6 +943,7 @@ def aggregate(out_dir: str | Path) -> Summary:
     if not jobs:
         raise CacheError(f"{out}: no finished jobs under {out / JOBS_DIR}; run the ablation first")
     fusion_start = _fusion_start(spec.get("scenario", {}))
+    uploads = upload_steps(spec.get("scenario", {}), int(spec.get("steps") or 0))
     rows: dict[str, list] = {k: [] for k in ("variant", "map", "type", "quantity", "step", "mean", "std",
                                              "rms", "n")}
     headline: list[dict[str, Any]] = []
@@ -970,9 +985,9 @@ def aggregate(out_dir: str | Path) -> Summary:
                 for (mp, st), (mu, sd, rm, n) in sorted(_group_stats(keys, vals).items()):
                     for k, v in zip(rows, (variant, mp, "state", q, st, mu, sd, rm, n)):
                         rows[k].append(v)
-        per_run[variant] = {int(r.meta.get("seed", i)): _run_scores(r, names, fusion_start)
+        per_run[variant] = {int(r.meta.get("seed", i)): _run_scores(r, names, fusion_start, uploads)
                             for i, r in enumerate(res)}
-        headline += _headline_rows(variant, res, names, fusion_start)
+        headline += _headline_rows(variant, res, names, fusion_start, uploads)
     _add_intervals(headline, per_run)
     paired = paired_steps({lab: {int(r.meta.get("seed", i)): _run_series(r)
                                  for i, r in enumerate(jobs[j] for j in sorted(jobs) if j.label == lab)}
@@ -982,6 +997,7 @@ def aggregate(out_dir: str | Path) -> Summary:
     table["step"] = table["step"].astype(np.int32)
     table["n"] = table["n"].astype(np.int32)
     config = {**{k: v for k, v in spec.items() if k != "scenario"}, "fusion_start": fusion_start, "truth": spec.get("truth", "fixed"),
+              "fused_headline_steps": "all from fusion_start" if uploads is None else uploads,
               "dt": spec.get("scenario", {}).get("dt"),
               "seeds_found": {v: sorted(j.seed for j in jobs if j.label == v) for v in labels}}
     summary = Summary(table, headline, config, paired)
@@ -997,12 +1013,14 @@ def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> l
     return list(dict.fromkeys(j.label for j in ranked))
 
 
-def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[str, float]]:
-    """One run's scalar scores per map: mean GOSPA and PHD mass per type, position RMSE (steps >= fusion_start)."""
+def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[int] | None = None
+                ) -> dict[str, dict[str, float]]:
+    """One run's scalar scores per map: mean GOSPA and PHD mass per type, position RMSE (steps >= fusion_start;
+    the fused map's GOSPA only over ``uploads`` when given, :func:`upload_steps`)."""
     m = r.metrics
     mp_col = np.asarray(m["map"]).astype(str)
     ty_col = np.asarray(m["type"]).astype(str)
-    late = np.asarray(m["step"]) >= fusion_start
+    late = _late(m, fusion_start, mp_col, uploads)
     vt = r.vehicles
     vlate = np.asarray(vt["step"]) >= fusion_start
     out: dict[str, dict[str, float]] = {}
@@ -1110,8 +1128,19 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
             row[q + "_sig"] = bool(math.isfinite(half) and abs(mean) > half) if math.isfinite(mean) else None
 
 
-def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start: int) -> list[dict[str, Any]]:
-    """Mean GOSPA per (map, type) and position RMSE over steps >= fusion_start, over all seeds."""
+def _late(m: dict[str, np.ndarray], fusion_start: int, mp_col: np.ndarray, uploads: Sequence[int] | None) -> np.ndarray:
+    """Metric rows scored in the headline: steps >= fusion_start; the fused map's only at ``uploads`` if given."""
+    st = np.asarray(m["step"])
+    late = st >= fusion_start
+    if uploads is not None:
+        late &= (mp_col != "fused") | np.isin(st, np.asarray(list(uploads), int))
+    return late
+
+
+def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start: int,
+                   uploads: Sequence[int] | None = None) -> list[dict[str, Any]]:
+    """Mean GOSPA per (map, type) and position RMSE over steps >= fusion_start, over all seeds (the fused
+    map's GOSPA only over ``uploads`` when given)."""
     maps = list(names) + ["fused"]
     wall = [float(r.meta.get("wall_time_s", math.nan)) for r in res]
     rows = []
@@ -1121,8 +1150,8 @@ def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start:
             vals = []
             for r in res:
                 m = r.metrics
-                sel = ((np.asarray(m["map"]).astype(str) == mp) & (np.asarray(m["type"]).astype(str) == ty)
-                       & (np.asarray(m["step"]) >= fusion_start))
+                mpc = np.asarray(m["map"]).astype(str)
+                sel = (mpc == mp) & (np.asarray(m["type"]).astype(str) == ty) & _late(m, fusion_start, mpc, uploads)
                 vals.append(np.asarray(m["gospa"], dtype=float)[sel])
             a = np.concatenate(vals) if vals else np.zeros(0)
             a = a[np.isfinite(a)]

@@ -138,6 +138,18 @@ def visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positio
     return out
 
 
+def all_static(paths: dict[str, np.ndarray], steps: int) -> dict[int, Seen]:
+    """type code -> every static landmark of that type in ``paths`` (steps ``< steps``, any vehicle, in
+    its FOV or not), each "seen" at step 0 (``evaluation.truth_set = "all"``: every map is scored
+    against the scene's whole static truth from the start, as the TWC2020 code scores)."""
+    static = [s.code for s in evaluated_types() if not s.moving]
+    out: dict[int, Seen] = {c: {} for c in static}
+    step, typ, _, ids, xyz = _truth_rows(paths)
+    for i in np.nonzero(np.isin(typ, static) & (step < steps))[0]:
+        out[int(typ[i])].setdefault(ids[i], (0, xyz[i]))
+    return out
+
+
 def truth_static(seen: Seen, k: int) -> np.ndarray:
     """``(n, 3)`` positions of the landmarks first seen at or before step ``k``."""
     pts = [p for s, p in seen.values() if s <= k]
@@ -193,7 +205,11 @@ class MapScorer:
         steps, n_veh = true.shape[0], true.shape[1]
         self.scn, self.true, self.names, self.n_veh = scn, true, names, n_veh
         pos = true[:steps, :, 0:3]
-        self.seen = first_seen(paths, n_veh, steps, pos, scn.sensor)
+        if scn.evaluation.truth_set == "all":
+            every = all_static(paths, steps)
+            self.seen = {t: [every[t]] * n_veh for t in every}
+        else:
+            self.seen = first_seen(paths, n_veh, steps, pos, scn.sensor)
         self.seen_all = {t: merge_seen(v) for t, v in self.seen.items()}
         self.visible = visible_counts(paths, n_veh, steps, pos, scn.sensor)
         self.types = evaluated_types()

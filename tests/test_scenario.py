@@ -142,7 +142,7 @@ def test_missing_file_and_bad_toml(tmp_path):
 
 
 def test_unknown_preset():
-    with pytest.raises(ConfigError, match=r"unknown scenario 'nope'; expected a preset \(canyon, munich, paper, street\) or a path to a \.toml file"):
+    with pytest.raises(ConfigError, match=r"unknown scenario 'nope'; expected a preset \(canyon, munich, paper, street, twc2020\) or a path to a \.toml file"):
         load_preset("nope")
 
 
