@@ -210,7 +210,7 @@ class FilterParams:
     vs_extent_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of where on a car body a VS path bounces, about the car's antenna position "
         "[horizontal (each axis), vertical]: diag(h^2, h^2, v^2) is added to the scatter point in the VS "
-        "likelihood and to the ego Gaussian that F'_AA uploads; 0: point VS (exact for the analytic "
+        "likelihood, once (the ego Gaussian F'_AA uploads stays the antenna position); 0: point VS (exact for the analytic "
         "source)", "m", lo=0.0, hi=100.0, length=2)
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
