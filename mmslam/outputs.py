@@ -140,12 +140,12 @@ FIGURE_TOKEN = "mmslam-figure"
 """Written into every figure's metadata (PNG text chunk, PDF / SVG creator): recognises our own figures."""
 
 
-def figure_format(path: str | Path, option: str = "--out") -> str:
-    """The figure format named by ``path``'s suffix (png, pdf, svg); one-line error otherwise."""
+def figure_format(path: str | Path, option: str = "--out", formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
+    """The figure format named by ``path``'s suffix (one of ``formats``); one-line error otherwise."""
     suffix = Path(path).suffix.lower().lstrip(".")
-    if suffix not in FIGURE_FORMATS:
+    if suffix not in formats:
         raise MmslamError(f"{option} {path}: unknown figure format '.{suffix}'; use a file name ending in "
-                          f"{', '.join('.' + f for f in FIGURE_FORMATS)}")
+                          f"{', '.join('.' + f for f in formats)}")
     return suffix
 
 
@@ -158,14 +158,15 @@ def is_mmslam_figure(path: str | Path) -> bool:
         return False
 
 
-def check_figure_target(path: str | Path, force: bool = False, option: str = "--out") -> str:
+def check_figure_target(path: str | Path, force: bool = False, option: str = "--out",
+                        formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
     """Check a figure file target before any computation; returns its format.
 
     Allowed: a missing file, or a figure mmslam wrote before; ``force`` allows any other file.
     A directory is always refused. The parent directory must exist.
     """
     p = Path(path)
-    fmt = figure_format(p, option)
+    fmt = figure_format(p, option, formats)
     if p.is_dir():
         raise MmslamError(f"{option} {p}: is a directory; give a file name ending in .{fmt}")
     if not p.parent.is_dir():
