@@ -37,8 +37,8 @@ def register(app: typer.Typer) -> None:
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         out: Path = typer.Option(..., "--out", help="Output folder for meshes/*.ply and <scenario>.xml; an "
                                  "existing one must be empty or a previous scene build."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
-                                   "previous scene build (files of the same names are replaced)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a folder mmslam did not write is never written into."),
     ) -> None:
         """Write one PLY per object and a Mitsuba XML that Sionna RT loads (merge_shapes=False)."""
         from mmslam.outputs import check_target, locked, output_kind, write_marker
@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
 
         scn = resolve_scenario(scenario)
         with locked(out, "scene build"):
-            check_target(out, SCENE_KIND, force, force_does="write into it")  # before the meshes are made
+            check_target(out, SCENE_KIND, force)  # before the meshes are made
             xml = build_scene(scn, out)
             if output_kind(out) != SCENE_KIND:
                 write_marker(out, SCENE_KIND)
@@ -59,8 +59,8 @@ def register(app: typer.Typer) -> None:
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         out: Path = typer.Option(Path("plan.png"), "--out", help="Figure file for the top-down plan; the "
                                  "format follows the suffix (.png, .pdf, .svg)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
-                                   "mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Plot a top-down plan: BS, buildings, SPs, VAs, trajectories and FOV circles."""
         from mmslam.outputs import check_figure_target
