@@ -76,8 +76,10 @@ def register(app: typer.Typer) -> None:
         scene_spec: str = typer.Argument(..., metavar="SCENE",
                                          help="A scenario with an xml_scene (preset or .toml), or an XML scene "
                                               "(sionna:<name> or a .xml file)."),
-        out: Path = typer.Option(Path("streets.png"), "--out", help="PNG of the street map."),
-        data: Optional[Path] = typer.Option(None, "--data", help="Also save the grids (.npz)."),
+        out: Path = typer.Option(Path("streets.png"), "--out", help="Figure of the street map; the format follows "
+                                 "the suffix (.png, .pdf, .svg). An existing file must be a figure mmslam wrote."),
+        data: Optional[Path] = typer.Option(None, "--data", help="Also save the grids (.npz); an existing file "
+                                            "must be a street map mmslam wrote."),
         res: float = typer.Option(2.0, "--res", help="Grid resolution (m)."),
         clearance: float = typer.Option(3.0, "--clearance", help="Free space: at least this far from kerbs (m)."),
     ) -> None:
@@ -89,15 +91,21 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from mmslam.errors import ConfigError
+        from mmslam.outputs import check_figure_target, check_npz_target, resolve_link
         from mmslam.scenes.geometry import xml_geometry
         from mmslam.scenes.scenario import resolve_scenario
-        from mmslam.scenes.streets import plot_streets, save_street_map, street_map
+        from mmslam.scenes.streets import NPZ_KIND, plot_streets, save_street_map, street_map
         from mmslam.scenes.trajectory import true_trajectories
 
         if not 0.25 <= res <= 20.0:
             raise ConfigError(f"--res {res}: expected 0.25 .. 20 m")
         if not 0.0 <= clearance <= 50.0:
             raise ConfigError(f"--clearance {clearance}: expected 0 .. 50 m")
+        check_figure_target(out)  # both outputs before any work: a file mmslam did not write is never replaced
+        if data is not None:
+            check_npz_target(data, NPZ_KIND, option="--data")
+            if resolve_link(data, "--data").resolve() == resolve_link(out).resolve():
+                raise ConfigError(f"--data {data}: the same file as --out; choose two paths")
         routes, bs = {}, None
         if scene_spec.startswith("sionna:") or scene_spec.endswith(".xml"):
             geom, title = xml_geometry(scene_spec), scene_spec

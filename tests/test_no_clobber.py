@@ -130,3 +130,26 @@ def test_trace_force_touches_only_its_own_cache(tmp_path, capsys, cache):
     m = json.loads((cdir / "manifest.json").read_text())
     assert main(TRACE + ["--out", str(croot), "--force"]) == 0  # its own cache: re-traced
     assert json.loads((cdir / "manifest.json").read_text())["steps_completed"] == m["steps_completed"]
+
+
+# ============================================================ 2. scene streets overwrote --out and --data unchecked
+def test_scene_streets_refuses_user_files_and_replaces_its_own(tmp_path, capsys):
+    # before: `scene streets ... --out user.png --data user.npz` overwrote both (no check, no --force)
+    import numpy as np
+
+    user = tmp_path / "user"
+    user.mkdir()
+    png, npz = user / "user.png", user / "user.npz"
+    png.write_bytes(b"\x89PNG my holiday photo")
+    np.savez(npz, grid=np.arange(4))
+    before = tree(tmp_path)
+    args = ["scene", "streets", "sionna:simple_street_canyon"]
+    for out, data in ((png, tmp_path / "new.npz"), (tmp_path / "new.png", npz)):
+        capsys.readouterr()
+        assert main(args + ["--out", str(out), "--data", str(data)]) == 2
+        one_line(capsys, str(png if out == png else npz), "did not write")
+        assert tree(tmp_path) == before
+    mine_png, mine_npz = tmp_path / "s.png", tmp_path / "s.npz"
+    assert main(args + ["--out", str(mine_png), "--data", str(mine_npz)]) == 0
+    assert main(args + ["--out", str(mine_png), "--data", str(mine_npz), "--res", "4"]) == 0  # its own: replaced
+    assert float(np.load(mine_npz)["res"]) == 4.0
