@@ -545,15 +545,14 @@ ABLATION_KIND = "ablation"
 def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
     """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
 
-    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``); ``force`` also
-    allows another directory (files are added, none deleted). Raises a one-line error otherwise.
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``). Raises a one-line
+    error otherwise, whatever ``force`` (:mod:`mmslam.outputs`: never into a folder mmslam did not make).
     """
     from mmslam.outputs import check_target, output_kind, write_marker
 
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
-    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file(),
-                       force_does="write into it (nothing in it is deleted)")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
     out.mkdir(parents=True, exist_ok=True)
     if output_kind(out) != ABLATION_KIND:
         write_marker(out, ABLATION_KIND)

@@ -286,7 +286,7 @@ def check_animation_target(path: str | Path, force: bool = False, option: str = 
     """Check an animation file target before any work; returns its format (``gif`` or ``mp4``).
 
     The same rule as figures (:func:`mmslam.outputs.check_figure_target`): a missing file or one
-    mmslam wrote; ``force`` allows another file. An MP4 needs ffmpeg on the PATH.
+    mmslam wrote, with or without ``force``. An MP4 needs ffmpeg on the PATH.
     """
     from mmslam.outputs import check_figure_target
 

@@ -52,9 +52,11 @@ def register(app: typer.Typer) -> None:
                                                 "filter.particles)." + span(1, MAX_PARTICLES)),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),
         out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
-                                 "directory is replaced only if it is empty or a previous result."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a previous "
-                                   "result (never the input cache)."),
+                                 "directory is replaced only if it is empty or a previous result holding only "
+                                 "a result's files."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "--out is replaced only if it is a previous result, and a folder or file mmslam "
+                                   "did not write is never touched."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
         animate: Optional[Path] = typer.Option(None, "--animate", help="Also draw the run step by step (vehicles, "
                                                "the fused map's estimates vs truth, the traced paths) into this "
@@ -73,17 +75,15 @@ def register(app: typer.Typer) -> None:
         check_int("--particles", particles, 1, MAX_PARTICLES, "a number of particles")
         check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
-        from mmslam.outputs import check_target
-        from mmslam.slam.result import RESULT_KIND
-
-        from mmslam.outputs import locked
+        from mmslam.outputs import check_target, locked
+        from mmslam.slam.result import RESULT_FILES, RESULT_KIND
 
         if animate is not None:
             from mmslam.pipelines.viewer import check_animation_target
 
             check_animation_target(animate, force)  # before the computation
         with locked(out, "slam"):
-            check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
+            check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
             except BaseException as e:

@@ -43,6 +43,8 @@ from mmslam.outputs import check_target, make_temp_dir, replace_dir, write_marke
 
 TABLES = ("vehicles", "metrics", "landmarks")
 RESULT_KIND = "result"
+RESULT_FILES = frozenset({*(f"{t}.parquet" for t in TABLES), "meta.json"})
+"""Everything a result directory holds besides its marker: only these are ever deleted when it is replaced."""
 
 
 @dataclass
@@ -55,15 +57,17 @@ class Result:
     def save(self, out_dir: str | Path, force: bool = False) -> Path:
         """Write atomically to ``out_dir``. Returns the path.
 
-        An existing ``out_dir`` is replaced only when it is empty or a previous result; anything
-        else raises a one-line :class:`~mmslam.errors.MmslamError` unless ``force``.
+        An existing ``out_dir`` is replaced only when it is empty or a previous result holding
+        nothing but a result's files (:data:`RESULT_FILES`); anything else (a user's folder, a file
+        the user added to a result) raises a one-line :class:`~mmslam.errors.MmslamError`, whatever
+        ``force`` (kept for callers; :mod:`mmslam.outputs`). A symbolic link is followed and kept.
         """
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         out = Path(out_dir)
-        check_target(out, RESULT_KIND, force)
         out.parent.mkdir(parents=True, exist_ok=True)
+        out = check_target(out, RESULT_KIND, force, own_names=RESULT_FILES)
         tmp = make_temp_dir(out.parent, out.name)
         try:
             for name in TABLES:
@@ -73,7 +77,7 @@ class Result:
                 pq.write_table(table, tmp / f"{name}.parquet")
             (tmp / "meta.json").write_text(json.dumps(self.meta, indent=2, default=_jsonable))
             write_marker(tmp, RESULT_KIND)
-            replace_dir(tmp, out, RESULT_KIND, force)
+            replace_dir(tmp, out, RESULT_KIND, force, own_names=RESULT_FILES)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

@@ -180,8 +180,9 @@ def test_animation_has_a_frame_per_step_and_is_tagged(data: dict, tmp_path: Path
 def test_animation_target_is_checked_before_any_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     user = tmp_path / "mine.gif"
     user.write_bytes(b"GIF89a user data")
-    with pytest.raises(MmslamError, match="not a figure mmslam wrote"):
-        check_animation_target(user)
+    for force in (False, True):  # --force never widens what may be touched
+        with pytest.raises(MmslamError, match="a file mmslam did not write"):
+            check_animation_target(user, force=force)
     assert user.read_bytes() == b"GIF89a user data"
     with pytest.raises(MmslamError, match=r"unknown figure format '\.png'.*\.gif, \.mp4"):
         check_animation_target(tmp_path / "a.png")
