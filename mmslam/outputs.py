@@ -269,13 +269,17 @@ def npz_bytes(kind: str, compressed: bool = False, **arrays: object) -> bytes:
 
 
 def save_figure(fig: object, path: str | Path, dpi: int = 120, **kwargs: object) -> Path:
-    """Write matplotlib ``fig`` atomically in the format of ``path``'s suffix, tagged as an mmslam figure."""
+    """Write matplotlib ``fig`` atomically in the format of ``path``'s suffix, tagged as an mmslam figure.
+
+    An existing file is replaced only if it is a figure mmslam wrote (one-line error otherwise)."""
     import io
 
     from mmslam import __version__
 
     p = Path(path)
     fmt = figure_format(p)
+    if os.path.lexists(p) and not is_mmslam_figure(resolve_link(p)):  # the last-moment check (callers check first)
+        raise MmslamError(f"{p}: exists and is not a figure mmslam wrote; choose another path ({NEVER})")
     meta = {"png": {"Software": f"{FIGURE_TOKEN} {__version__}"},
             "pdf": {"Creator": f"{FIGURE_TOKEN} {__version__}"},
             "svg": {"Creator": f"{FIGURE_TOKEN} {__version__}"}}[fmt]

@@ -553,6 +553,10 @@ def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
     out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
+    if out.is_dir():
+        from mmslam.pipelines.report import check_ablation_outputs
+
+        check_ablation_outputs(out)  # a user's summary / report / figure of the same name (issue 25)
     out.mkdir(parents=True, exist_ok=True)
     if output_kind(out) != ABLATION_KIND:
         write_marker(out, ABLATION_KIND)

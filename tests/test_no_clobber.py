@@ -153,3 +153,54 @@ def test_scene_streets_refuses_user_files_and_replaces_its_own(tmp_path, capsys)
     assert main(args + ["--out", str(mine_png), "--data", str(mine_npz)]) == 0
     assert main(args + ["--out", str(mine_png), "--data", str(mine_npz), "--res", "4"]) == 0  # its own: replaced
     assert float(np.load(mine_npz)["res"]) == 4.0
+
+
+# ============================================================ 3. ablate --force --report replaced a user's summary/report/figure
+ABLATE = ["ablate", "paper", "--source", "analytic", "--steps", "2", "--mc", "1", "--particles", "3",
+          "--variants", "baseline", "--workers", "1", "--quiet", "--report"]
+
+
+def user_results(folder: Path) -> None:
+    """A user's files that happen to have the names an ablation writes."""
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "summary.json").write_text('{"my": "summary"}')
+    (folder / "summary.parquet").write_bytes(b"PAR1 not really")
+    (folder / "report.html").write_text("<html><title>my report</title></html>")
+    (folder / "figures").mkdir(exist_ok=True)
+    (folder / "figures" / "fig2a_gospa_vs.png").write_bytes(b"\x89PNG my figure")
+    np.save(folder / "data.npy", np.arange(3))
+
+
+def test_ablate_force_report_never_replaces_a_users_files(tmp_path, capsys):
+    # before: ablate --force --report into this folder replaced summary.json, summary.parquet, report.html
+    # and figures/fig2a_gospa_vs.png, although its help said "nothing in it is deleted"
+    user = tmp_path / "user"
+    user_results(user)
+    before = tree(tmp_path)
+    for force in ([], ["--force"]):
+        capsys.readouterr()
+        assert main(ABLATE + force + ["--out", str(user)]) == 2
+        one_line(capsys, str(user), "did not write")
+        assert tree(tmp_path) == before
+
+
+def test_an_ablation_folder_with_a_users_files_of_its_names_is_not_overwritten(tmp_path, capsys):
+    # an ablation folder an older mmslam marked when writing into a user's folder with --force: the
+    # user's files of the names an ablation writes are recognised by content and never overwritten
+    out = tmp_path / "abl"
+    assert main(ABLATE + ["--out", str(out)]) == 0
+    keep = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for name in ("summary.json", "summary.parquet", "report.html", "figures/fig2a_gospa_vs.png"):
+        mine = out / name
+        mine.write_bytes(b"the user's " + name.encode())
+        before = tree(tmp_path)
+        for argv in (["report", str(out)], ABLATE + ["--out", str(out)], ABLATE + ["--force", "--out", str(out)]):
+            capsys.readouterr()
+            assert main(argv) == 2, argv
+            one_line(capsys, name.split("/")[-1], "not a file mmslam wrote")
+            assert tree(tmp_path) == before
+        mine.write_bytes(keep[mine])
+    capsys.readouterr()
+    assert main(["report", str(out)]) == 0  # its own files are rewritten
