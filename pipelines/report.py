@@ -57,7 +57,7 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
     """
     from mmslam.pipelines import figures as F
     from mmslam.scenes.scenario import scenario_from_resolved
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     out = Path(out_dir)
     fdir = out / FIGURES_DIR
@@ -199,7 +199,7 @@ pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
 
 def _variants_html(variants: list[str]) -> str:
     """``<table id="variants">``: each variant's legend label and what it runs (:class:`VariantSpec`)."""
-    from mmslam.slam.variants import variant_names, get_variant
+    from mmslam.slam.specs.variants import variant_names, get_variant
 
     rows = []
     for v in variants:
