@@ -7,7 +7,7 @@ conditional on it. With per-run truth (``mmslam ablate --truth per-run``, the de
 analytic source) run ``s`` resolves the scenario file again with seed ``s``
 (:func:`mmslam.scenes.scenario.load_scenario` with ``seed_override``: trajectory process noise,
 SP heights and routes drawn from ``s``) and traces it in memory with the closed-form source; the
-filter's own random streams (``SeedSequence(s)`` in :mod:`mmslam.slam.run`) are independent
+filter's own random streams (``SeedSequence(s)`` in :mod:`mmslam.slam.filter.run`) are independent
 of those draws. A Sionna cache cannot do this without a re-trace per run, so its truth stays the
 traced one (``fixed``); the summary says which (``config.truth``).
 """

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from mmslam.scenes.scenario import load_preset, with_overrides
-from mmslam.slam.ckf import kalman_update
-from mmslam.slam.fusion_center import ego_gaussian
-from mmslam.slam.gm import empty
-from mmslam.slam.landmarks import VS_SPEC, FusionInput, fuse_vs_map, vs_extent
-from mmslam.slam.measurement import measure
-from mmslam.slam.variants import get_variant
+from mmslam.slam.core.gm import empty
+from mmslam.slam.filter import ego_gaussian
+from mmslam.slam.models.measurement import measure
+from mmslam.slam.phd.ckf import kalman_update
+from mmslam.slam.specs.landmarks import VS_SPEC, FusionInput, fuse_vs_map, vs_extent
+from mmslam.slam.specs.variants import get_variant
 
 
 def test_vs_extent_enters_once() -> None:
@@ -37,7 +37,7 @@ def test_vs_extent_enters_once() -> None:
     s = np.array([60.0, 0.0, 0.0, 1.6, 19.0, 0.3, 300.0])
     bs = scn.bs_array
     R = np.diag([0.01, 1e-4, 1e-4, 1e-4, 1e-4])
-    z = measure(s, fused.m[live[0], :3] + np.array([0.5, -0.3, 0.2]), VS_SPEC.code, bs)
+    z = measure(s, fused.m[live[0], :3] + np.array([0.5, -0.3, 0.2]), VS_SPEC.geometry, bs)
     E7 = np.zeros((7, 7))
     E7[:3, :3] = E
     _, _, ll = kalman_update(fused.m[live[0]], P_up, z, R, s, VS_SPEC.geometry, bs, E)
@@ -67,7 +67,7 @@ def test_link_angle_bound_matches_numerical_fisher_information() -> None:
     SNR := received energy over all samples / noise variance per sample (what a link budget with
     both array gains computes). The old bound (array gain counted twice) was ``sqrt(2 N)`` too small.
     """
-    from mmslam.slam.sensor import SPEED_OF_LIGHT, LinkBudget
+    from mmslam.slam.sim.sensor import SPEED_OF_LIGHT, LinkBudget
 
     nt, nr, K, B = 3, 4, 64, 400e6
     freqs = (np.arange(K) - (K - 1) / 2) * B / K
