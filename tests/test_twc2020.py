@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mmslam.pipelines.ablate import (_fusion_start, _run_scores, load_jobs, prepare_cache, read_ablation,
-                                     run_ablation, upload_steps)
+                                     run_ablation, start_ablation_dir, upload_steps)
 from mmslam.scenes.scenario import load_preset, preset_path
 
 
@@ -39,7 +39,7 @@ def test_twc2020_preset_is_kims_setup() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("particles,kim", [(100, 1.05), (20, 1.36)])
 def test_twc2020_fused_va_gospa_brackets_kims(tmp_path, particles: int, kim: float) -> None:
-    out = tmp_path / "abl"
+    out = start_ablation_dir(tmp_path / "abl")  # as the CLI does, before the trace
     cache = prepare_cache("twc2020", "analytic", out, progress=False)
     run_ablation(cache, out, "baseline", mc=10, particles=particles, workers=2, progress=False,
                  truth_scenario=preset_path("twc2020"))
