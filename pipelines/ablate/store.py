@@ -1,0 +1,123 @@
+"""The ablation directory on disk: ``ablation.json``, finished jobs' metadata, the output marker and lock."""
+from __future__ import annotations
+
+import functools
+import json
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mmslam.errors import CacheError, ConfigError
+from mmslam.pipelines.ablate.executors import _one_line
+from mmslam.pipelines.ablate.options import ABLATION_FILE, JOBS_DIR, Job, job_dir
+
+
+def _cache_info(cache_dir: Path) -> dict[str, Any]:
+    from mmslam.raytrace.cache import load_cache
+
+    c = load_cache(cache_dir)
+    return {"cache_dir": str(Path(c.path).resolve()), "config_hash": c.manifest.get("config_hash"),
+            "source": c.manifest.get("source"), "scenario": c.scenario.to_dict(),
+            "scenario_name": c.scenario.name, "cache_steps": int(c.steps),
+            "vehicle_names": list(c.vehicle_names)}
+
+
+def read_ablation(out_dir: str | Path) -> dict[str, Any]:
+    """``DIR/ablation.json``; :class:`CacheError` if ``DIR`` holds no ablation."""
+    p = Path(out_dir)
+    f = p / ABLATION_FILE
+    if not p.is_dir():
+        raise CacheError(f"{p}: no such results directory; run `mmslam ablate <scenario> --out {p}` "
+                         "(or `mmslam demo`) first")
+    if not f.is_file():
+        raise CacheError(f"{p}: not an ablation results directory (no {ABLATION_FILE}); run "
+                         f"`mmslam ablate <scenario> --out {p}` first")
+    try:
+        return json.loads(f.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CacheError(f"{f}: unreadable ({_one_line(e)}); delete it and re-run the ablation") from None
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """Atomic JSON write (temp file + os.replace)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=_jsonable, allow_nan=True))
+    os.replace(tmp, path)
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
+    for key, flag in (("config_hash", "the trace (scenario / source)"), ("scenario_name", "the scenario"),
+                      ("source", "--source"), ("particles", "--particles"), ("steps", "--steps"),
+                      ("sets", "--set")):
+        if key not in new:
+            continue
+        if old.get(key, [] if key == "sets" else None) != new.get(key):
+            raise ConfigError(f"{out_dir} holds an ablation with {key}={old.get(key)} but this run asks "
+                              f"{key}={new.get(key)} ({flag}); use another --out or delete "
+                              f"{out_dir / JOBS_DIR}")
+
+
+def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrides: Sequence[str]) -> None:
+    meta_path = job_dir(out_dir, job) / "meta.json"
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CacheError(f"{meta_path}: unreadable ({_one_line(e)}); delete {meta_path.parent} and re-run") from None
+    want = {"variant": job.variant, "seed": job.seed, "particles": particles}
+    if meta.get("overrides") is not None:
+        want["overrides"] = list(overrides)
+    for k, v in want.items():
+        if k in meta and meta[k] != v:
+            raise CacheError(f"{meta_path.parent}: holds {k}={meta[k]}, expected {v}; delete that "
+                             "directory and re-run")
+    if meta.get("steps") is not None and meta["steps"] != steps:
+        raise CacheError(f"{meta_path.parent}: holds steps={meta['steps']}, expected {steps}; delete "
+                         "that directory and re-run")
+
+
+ABLATION_KIND = "ablation"
+"""Output-marker kind of an ablation directory (:mod:`mmslam.outputs`)."""
+
+
+def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
+    """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
+
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``); ``force`` also
+    allows another directory (files are added, none deleted). Raises a one-line error otherwise.
+    """
+    from mmslam.outputs import check_target, output_kind, write_marker
+
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file(),
+                       force_does="write into it (nothing in it is deleted)")
+    out.mkdir(parents=True, exist_ok=True)
+    if output_kind(out) != ABLATION_KIND:
+        write_marker(out, ABLATION_KIND)
+    return out
+
+
+def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Run ``fn(first, out_dir, ...)`` holding the writer lock of ``out_dir`` (one writer per directory)."""
+
+    @functools.wraps(fn)
+    def wrapper(first: Any, out_dir: str | Path, *args: Any, **kwargs: Any) -> Any:
+        from mmslam.outputs import locked
+
+        with locked(out_dir, "ablation"):
+            return fn(first, out_dir, *args, **kwargs)
+
+    return wrapper
