@@ -11,7 +11,7 @@ from typing import Any
 
 from mmslam.errors import ConfigError, Interrupted, deferred_sigint, was_interrupted
 from mmslam.slam.variants import COMPARED_WITH
-from mmslam.pipelines.ablate.executors import _Pool, _THREAD_VARS, _dask_pool, _local_pool
+from mmslam.executor import THREAD_VARS, Pool, open_pool
 from mmslam.pipelines.ablate.options import (ABLATION_FILE, JOBS_DIR, Job, VARIANTS, check_run_args,
                                              default_command, is_finished, job_dir, parse_grid, parse_sets,
                                              parse_variants, plan_jobs)
@@ -54,7 +54,7 @@ def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int 
     Pins BLAS/OpenMP pools to one thread when ``threadpoolctl`` is available (the environment
     variables are set by the parent for the local pool; dask's nanny sets them for its workers).
     """
-    for k in _THREAD_VARS:
+    for k in THREAD_VARS:
         os.environ.setdefault(k, "1")
     with contextlib.suppress(ImportError):
         from threadpoolctl import threadpool_limits
@@ -162,9 +162,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     ran: list[Job] = []
     desc = "nothing to run"
     if pending:
-        pool_cm = (_local_pool(workers, len(pending)) if executor == "local"
-                   else _dask_pool(scheduler, workers, len(pending)))
-        with pool_cm as pool:
+        with open_pool(executor, scheduler, workers, len(pending)) as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
                          None if steps is None else n_steps, progress, len(done), len(jobs), sets)
@@ -172,11 +170,11 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
 
 
-def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
+def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
            steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
     """Submit ``pending``, save each result as it arrives; cancel the rest on error."""
-    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm): j
-            for j in pending}
+    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm,
+                        key=j.name): j for j in pending}
     ran: list[Job] = []
     bar = None
     if progress:

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mmslam.errors import ConfigError
-from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS, MAX_WORKERS
+from mmslam.executor import EXECUTORS, check_executor
+from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS
 from mmslam.slam.landmarks import mapped_types
 from mmslam.slam.variants import BUILTIN_VARIANTS, variant_names
-from mmslam.pipelines.ablate.executors import check_dask_address
 
 
 VARIANTS: tuple[str, ...] = BUILTIN_VARIANTS
@@ -21,7 +21,6 @@ VARIANTS: tuple[str, ...] = BUILTIN_VARIANTS
 of :mod:`mmslam.slam.variants`: the reference ``odometry``, then the filter variants)."""
 
 
-EXECUTORS: tuple[str, ...] = ("local", "dask")
 
 
 TYPES: tuple[str, ...] = tuple(s.name for s in mapped_types())
@@ -175,14 +174,7 @@ def check_run_args(mc: int, particles: int | None, steps: int | None, executor: 
         raise ConfigError(f"--particles {particles}: expected 1..{MAX_PARTICLES} particles")
     if steps is not None and not 1 <= int(steps) <= MAX_STEPS:
         raise ConfigError(f"--steps {steps}: expected 1..{MAX_STEPS} time steps")
-    if executor not in EXECUTORS:
-        raise ConfigError(f"--executor {executor}: expected one of {', '.join(EXECUTORS)}")
-    if scheduler and executor != "dask":
-        raise ConfigError("--scheduler is only used with --executor dask; add --executor dask or drop it")
-    if scheduler:
-        check_dask_address(scheduler)
-    if workers is not None and not 1 <= int(workers) <= MAX_WORKERS:
-        raise ConfigError(f"--workers {workers}: expected 1..{MAX_WORKERS} workers")
+    check_executor(executor, scheduler, workers)
 
 
 def plan_jobs(variants: Sequence[str], mc: int, seed0: int = 0,
