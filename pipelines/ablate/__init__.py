@@ -47,9 +47,9 @@ from mmslam.pipelines.ablate.executors import (CONNECT_TIMEOUT_S, DASK_SCHEMES, 
 from mmslam.pipelines.ablate.jobs import AblationRun, prepare_cache, run_ablation, run_job  # noqa: F401
 from mmslam.pipelines.ablate.options import (ABLATION_FILE, ALL_VEHICLES, EXECUTORS, JOBS_DIR,  # noqa: F401
                                              METRIC_QUANTITIES, STATE_QUANTITIES, SUMMARY_JSON, SUMMARY_PARQUET,
-                                             TYPES, VARIANTS, Job, arm_label, check_run_args, default_command,
-                                             is_finished, job_dir, parse_grid, parse_label, parse_sets,
-                                             parse_variants, plan_jobs)
+                                             TYPES, VARIANTS, Job, arm_label, check_grid_clash, check_run_args,
+                                             default_command, is_finished, job_dir, parse_grid, parse_label,
+                                             parse_sets, parse_variants, plan_jobs)
 from mmslam.pipelines.ablate.store import ABLATION_KIND, read_ablation, start_ablation_dir  # noqa: F401
 from mmslam.slam.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
 from mmslam.slam.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401

@@ -18,7 +18,7 @@ from mmslam.pipelines.ablate.executors import _one_line
 from mmslam.pipelines.ablate.options import (ALL_VEHICLES, JOBS_DIR, Job, METRIC_QUANTITIES, STATE_QUANTITIES,
                                              SUMMARY_JSON, SUMMARY_PARQUET, TYPES, VARIANTS, arm_label,
                                              is_finished, job_dir, parse_label)
-from mmslam.pipelines.ablate.store import _write_json, read_ablation
+from mmslam.pipelines.ablate.store import _write_json, read_ablation, remove_stale_temps, temp_path
 
 
 @dataclass
@@ -74,9 +74,43 @@ def spec_arms(spec: dict[str, Any]) -> list[tuple[str, ...]]:
     return [tuple(a) for a in spec.get("arms", [[]])] or [()]
 
 
+def nonfinite_values(result: Any) -> list[tuple[str, int, int]]:
+    """``(table.column, count, first step)`` of every aggregated column of a job's result holding NaN or
+    infinite values (:data:`METRIC_QUANTITIES` of ``metrics``, :data:`STATE_QUANTITIES` of ``vehicles``)."""
+    bad = []
+    for table, cols in (("metrics", METRIC_QUANTITIES), ("vehicles", STATE_QUANTITIES)):
+        t = getattr(result, table)
+        for c in cols:
+            if c not in t:
+                continue
+            a = np.asarray(t[c], dtype=float)
+            nf = ~np.isfinite(a)
+            if nf.any():
+                bad.append((f"{table}.{c}", int(nf.sum()), int(np.asarray(t["step"])[nf][0])))
+    return bad
+
+
+def check_result_finite(result: Any, what: str, fix: str, exit_code: int = 2) -> None:
+    """One-line :class:`CacheError` naming ``what`` and ``fix`` if :func:`nonfinite_values` finds any.
+
+    A mean over seeds must never drop a run silently: a non-finite value fails its job (the summary's
+    ``runs`` would otherwise count a run whose value vanished from the mean and its CI).
+    """
+    bad = nonfinite_values(result)
+    if bad:
+        col, n, step = bad[0]
+        more = f" (and {len(bad) - 1} more columns)" if len(bad) > 1 else ""
+        raise CacheError(f"{what}: {n} non-finite value{'s' if n > 1 else ''} in {col}, first at step {step}{more}; "
+                         f"{fix}", exit_code=exit_code)
+
+
 def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
               seeds: Sequence[int] | None = None) -> dict[Job, Any]:
-    """Finished jobs of the ablation in ``out_dir`` (default: its whole grid), loaded."""
+    """Finished jobs of the ablation in ``out_dir`` (default: its whole grid), loaded.
+
+    Raises:
+        CacheError: a stored job holds a non-finite value (:func:`check_result_finite`).
+    """
     from mmslam.slam.result import Result
 
     spec = read_ablation(out_dir)
@@ -88,7 +122,10 @@ def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
             for s in seeds:
                 j = Job(v, int(s), a)
                 if is_finished(out_dir, j):
-                    out[j] = Result.load(job_dir(out_dir, j))
+                    d = job_dir(out_dir, j)
+                    out[j] = Result.load(d)
+                    check_result_finite(out[j], str(d), f"results are never stored non-finite, so it was edited "
+                                        f"or damaged: delete {d} and re-run the ablation to recompute it")
     return out
 
 
@@ -132,6 +169,7 @@ def aggregate(out_dir: str | Path) -> Summary:
     """
     out = Path(out_dir)
     spec = read_ablation(out)
+    remove_stale_temps(out, SUMMARY_FILES)
     jobs = load_jobs(out)
     if not jobs:
         raise CacheError(f"{out}: no finished jobs under {out / JOBS_DIR}; run the ablation first")
@@ -300,14 +338,22 @@ def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start:
     return rows
 
 
+SUMMARY_FILES: tuple[str, ...] = (SUMMARY_PARQUET, SUMMARY_JSON)
+"""The files :func:`aggregate` writes (their stale temp files are removed by the next aggregation)."""
+
+
 def _write_summary(out: Path, s: Summary) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     tab = pa.table({k: pa.array(v.tolist()) if v.dtype == object else pa.array(v) for k, v in s.table.items()})
-    tmp = out / f".{SUMMARY_PARQUET}.{os.getpid()}.tmp"
-    pq.write_table(tab, tmp)
-    os.replace(tmp, out / SUMMARY_PARQUET)
+    tmp = temp_path(out / SUMMARY_PARQUET)
+    try:
+        pq.write_table(tab, tmp)
+        os.replace(tmp, out / SUMMARY_PARQUET)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     per_step = {k: [None if isinstance(x, float) and not math.isfinite(x) else x for x in v.tolist()]
                 for k, v in s.table.items()}
     head = [{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in r.items()}

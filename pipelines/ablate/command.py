@@ -26,11 +26,15 @@ def particles_for(scenario: dict[str, Any] | Any, sets: Sequence[str], particles
     return resolve_particles(with_overrides(scn, list(sets)), None)
 
 
-def check_overrides(info: dict[str, Any], sets: Sequence[str], arms: Sequence[tuple[str, ...]]) -> None:
-    """Validate ``sets`` + every arm on the cached scenario (bounds, names) before anything is written."""
-    from mmslam.scenes.scenario import scenario_from_resolved, with_overrides
+def check_overrides(info: dict[str, Any] | Any, sets: Sequence[str], arms: Sequence[tuple[str, ...]]) -> None:
+    """Validate ``sets`` + every arm on the cached scenario (bounds, names) before anything is written.
 
-    base = scenario_from_resolved(info["scenario"])
+    ``info``: the cache's information (its ``scenario``: the resolved dict) or, before the trace, the
+    :class:`~mmslam.scenes.scenario.Scenario` to be traced (the CLI checks the values before any work).
+    """
+    from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
+
+    base = info if isinstance(info, Scenario) else scenario_from_resolved(info["scenario"])
     for arm in arms:
         scn = with_overrides(base, list(sets) + list(arm))
         if scn.geometry_hash() != base.geometry_hash():

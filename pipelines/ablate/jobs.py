@@ -9,16 +9,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mmslam.errors import ConfigError, Interrupted, deferred_sigint, was_interrupted
+from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_cause,
+                           was_interrupted)
 from mmslam.slam.variants import COMPARED_WITH
 from mmslam.executor import THREAD_VARS, Pool, open_pool
-from mmslam.pipelines.ablate.options import (ABLATION_FILE, JOBS_DIR, Job, VARIANTS, check_run_args,
-                                             default_command, is_finished, job_dir, parse_grid, parse_sets,
-                                             parse_variants, plan_jobs)
+from mmslam.pipelines.ablate.options import (ABLATION_FILE, JOBS_DIR, Job, VARIANTS, check_grid_clash,
+                                             check_run_args, default_command, is_finished, job_dir, parse_grid,
+                                             parse_sets, parse_variants, plan_jobs, SUMMARY_JSON,
+                                             SUMMARY_PARQUET)
 from mmslam.pipelines.ablate.store import (_cache_info, _check_compatible, _check_job_meta, _holding_out_lock,
-                                           _write_json, read_ablation, start_ablation_dir)
+                                           _write_json, read_ablation, remove_stale_temps, start_ablation_dir)
 from mmslam.pipelines.ablate.command import check_overrides, particles_for
-from mmslam.pipelines.ablate.aggregation import Summary, aggregate
+from mmslam.pipelines.ablate.aggregation import Summary, aggregate, check_result_finite
 
 
 def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | None = None,
@@ -124,9 +126,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     check_run_args(mc, particles, steps, executor, scheduler, workers, seed0)
     sets = parse_sets(sets)
     arms = parse_grid(grid)
-    clash = sorted({a.split("=", 1)[0] for arm in arms for a in arm} & {x.split("=", 1)[0] for x in sets})
-    if clash:
-        raise ConfigError(f"--grid {clash[0]}: also given with --set; use one of them")
+    check_grid_clash(sets, arms)
     out = Path(out_dir)
     info = _cache_info(Path(cache_dir))
     check_overrides(info, sets, arms)
@@ -148,6 +148,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     if old is not None:
         _check_compatible(out, old, spec)
     start_ablation_dir(out, force=True)
+    remove_stale_temps(out, (ABLATION_FILE, SUMMARY_PARQUET, SUMMARY_JSON))
     (out / JOBS_DIR).mkdir(exist_ok=True)
     _write_json(out / ABLATION_FILE, spec)
 
@@ -170,11 +171,20 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
 
 
+ENVIRONMENT_FIX = ("free memory or lower --workers / --particles, or restart the Dask scheduler and its workers "
+                   "(or drop --scheduler)")
+"""What the user can change after an environment failure of an ablation."""
+
+
 def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
            steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
-    """Submit ``pending``, save each result as it arrives; cancel the rest on error."""
-    futs = {pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm,
-                        key=j.name): j for j in pending}
+    """Submit ``pending``, save each result as it arrives; cancel the rest on error.
+
+    Ctrl-C / SIGTERM: :class:`Interrupted`; a failure of the machine or the cluster (out of memory, a
+    worker killed, the Dask scheduler lost): :class:`EnvironmentFailure`. Both say how many jobs are
+    kept (finished results not yet collected are saved first) and how to resume.
+    """
+    futs: dict[Any, Job] = {}
     ran: list[Job] = []
     bar = None
     if progress:
@@ -189,32 +199,46 @@ def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles:
         bar.start()
     def save(fut: Any, job: Job) -> None:
         result = fut.result()
+        check_result_finite(result, f"job {job.name}", "the filter failed numerically (this is a bug); nothing "
+                            "was stored for this job", exit_code=1)
         result.meta.setdefault("variant", job.variant)
         result.meta.setdefault("seed", job.seed)
         result.save(job_dir(out, job))
         ran.append(job)
 
+    def keep_collected() -> None:
+        for fut, job in futs.items():  # finished but not yet collected: keep them
+            with contextlib.suppress(Exception):  # a lost scheduler cannot hand them over
+                if job not in ran and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    save(fut, job)
+
     try:
+        for j in pending:
+            futs[pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm,
+                             key=j.name)] = j
         for fut in pool.as_completed(list(futs)):
             job = futs[fut]
             save(fut, job)
             if bar is not None:
                 bar.update(task, advance=1, last=f"{job.name} done")
     except BaseException as e:
-        if not was_interrupted(e):
+        interrupted = was_interrupted(e)
+        cause = None if interrupted else environment_cause(e)
+        with contextlib.suppress(Exception):
             pool.cancel(list(futs))
+        if not interrupted and cause is None:
             raise
-        pool.cancel(list(futs))
-        for fut, job in futs.items():  # finished but not yet collected: keep them
-            if job not in ran and fut.done() and not fut.cancelled() and fut.exception() is None:
-                save(fut, job)
+        keep_collected()
         if bar is not None:
             bar.stop()
             bar = None
         left = len(pending) - len(ran)
-        raise Interrupted(f"{n_done + len(ran)} of {n_total} jobs are kept in {out / JOBS_DIR} "
-                          f"({len(ran)} finished in this run); {left} unfinished jobs were cancelled; re-run "
-                          "the same command to resume") from None
+        kept = (f"{n_done + len(ran)} of {n_total} jobs are kept in {out / JOBS_DIR} ({len(ran)} finished in "
+                f"this run); {left} unfinished jobs were cancelled")
+        if interrupted:
+            raise Interrupted(f"{kept}; re-run the same command to resume") from None
+        raise EnvironmentFailure(f"{cause}; {kept}; {ENVIRONMENT_FIX}, then re-run the same command to "
+                                 "resume") from None
     finally:
         if bar is not None:
             bar.stop()

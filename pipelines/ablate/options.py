@@ -146,6 +146,13 @@ def parse_grid(grid: Sequence[str]) -> list[tuple[str, ...]]:
     return [tuple(c) for c in itertools.product(*axes)] if axes else [()]
 
 
+def check_grid_clash(sets: Sequence[str], arms: Sequence[tuple[str, ...]]) -> None:
+    """One-line :class:`ConfigError` if a ``--grid`` key is also a ``--set`` key (canonical strings)."""
+    clash = sorted({a.split("=", 1)[0] for arm in arms for a in arm} & {x.split("=", 1)[0] for x in sets})
+    if clash:
+        raise ConfigError(f"--grid {clash[0]}: also given with --set; use one of them")
+
+
 def parse_variants(spec: str | Sequence[str]) -> tuple[str, ...]:
     """``"baseline,cm1"`` or a sequence -> validated tuple (order kept, no duplicates)."""
     items = [s.strip() for s in spec.split(",")] if isinstance(spec, str) else [str(s).strip() for s in spec]

@@ -1,6 +1,7 @@
 """The ablation directory on disk: ``ablation.json``, finished jobs' metadata, the output marker and lock."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -42,10 +43,46 @@ def read_ablation(out_dir: str | Path) -> dict[str, Any]:
 
 
 def _write_json(path: Path, data: Any) -> None:
-    """Atomic JSON write (temp file + os.replace)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_jsonable, allow_nan=True))
-    os.replace(tmp, path)
+    """Atomic JSON write (temp file :func:`temp_path` + os.replace; the temp file is removed on failure)."""
+    tmp = temp_path(path)
+    try:
+        tmp.write_text(json.dumps(data, indent=2, default=_jsonable, allow_nan=True))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def temp_path(path: Path) -> Path:
+    """The temp file an ablation writes before renaming it to ``path``: ``.<name>.<pid>.tmp`` next to it."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def remove_stale_temps(out_dir: str | Path, names: Sequence[str]) -> list[Path]:
+    """Delete the temp files ``.<name>.<pid>.tmp`` (:func:`temp_path`) of ``names`` in ``out_dir`` whose
+    writer is gone (a killed run, or a write that failed, e.g. on a full disk or past a file-size limit).
+
+    Only this exact naming pattern of our own files is touched; a temp file of a live process is kept.
+    Returns the files removed.
+    """
+    import re
+
+    from mmslam.outputs import _pid_alive
+
+    out = Path(out_dir)
+    pat = re.compile("|".join(rf"\.{re.escape(n)}\.(\d+)\.tmp" for n in names))
+    gone = []
+    with contextlib.suppress(OSError):
+        for p in out.iterdir():
+            m = pat.fullmatch(p.name)
+            if m is None or not p.is_file() or p.is_symlink():
+                continue
+            pid = int(next(g for g in m.groups() if g is not None))
+            if pid == os.getpid() or not _pid_alive(pid):
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()
+                    gone.append(p)
+    return gone
 
 
 def _jsonable(o: Any) -> Any:
