@@ -249,3 +249,32 @@ def test_report_lists_each_variants_label_and_what_it_runs():
     assert "countermeasures: ego-VS averaging (eq. 11), prediction at the BS (eq. 15)" in out
     assert "not registered" in out  # an old ablation's variant from a plugin not loaded now
     assert V.get_variant("odometry").describe().startswith("dead reckoning")
+
+
+def test_variants_choose_the_vs_fusion_operator_when_the_fusion_centre_is_built():
+    """cm1 fuses the VS map with F_AA, a variant with vs_fusion with eqs. 16-20; ego averaging (eq. 11)
+    wraps either; the fusion centre holds the chosen operator per type (no flag read at fuse time)."""
+    from mmslam.slam.filter.fusion_center import FusionCenter
+
+    vs = L.landmark_type("VS")
+    assert vs.fusion_operator(V.get_variant("cm1")) is L.fuse_aa
+    assert L.vs_fusion_operator(V.VariantSpec("t", "t", ("VS",), vs_fusion=True)) is L.fuse_vs
+    assert L.landmark_type("VA").fusion_operator(V.get_variant("proposed")) is L.fuse_aa
+    scn = load_preset("paper")
+    fc = FusionCenter(scn, "proposed")
+    op = fc.operators[vs.code]
+    assert op not in (L.fuse_aa, L.fuse_vs)  # the ego-averaging wrapper
+    # the wrapper is fuse_vs of the ego-averaged upload
+    from mmslam.slam.core.gm import GM
+
+    bs_map = GM(np.array([0.2]), np.array([[60.0, 5.0, 1.0, 3.0, 0.0, 0.0, 0.0]]), np.eye(7)[None], np.array([True]))
+    up = GM(np.array([0.9]), np.array([[61.0, 5.0, 1.0, 3.0, 0.0, 0.0, 0.0]]), np.eye(7)[None], np.array([True]))
+    ego = np.array([10.0, 0.0, 1.5, 0.0, 8.0, 0.0, 0.0])
+    ctx = L.FusionInput(scn, V.get_variant("proposed"), ego, np.eye(7) * 0.1, 0)
+    inside = np.array([True])
+    got, pairs = op(bs_map, up, inside, ctx)
+    ref, ref_pairs = L.fuse_vs(bs_map, L.ego_averaged(up, ctx), inside, ctx)
+    np.testing.assert_array_equal(got.w, ref.w)
+    np.testing.assert_array_equal(got.m, ref.m)
+    np.testing.assert_array_equal(pairs, ref_pairs)
+    assert L.ego_averaged(up, ctx).capacity == up.capacity + 1  # the ego Gaussian joined the upload

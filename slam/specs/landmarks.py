@@ -75,6 +75,10 @@ class FusionInput:
     vehicle: int | None = None
 
 
+FuseFn = Callable[[GM, GM, np.ndarray, FusionInput], "tuple[GM, np.ndarray | None]"]
+"""``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused union, matched pairs or None)``."""
+
+
 @dataclass(frozen=True)
 class LandmarkSpec:
     """One landmark type of the filter (see the module docstring for the built-in ones).
@@ -103,7 +107,10 @@ class LandmarkSpec:
             ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
         extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
             landmark state's position (None: a point).
-        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``.
+        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``, the
+            type's fusion operator (:data:`FuseFn`).
+        fuse_for: ``fuse_for(variant) -> FuseFn``: the operator a variant uses, chosen when the
+            variant's fusion centre is built (:meth:`fusion_operator`); None: ``fuse`` for every variant.
         reduce_fused: ``reduce_fused(fused, pairs, scn) -> GM``, the reduction after fusion.
         predict_at_bs: ``predict_at_bs(fused map, scn) -> map`` between uploads (only for variants
             with ``predict_at_bs``), or None.
@@ -126,7 +133,8 @@ class LandmarkSpec:
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
     extent: Callable[["Scenario"], np.ndarray | None] = point_extent
-    fuse: Callable[[GM, GM, np.ndarray, FusionInput], tuple[GM, np.ndarray | None]] | None = None
+    fuse: FuseFn | None = None
+    fuse_for: Callable[["VariantSpec"], FuseFn] | None = None
     reduce_fused: Callable[[GM, np.ndarray | None, "Scenario"], GM] | None = None
     predict_at_bs: Callable[[GM, "Scenario"], GM] | None = None
     remove_ego: Callable[[GM, tuple[np.ndarray, np.ndarray], "Scenario"], GM] | None = None
@@ -154,6 +162,10 @@ class LandmarkSpec:
         from ..phd.detection import prior_beta
 
         return prior_beta(self.p_detect(scn), float(scn.filter.pd_beta_count))
+
+    def fusion_operator(self, variant: "VariantSpec") -> FuseFn:
+        """The fusion operator of this type for ``variant`` (``fuse_for(variant)``, else ``fuse``)."""
+        return self.fuse if self.fuse_for is None else self.fuse_for(variant)
 
     def merge_gate(self, scn: "Scenario") -> float:
         """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
@@ -233,29 +245,43 @@ def fuse_aa(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tup
     return fm.fuse_aa(bs_map, upload, inside, ctx.scn.fusion.msm_position, with_pairs=True)
 
 
-def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
-    """VS fusion: the variant's countermeasures, else plain AA fusion.
-
-    ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
-    (eq. 11; the ego Gaussian of :func:`mmslam.slam.filter.fusion_center.ego_gaussian`, widened by
-    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 16-20 (``fuse_vs``).
-    """
+def fuse_vs(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """The proposed VS fusion ``F'_AA`` of the BS and uploaded VS maps (eqs. 16-20; gates
+    ``fusion.msm_position`` / ``msm_velocity``, ``fusion.beta_inside_fov`` for unmatched BS components)."""
     from ..fusion import operators as fm
 
-    scn, v = ctx.scn, ctx.variant
-    fu = scn.fusion
-    if v.ego_vs_average:
-        em, ec = fm.ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
-        ext = vs_extent(scn)
-        if ext is not None:  # others see this car where its body reflects, not at its antenna
-            ec = ec.copy()
-            ec[0:3, 0:3] += ext
-        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position,
-                                   NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
-    if v.vs_fusion:
-        return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov,
-                          with_pairs=True)
-    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
+    fu = ctx.scn.fusion
+    return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov, with_pairs=True)
+
+
+def ego_averaged(upload: GM, ctx: FusionInput) -> GM:
+    """The uploaded VS map with the ego vehicle placed by ``F'_AA`` (eq. 11): its ego Gaussian
+    (:func:`mmslam.slam.fusion.operators.ego_gaussian`, widened by :func:`vs_extent`), labelled with
+    the vehicle's ego label."""
+    from ..fusion import operators as fm
+
+    scn = ctx.scn
+    em, ec = fm.ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
+    ext = vs_extent(scn)
+    if ext is not None:  # others see this car where its body reflects, not at its antenna
+        ec = ec.copy()
+        ec[0:3, 0:3] += ext
+    return fm.ego_vs_average(upload, em, ec, scn.fusion.msm_position,
+                             NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
+
+
+def vs_fusion_operator(variant: "VariantSpec") -> FuseFn:
+    """The VS map's fusion operator of a variant, chosen once when its fusion centre is built:
+    ``vs_fusion``: :func:`fuse_vs` (eqs. 16-20), else :func:`fuse_aa` (eq. 8); ``ego_vs_average``:
+    applied to the :func:`ego_averaged` upload (eq. 11)."""
+    fuse = fuse_vs if variant.vs_fusion else fuse_aa
+    if not variant.ego_vs_average:
+        return fuse
+
+    def fuse_ego_averaged(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+        return fuse(bs_map, ego_averaged(upload, ctx), inside, ctx)
+
+    return fuse_ego_averaged
 
 
 def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
@@ -427,7 +453,7 @@ SP_SPEC = LandmarkSpec(
 VS_SPEC = LandmarkSpec(
     name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
     description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,
-    fuse=fuse_vs_map, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs, remove_ego=remove_ego_vs)
+    fuse=fuse_aa, fuse_for=vs_fusion_operator, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs, remove_ego=remove_ego_vs)
 
 for _s in (BS_SPEC, VA_SPEC, SP_SPEC, VS_SPEC):
     register_landmark_type(_s)
