@@ -73,5 +73,5 @@ class FusionCenter:
             else:
                 inside &= spec.p_detect(self.scn) >= gamma
             fused, pairs = self.operators[t](bs_map, ue, inside, ctx)
-            self.maps[t] = spec.reduce_fused(fused, pairs, self.scn)
+            self.maps[t] = spec.reduce_fused(fused, pairs, self.scn, spec)
         return dict(self.maps)
