@@ -9,7 +9,7 @@ from mmslam.slam.core.gm import empty
 from mmslam.slam.filter import ego_gaussian
 from mmslam.slam.models.measurement import measure
 from mmslam.slam.phd.ckf import kalman_update
-from mmslam.slam.specs.landmarks import VS_SPEC, FusionInput, fuse_vs_map, vs_extent
+from mmslam.slam.specs.landmarks import VS_SPEC, FusionInput, vs_extent
 from mmslam.slam.specs.variants import get_variant
 
 
@@ -27,7 +27,8 @@ def test_vs_extent_enters_once() -> None:
     cov = np.diag([0.04, 0.04, 0.0, 1e-4, 0.0, 0.0, 0.04])
     em, ec = ego_gaussian(mean, cov, scn.filter.vs_process_std)
     ctx = FusionInput(scn, get_variant("proposed"), mean, cov, vehicle=0)
-    fused, _ = fuse_vs_map(empty((), 0, 7), empty((), 0, 7), np.zeros(0, bool), ctx)
+    fuse = VS_SPEC.fusion_operator(get_variant("proposed"))  # fuse_vs of the ego-averaged upload (eq. 11)
+    fused, _ = fuse(empty((), 0, 7), empty((), 0, 7), np.zeros(0, bool), ctx)
     live = np.flatnonzero(fused.w > 0)
     assert live.size == 1
     P_up = fused.P[live[0]]
