@@ -163,7 +163,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             cache's truth. A Sionna cache, or no ``truth_scenario``, is always ``fixed``; ``config.truth``
             of the summary says which was used, ``config.truth_note`` why.
         truth_scenario: the scenario file (TOML) the cache was traced from (checked against the cache's
-            geometry with the cache's seed).
+            geometry with the cache's seed); None on a folder holding a per-run ablation: the file it
+            recorded (``ablation.json`` ``truth_scenario``), so a resume keeps its truth.
 
     Raises:
         MmslamError: bad arguments, a results directory made with other settings, an unreachable
@@ -185,9 +186,12 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     if n_steps > info["cache_steps"]:
         raise ConfigError(f"--steps {n_steps}: the cache {info['cache_dir']} holds only "
                           f"{info['cache_steps']} steps; trace more steps first")
+    if truth_scenario is None and old is not None and old.get("truth") == "per_run" and old.get("truth_scenario"):
+        truth_scenario = old["truth_scenario"]  # resuming (e.g. from Python) the per-run truth the folder holds
     truth_mode, truth_note, truth_file = _truth_mode(out, info, truth, truth_scenario)
     seeds = list(range(int(seed0), int(seed0) + int(mc)))
-    spec = {**info, "truth": truth_mode, "truth_note": truth_note, "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
+    spec = {**info, "truth": truth_mode, "truth_note": truth_note, "truth_scenario": truth_file,
+            "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
             "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
             "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,

@@ -164,8 +164,8 @@ def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
 # ====================================================================== files an ablation (re)writes
 REPORT_FILE = "report.html"
 FIGURES_DIR = "figures"
-FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "cardinality_vs",
-                "cardinality_va")
+FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "fig2a_paired_vs", "fig2b_paired_va",
+                "fig3_paired_position", "gospa_sp", "cardinality_vs", "cardinality_va")
 """The figures :func:`make_figures` always draws (``figures/<name>.png``; plus ``map_<label>.png``)."""
 
 
