@@ -79,7 +79,8 @@ def register(app: typer.Typer) -> None:
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler."),
     ) -> None:
         """Trace a scenario into a resumable path cache; prints the cache directory."""
-        from mmslam.raytrace.trace import SOURCES, DaskExecutor, check_cache_root, make_source, trace_scenario
+        from mmslam.raytrace.trace import (SOURCES, DaskExecutor, check_cache_root, check_scene, make_source,
+                                           trace_scenario)
         from mmslam.scenes.scenario import resolve_scenario
 
         if source not in SOURCES:
@@ -98,6 +99,7 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--workers {workers}: expected >= 1")
         check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
+        check_scene(scn, steps)  # before the (slow) scene load of the source
         with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
             src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
         ex = None
@@ -106,6 +108,12 @@ def register(app: typer.Typer) -> None:
                               scheduler=scheduler, workers=workers)
         d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
                            progress=not quiet, executor=ex)
+        from mmslam.raytrace.cache import load_cache
+        from mmslam.raytrace.trace import coverage_warnings
+
+        c = load_cache(d)
+        for line in coverage_warnings(c.paths, c.steps, c.vehicle_names):
+            typer.echo(f"warning: {line}", err=True)
         typer.echo(str(d))
 
     @app.command("paths")

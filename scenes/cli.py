@@ -67,9 +67,17 @@ def register(app: typer.Typer) -> None:
         from mmslam.scenes.meshes import plot_plan
         from mmslam.scenes.scenario import resolve_scenario
 
+        from mmslam.scenes.geometry import inside_report
+        from mmslam.scenes.trajectory import vehicle_trajectories
+
         check_figure_target(out, force)
         scn = resolve_scenario(scenario)
-        typer.echo(f"wrote {plot_plan(scn, out)}")
+        inside = inside_report(scn, vehicle_trajectories(scn))
+        for who, k, obj, p in inside:
+            at = "" if k < 0 else f" at step {k}"
+            typer.echo(f"warning: {who}{at} (x={p[0]:.1f}, y={p[1]:.1f}, z={p[2]:.1f}) is inside object '{obj}'; "
+                       "marked on the plan, and refused by mmslam trace", err=True)
+        typer.echo(f"wrote {plot_plan(scn, out, inside=inside)}")
 
     @scene.command("streets")
     def streets_cmd(
@@ -114,3 +122,51 @@ def register(app: typer.Typer) -> None:
                    f"({int(sm.free.sum() * res * res)} m^2 free space, {int(sm.centre.sum())} centreline cells)")
         if data is not None:
             typer.echo(f"wrote {save_street_map(sm, data)}")
+
+    @scene.command("coverage")
+    def coverage_cmd(
+        scenario: str = typer.Argument(..., help="Preset name or a scenario .toml file."),
+        out: Path = typer.Option(Path("coverage.png"), "--out", help="Figure of the radio map; the format "
+                                 "follows the suffix (.png, .pdf, .svg)."),
+        height: float = typer.Option(1.5, "--height", help="Plane height above the street (m)."),
+        res: float = typer.Option(2.0, "--res", help="Cell size (m)."),
+        margin: float = typer.Option(40.0, "--margin", help="Map extent beyond the BS and the routes (m)."),
+        samples: int = typer.Option(1_000_000, "--samples", help="Rays shot from the BS."),
+        max_depth: int = typer.Option(1, "--max-depth", help="Interactions per path (as mmslam trace). [1..3]"),
+        seed: int = typer.Option(0, "--seed", help="Sionna's sampling seed."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
+                                   "mmslam wrote."),
+    ) -> None:
+        """Sionna's radio map (RadioMapSolver) of the BS at street level over the plan, with the routes.
+
+        Shows where the BS reaches before anything is traced; prints, per vehicle, the path gain
+        along its route and the steps where no path reaches it.
+        """
+        import numpy as np
+
+        from mmslam.errors import ConfigError
+        from mmslam.limits import MAX_SAMPLES, MAX_SEED, check_int
+        from mmslam.outputs import check_figure_target
+        from mmslam.raytrace.coverage import coverage_map, plot_coverage, route_gain_db
+        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.trajectory import vehicle_trajectories
+
+        check_figure_target(out, force)
+        check_int("--samples", samples, 1, MAX_SAMPLES, "rays")
+        check_int("--seed", seed, 0, MAX_SEED, "a seed")
+        if not 1 <= max_depth <= 3:
+            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+        if not 0.0 <= margin <= 1000.0:
+            raise ConfigError(f"--margin {margin}: expected 0 .. 1000 m")
+        scn = resolve_scenario(scenario)
+        states = vehicle_trajectories(scn)
+        cm = coverage_map(scn, states, height=height, res=res, margin=margin, samples=samples,
+                          max_depth=max_depth, seed=seed)
+        g = route_gain_db(cm, states)
+        for i, v in enumerate(scn.vehicles):
+            gi = g[:, i]
+            ok = gi[np.isfinite(gi)]
+            med = f"median {np.median(ok):.1f} dB, min {ok.min():.1f} dB" if ok.size else "no path anywhere"
+            typer.echo(f"{v.name}: path gain along the route {med}; no path in {int(np.isneginf(gi).sum())} "
+                       f"of {len(gi)} steps")
+        typer.echo(f"wrote {plot_coverage(cm, scn, states, out)}")

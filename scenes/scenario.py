@@ -653,7 +653,7 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
     if n_rand:
         rng = np.random.default_rng([seed, 0x5354])
         speeds = rng.uniform(4.0, 8.0, n_rand)
-        routes = ctx.random(n_rand, speeds * dt * steps, rng)
+        routes = ctx.random(n_rand, speeds * dt * steps, rng, steps)  # clear of each other
         taken = {v.get("name") for v in out if isinstance(v, dict)}
         for k, (wp, sp) in enumerate(zip(routes, speeds)):
             name = f"car_{k:03d}"
