@@ -56,8 +56,10 @@ def plot_toa(cache, out: Path) -> None:
         plt.close(fig)
 
 
-def register(app: typer.Typer) -> None:
-    """Add this subpackage's commands to ``app``."""
+def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
+    """Add this subpackage's commands to ``app`` (and ``coverage`` to the ``scene`` group, if given)."""
+    if scene is not None:
+        _register_coverage(scene)
 
     @app.command("trace")
     def trace_cmd(
@@ -70,8 +72,9 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source." + span(1, MAX_SAMPLES)),
         seed: int = typer.Option(0, "--seed", help="Sionna ray-sampling seed." + span(0, MAX_SEED)),
         chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk." + span(1, MAX_CHUNK_STEPS)),
-        force: bool = typer.Option(False, "--force/--no-force", help="Delete an existing cache of this "
-                                   "configuration and trace anew; also allow an --out that is not a cache root."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Delete the existing cache of this "
+                                   "configuration (one mmslam wrote) and trace anew. A folder or file mmslam did "
+                                   "not write is never touched."),
         quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bar."),
         executor: str = typer.Option("local", "--executor", help="local, or dask: chunks of steps traced on a "
                                      "Dask cluster (a LocalCluster of --workers processes, or --scheduler)."),
@@ -124,8 +127,8 @@ def register(app: typer.Typer) -> None:
                                              "traced by this source (sionna or analytic)."),
         plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of TOA vs step to this file; "
                                             "the format follows the suffix (.png, .pdf, .svg)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --plot even if it is not a "
-                                   "figure mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Print the number of paths per type, step and receiver of a path cache."""
         from rich.console import Console
@@ -185,13 +188,15 @@ def register(app: typer.Typer) -> None:
                                        + span(1, MAX_TIME_STEPS)),
         no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
                                                  help="Keep absolute delays (default: first ray of a link at 0)."),
-        out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace an existing --out file."),
+        out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta); "
+                                 "an existing one must be an export mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "an .npz mmslam exported is replaced anyway, any other file never."),
     ) -> None:
         """Export the CIR or CFR of every step and receiver of a cache (from its rays table) to an .npz file."""
-        from mmslam.outputs import check_target
+        from mmslam.outputs import check_npz_target
         from mmslam.raytrace.cache import atomic_write_bytes, load_cache
-        from mmslam.raytrace.channel import cache_channel_response
+        from mmslam.raytrace.channel import NPZ_KIND, cache_channel_response
 
         if cir == cfr:
             raise ConfigError("mmslam export: give exactly one of --cir or --cfr")
@@ -200,7 +205,7 @@ def register(app: typer.Typer) -> None:
         check_int("--subcarriers", subcarriers, 1, MAX_SUBCARRIERS)
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
         c = load_cache(cache_dir)
-        check_target(out, "channel", force, protect=(c.path,))
+        check_npz_target(out, NPZ_KIND, force, protect=(c.path,))
         size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
@@ -212,3 +217,55 @@ def register(app: typer.Typer) -> None:
         atomic_write_bytes(out, resp.to_npz_bytes())
         typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
                    f"{'frequency' if cfr else 'tap'})")
+
+
+def _register_coverage(scene: typer.Typer) -> None:
+    """``mmslam scene coverage``: the Sionna radio map lives in this layer (raytrace), above scenes."""
+
+    @scene.command("coverage")
+    def coverage_cmd(
+        scenario: str = typer.Argument(..., help="Preset name or a scenario .toml file."),
+        out: Path = typer.Option(Path("coverage.png"), "--out", help="Figure of the radio map; the format "
+                                 "follows the suffix (.png, .pdf, .svg)."),
+        height: float = typer.Option(1.5, "--height", help="Plane height above the street (m)."),
+        res: float = typer.Option(2.0, "--res", help="Cell size (m)."),
+        margin: float = typer.Option(40.0, "--margin", help="Map extent beyond the BS and the routes (m)."),
+        samples: int = typer.Option(1_000_000, "--samples", help="Rays shot from the BS."),
+        max_depth: int = typer.Option(1, "--max-depth", help="Interactions per path (as mmslam trace). [1..3]"),
+        seed: int = typer.Option(0, "--seed", help="Sionna's sampling seed."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
+                                   "mmslam wrote."),
+    ) -> None:
+        """Sionna's radio map (RadioMapSolver) of the BS at street level over the plan, with the routes.
+
+        Shows where the BS reaches before anything is traced; prints, per vehicle, the path gain
+        along its route and the steps where no path reaches it.
+        """
+        import numpy as np
+
+        from mmslam.errors import ConfigError
+        from mmslam.limits import MAX_SAMPLES, MAX_SEED, check_int
+        from mmslam.outputs import check_figure_target
+        from mmslam.raytrace.coverage import coverage_map, plot_coverage, route_gain_db
+        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.trajectory import vehicle_trajectories
+
+        check_figure_target(out, force)
+        check_int("--samples", samples, 1, MAX_SAMPLES, "rays")
+        check_int("--seed", seed, 0, MAX_SEED, "a seed")
+        if not 1 <= max_depth <= 3:
+            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+        if not 0.0 <= margin <= 1000.0:
+            raise ConfigError(f"--margin {margin}: expected 0 .. 1000 m")
+        scn = resolve_scenario(scenario)
+        states = vehicle_trajectories(scn)
+        cm = coverage_map(scn, states, height=height, res=res, margin=margin, samples=samples,
+                          max_depth=max_depth, seed=seed)
+        g = route_gain_db(cm, states)
+        for i, v in enumerate(scn.vehicles):
+            gi = g[:, i]
+            ok = gi[np.isfinite(gi)]
+            med = f"median {np.median(ok):.1f} dB, min {ok.min():.1f} dB" if ok.size else "no path anywhere"
+            typer.echo(f"{v.name}: path gain along the route {med}; no path in {int(np.isneginf(gi).sum())} "
+                       f"of {len(gi)} steps")
+        typer.echo(f"wrote {plot_coverage(cm, scn, states, out)}")
