@@ -252,8 +252,8 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
     else the best of ``tries`` draws is kept. With ``steps``, car ``i`` is at arc length
     ``length_m[i] k / steps`` at step ``k`` (constant speed from the start), and a draw that brings
     it within ``min_gap`` m (plan, antenna to antenna; 6 m clears two 4.5 x 1.8 m bodies in any
-    orientation) of an earlier car at the same step is not kept: cars on one centreline would drive
-    through each other.
+    orientation) of an earlier car at the same step is not kept and not counted as one of the
+    ``tries`` (at most ``10 tries`` draws in all): cars on one centreline would drive through each other.
     """
     from scipy.sparse.csgraph import dijkstra
 
@@ -268,8 +268,11 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
     out: list[np.ndarray] = []
     placed: list[np.ndarray] = []  # (steps, 2) plan positions of the routes kept so far
     for i in range(n):
-        best, best_score = None, -1.0
-        for _ in range(tries):
+        best, best_score, used = None, -1.0, 0
+        for _ in range(10 * tries):  # a draw too close to an earlier car is not one of the `tries`
+            if used >= tries:
+                break
+            used += 1
             s = near[rng.integers(len(near))]
             a = int(idx[s[0], s[1]])
             if a < 0:
@@ -294,6 +297,7 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
             if steps is not None:
                 pos = _along(wp, length_m[i] * np.arange(steps) / steps)[:, :2]
                 if any(np.min(np.hypot(*(pos - q).T)) < min_gap for q in placed):
+                    used -= 1
                     continue
             los = ~geom.segments_blocked(np.repeat(np.asarray(bs, float)[None], len(samp), 0), samp)
             score = float(los.mean())
