@@ -6,7 +6,7 @@ Each test fails on the code before these issues (the comment at its top says wha
 """
 from __future__ import annotations
 
-import json
+import contextlib
 import os
 import re
 import shutil
@@ -162,7 +162,7 @@ def _children(pid: int) -> list[tuple[int, str]]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="needs /proc")
-@pytest.mark.parametrize("delay", [0.0, 0.4])
+@pytest.mark.parametrize("delay", [0.2, 0.6])
 def test_ctrl_c_while_workers_start_is_one_line_and_no_worker_traceback(ablation, tmp_path, delay):
     # before: a Ctrl-C to the process group in the first seconds: the `interrupted:` line, then worker
     # KeyboardInterrupt tracebacks (the workers ignored SIGINT only once their imports were done)
@@ -271,11 +271,10 @@ def test_out_of_memory_is_an_environment_failure_not_a_bug(ablation, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
-def test_environment_failure_in_an_ablation_says_what_was_kept():
-    # the driver's classification: a worker's MemoryError, a killed pool, a lost Dask scheduler
+def test_environment_failure_classification():
     from concurrent.futures.process import BrokenProcessPool
 
-    from mmslam.errors import environment_cause
+    from mmslam.errors import environment_cause, environment_failure
 
     assert environment_cause(MemoryError("Unable to allocate 7 GiB")).startswith("out of memory")
     assert "worker process died" in environment_cause(BrokenProcessPool("terminated abruptly"))
@@ -286,7 +285,78 @@ def test_environment_failure_in_an_ablation_says_what_was_kept():
             raise RuntimeError("numba: allocation failed") from e
     except RuntimeError as wrapped:
         assert environment_cause(wrapped).startswith("out of memory")
-    assert environment_cause(ValueError("a real bug")) is None
+    assert environment_cause(ValueError("a real bug")) is None and environment_failure(KeyError("x")) is None
+
+
+def test_out_of_memory_in_a_worker_keeps_finished_jobs_and_says_so(ablation, tmp_path):
+    # before: a worker's MemoryError ended the ablation with "this is a bug" (exit 1), nothing said of the kept jobs
+    import concurrent.futures as cf
+
+    from mmslam.errors import EnvironmentFailure
+    from mmslam.executor import Pool
+    from mmslam.pipelines.ablate import Job
+    from mmslam.pipelines.ablate.jobs import _drive
+    from mmslam.slam.result import Result
+
+    res = Result.load(ablation / "jobs" / "baseline-seed0")
+
+    def submit(fn, *args, key=None):
+        f = cf.Future()
+        if key.endswith("seed0"):
+            f.set_result(res)
+        else:
+            f.set_exception(MemoryError("Unable to allocate 7.45 GiB"))
+        return f
+
+    out = tmp_path / "abl"
+    pool = Pool(submit, lambda fs: iter(fs), lambda fs: None, 1, "fake")
+    with pytest.raises(EnvironmentFailure) as info:
+        _drive(pool, [Job("baseline", 0), Job("baseline", 1)], out, "unused", 3, None, False, 4, 6)
+    msg = str(info.value)
+    assert msg.startswith("out of memory (MemoryError: Unable to allocate 7.45 GiB)") and info.value.exit_code == 2
+    assert "5 of 6 jobs are kept" in msg and "--workers" in msg and "re-run the same command" in msg
+    assert (out / "jobs" / "baseline-seed0" / "meta.json").is_file()
+
+
+@pytest.mark.slow
+def test_losing_the_dask_scheduler_mid_ablation_is_one_line_and_resumes(tmp_path):
+    # before: exit 1 "this is a bug" and 26 lines of distributed tracebacks (the finished jobs were kept)
+    import socket
+
+    pytest.importorskip("distributed")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    addr = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
+                              str(port), "--no-dashboard"], **quiet)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                               "--no-dashboard"], **quiet)
+    out = tmp_path / "abl"
+    argv = MMSLAM + ["ablate", "paper", "--mc", "6", "--executor", "dask", "--scheduler", addr, "--out", str(out)]
+    argv += SMALL
+    argv[argv.index("--particles") + 1] = "40"
+    try:
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 300
+        while not any((out / "jobs").glob("*/meta.json")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        os.killpg(sched.pid, signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        for p in (sched, worker):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert proc.returncode == 2, stderr
+    line = _one_line(stderr, "error: lost the Dask scheduler", "jobs are kept", "re-run the same command")
+    kept = len(list((out / "jobs").glob("*/meta.json")))
+    assert re.search(rf"\b{kept} of 6 jobs are kept", line), (line, kept)
+    local = [a for a in argv if a not in ("--executor", "dask", "--scheduler", addr)]
+    done = subprocess.run(local, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and f"{6 - kept} run, {kept} reused" in done.stdout, done.stderr
 
 
 # ============================================================ 9. temp files, --set before any work
