@@ -413,3 +413,29 @@ def test_lock_conflict_does_not_hide_a_bad_set(ablation, tmp_path, capsys):
     finally:
         live.kill()
         live.wait()
+
+
+def test_out_of_memory_during_a_trace_says_how_many_steps_are_kept(tmp_path):
+    # before: a MemoryError in the source ended the trace as "this is a bug" (exit 1)
+    from mmslam.errors import EnvironmentFailure
+    from mmslam.raytrace.cache import read_manifest
+    from mmslam.raytrace.trace import make_source, trace_scenario
+    from mmslam.scenes.scenario import load_preset
+
+    scn = load_preset("paper")
+    src = make_source("analytic", scn)
+    real = src.trace_tables
+
+    def trace_tables(k, states):
+        if k == 7:
+            raise MemoryError("Unable to allocate 3.2 GiB")
+        return real(k, states)
+
+    src.trace_tables = trace_tables
+    with pytest.raises(EnvironmentFailure, match=r"^out of memory .*; 5 of 10 steps are kept in .*re-run the same"):
+        trace_scenario(scn, src, tmp_path / "c", steps=10, chunk_steps=5, progress=False)
+    (m,) = (tmp_path / "c").glob("*/manifest.json")
+    assert read_manifest(m.parent)["steps_completed"] == 5
+    src.trace_tables = real
+    trace_scenario(scn, src, tmp_path / "c", steps=10, chunk_steps=5, progress=False)
+    assert read_manifest(m.parent)["steps_completed"] == 10
