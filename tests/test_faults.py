@@ -126,7 +126,7 @@ def test_a_fresh_job_with_a_nan_fails_and_is_not_stored(ablation, tmp_path):
     from mmslam.executor import Pool
     from mmslam.pipelines.ablate import Job
     from mmslam.pipelines.ablate.jobs import _drive
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     res = Result.load(ablation / "jobs" / "baseline-seed0")
     res.metrics["loc"] = np.asarray(res.metrics["loc"], float).copy()
@@ -296,7 +296,7 @@ def test_out_of_memory_in_a_worker_keeps_finished_jobs_and_says_so(ablation, tmp
     from mmslam.executor import Pool
     from mmslam.pipelines.ablate import Job
     from mmslam.pipelines.ablate.jobs import _drive
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     res = Result.load(ablation / "jobs" / "baseline-seed0")
 

@@ -4,7 +4,7 @@ An ablation lives in one output directory ``DIR``::
 
     DIR/cache/<config>/          the path cache (written by :func:`prepare_cache`)
     DIR/ablation.json            what was asked (cache, variants, seeds, particles, steps, command)
-    DIR/jobs/<variant>-seed<k>/  one finished filter run each (:class:`~mmslam.slam.result.Result`)
+    DIR/jobs/<variant>-seed<k>/  one finished filter run each (:class:`~mmslam.slam.filter.result.Result`)
     DIR/summary.parquet          per-step mean / std / RMS over seeds (see :func:`aggregate`)
     DIR/summary.json             the same table, the headline table and the configuration
 
@@ -51,5 +51,5 @@ from mmslam.pipelines.ablate.options import (ABLATION_FILE, ALL_VEHICLES, EXECUT
                                              default_command, is_finished, job_dir, parse_grid, parse_label,
                                              parse_sets, parse_variants, plan_jobs)
 from mmslam.pipelines.ablate.store import ABLATION_KIND, read_ablation, start_ablation_dir  # noqa: F401
-from mmslam.slam.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
-from mmslam.slam.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401
+from mmslam.slam.specs.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
+from mmslam.slam.specs.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401

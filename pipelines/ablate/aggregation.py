@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import CacheError
-from mmslam.slam.variants import COMPARED_WITH, variant_names
+from mmslam.slam.specs.variants import COMPARED_WITH, variant_names
 from mmslam.pipelines.ablate.executors import _one_line
 from mmslam.pipelines.ablate.options import (ALL_VEHICLES, JOBS_DIR, Job, METRIC_QUANTITIES, STATE_QUANTITIES,
                                              SUMMARY_JSON, SUMMARY_PARQUET, TYPES, VARIANTS, arm_label,
@@ -111,7 +111,7 @@ def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
     Raises:
         CacheError: a stored job holds a non-finite value (:func:`check_result_finite`).
     """
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     spec = read_ablation(out_dir)
     variants = list(variants or spec.get("variants", VARIANTS))
@@ -269,7 +269,7 @@ SCORED: tuple[str, ...] = tuple(f"gospa_{t}" for t in TYPES) + ("pos_rmse",)
 
 
 def _reference(label: str, labels: Sequence[str]) -> str | None:
-    """The arm a label is compared with: :data:`~mmslam.slam.variants.COMPARED_WITH` (``baseline``) with the
+    """The arm a label is compared with: :data:`~mmslam.slam.specs.variants.COMPARED_WITH` (``baseline``) with the
     same grid settings, else plain ``baseline``."""
     variant, arm = parse_label(label)
     if variant == COMPARED_WITH:

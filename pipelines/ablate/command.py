@@ -18,7 +18,7 @@ def particles_for(scenario: dict[str, Any] | Any, sets: Sequence[str], particles
     """``particles``, or the ``filter.particles`` of ``scenario`` (a Scenario or its resolved dict) with
     the ``--set`` overrides applied: the one default of the particle count."""
     from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
-    from mmslam.slam.run import resolve_particles
+    from mmslam.slam.filter.run import resolve_particles
 
     if particles is not None:
         return int(particles)

@@ -11,7 +11,7 @@ from typing import Any
 
 from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_failure,
                            was_interrupted)
-from mmslam.slam.variants import COMPARED_WITH
+from mmslam.slam.specs.variants import COMPARED_WITH
 from mmslam.executor import THREAD_VARS, Pool, open_pool
 from mmslam.pipelines.ablate.options import (ABLATION_FILE, JOBS_DIR, Job, VARIANTS, check_grid_clash,
                                              check_run_args, default_command, is_finished, job_dir, parse_grid,

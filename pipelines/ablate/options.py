@@ -12,19 +12,19 @@ from pathlib import Path
 from mmslam.errors import ConfigError
 from mmslam.executor import EXECUTORS, check_executor
 from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS
-from mmslam.slam.landmarks import mapped_types
-from mmslam.slam.variants import BUILTIN_VARIANTS, variant_names
+from mmslam.slam.specs.landmarks import mapped_types
+from mmslam.slam.specs.variants import BUILTIN_VARIANTS, variant_names
 
 
 VARIANTS: tuple[str, ...] = BUILTIN_VARIANTS
 """Everything an ablation runs by default, in the order it is plotted (the built-in variant specs
-of :mod:`mmslam.slam.variants`: the reference ``odometry``, then the filter variants)."""
+of :mod:`mmslam.slam.specs.variants`: the reference ``odometry``, then the filter variants)."""
 
 
 
 
 TYPES: tuple[str, ...] = tuple(s.name for s in mapped_types())
-"""Map types scored (the built-in mapped landmark types of :mod:`mmslam.slam.landmarks`)."""
+"""Map types scored (the built-in mapped landmark types of :mod:`mmslam.slam.specs.landmarks`)."""
 
 
 METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card", "n_visible")

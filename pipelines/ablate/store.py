@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from mmslam.errors import CacheError, ConfigError
+from mmslam.errors import CacheError, ConfigError, MmslamError
 from mmslam.pipelines.ablate.executors import _one_line
-from mmslam.pipelines.ablate.options import ABLATION_FILE, JOBS_DIR, Job, job_dir
+from mmslam.pipelines.ablate.options import ABLATION_FILE, JOBS_DIR, SUMMARY_JSON, SUMMARY_PARQUET, Job, job_dir
 
 
 def _cache_info(cache_dir: Path) -> dict[str, Any]:
@@ -125,6 +125,64 @@ def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrid
                          "that directory and re-run")
 
 
+REPORT_FILE = "report.html"
+FIGURES_DIR = "figures"
+FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "cardinality_vs",
+                "cardinality_va")
+"""The figures :func:`mmslam.pipelines.report.make_figures` always draws (``figures/<name>.png``; plus
+``map_<label>.png``)."""
+
+
+def _json_with(path: Path, keys: tuple[str, ...]) -> bool:
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(d, dict) and all(k in d for k in keys)
+
+
+def _is_summary_parquet(path: Path) -> bool:
+    import pyarrow.parquet as pq
+
+    try:
+        names = set(pq.read_schema(path).names)
+    except Exception:  # not a Parquet file at all
+        return False
+    return {"variant", "map", "type", "step"} <= names
+
+
+def _is_report_html(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return b"<title>mmslam ablation:" in f.read(4096)
+    except OSError:
+        return False
+
+
+def check_ablation_outputs(out_dir: str | Path) -> None:
+    """Refuse (one line) if a file an ablation rewrites in ``out_dir`` exists and is not mmslam's.
+
+    An ablation folder is mmslam's (its marker), but one that an older mmslam wrote into with
+    ``--force`` may hold a user's ``summary.json``, ``summary.parquet``, ``report.html``,
+    ``ablation.json`` or a figure of the same name: each is recognised by its content (keys,
+    columns, title, figure tag) before any work, and never overwritten (:mod:`mmslam.outputs`).
+    """
+    from mmslam.outputs import NEVER, is_mmslam_figure
+
+    out = Path(out_dir)
+    checks = [(out / ABLATION_FILE, lambda p: _json_with(p, ("variants", "config_hash"))),
+              (out / SUMMARY_JSON, lambda p: _json_with(p, ("config", "headline", "per_step"))),
+              (out / SUMMARY_PARQUET, _is_summary_parquet), (out / REPORT_FILE, _is_report_html)]
+    fdir = out / FIGURES_DIR
+    if fdir.is_dir():
+        checks += [(p, is_mmslam_figure) for p in sorted(fdir.iterdir())
+                   if p.stem in FIGURE_NAMES or p.name.startswith("map_")]
+    for p, ours in checks:
+        if p.is_symlink() or (p.exists() and (p.is_dir() or not ours(p))):
+            raise MmslamError(f"{p}: exists and is not a file mmslam wrote; move it out of {out} or choose "
+                              f"another folder ({NEVER})")
+
+
 ABLATION_KIND = "ablation"
 """Output-marker kind of an ablation directory (:mod:`mmslam.outputs`)."""
 
@@ -132,15 +190,16 @@ ABLATION_KIND = "ablation"
 def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
     """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
 
-    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``); ``force`` also
-    allows another directory (files are added, none deleted). Raises a one-line error otherwise.
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``). Raises a one-line
+    error otherwise, whatever ``force`` (:mod:`mmslam.outputs`: never into a folder mmslam did not make).
     """
     from mmslam.outputs import check_target, output_kind, write_marker
 
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
-    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file(),
-                       force_does="write into it (nothing in it is deleted)")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
+    if out.is_dir():
+        check_ablation_outputs(out)  # a user's summary / report / figure of the same name (issue 25)
     out.mkdir(parents=True, exist_ok=True)
     if output_kind(out) != ABLATION_KIND:
         write_marker(out, ABLATION_KIND)
