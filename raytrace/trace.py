@@ -12,6 +12,7 @@ the lock of a killed writer is taken over.
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import shutil
 import sys
 import threading
