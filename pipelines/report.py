@@ -26,7 +26,6 @@ from typing import Any
 
 from mmslam.pipelines.ablate import (SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
                                      plan_jobs, read_ablation, spec_arms)
-# the files of an ablation folder and their ownership check live below, where start_ablation_dir uses them
 from mmslam.pipelines.ablate.store import FIGURE_NAMES, FIGURES_DIR, REPORT_FILE, check_ablation_outputs  # noqa: F401
 
 HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (

@@ -34,7 +34,8 @@ def check_overrides(info: dict[str, Any] | Any, sets: Sequence[str], arms: Seque
     """
     from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
 
-    base = info if isinstance(info, Scenario) else scenario_from_resolved(info["scenario"])
+    base = info if isinstance(info, Scenario) else scenario_from_resolved(
+        info["scenario"], str(Path(info["cache_dir"]) / "manifest.json"))
     for arm in arms:
         scn = with_overrides(base, list(sets) + list(arm))
         if scn.geometry_hash() != base.geometry_hash():

@@ -125,12 +125,48 @@ def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrid
                          "that directory and re-run")
 
 
+ABLATION_KIND = "ablation"
+"""Output-marker kind of an ablation directory (:mod:`mmslam.outputs`)."""
+
+
+def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
+    """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
+
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``). Raises a one-line
+    error otherwise, whatever ``force`` (:mod:`mmslam.outputs`: never into a folder mmslam did not make).
+    """
+    from mmslam.outputs import check_target, output_kind, write_marker
+
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
+    if out.is_dir():
+        check_ablation_outputs(out)  # a user's summary / report / figure of the same name (issue 25)
+    out.mkdir(parents=True, exist_ok=True)
+    if output_kind(out) != ABLATION_KIND:
+        write_marker(out, ABLATION_KIND)
+    return out
+
+
+def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Run ``fn(first, out_dir, ...)`` holding the writer lock of ``out_dir`` (one writer per directory)."""
+
+    @functools.wraps(fn)
+    def wrapper(first: Any, out_dir: str | Path, *args: Any, **kwargs: Any) -> Any:
+        from mmslam.outputs import locked
+
+        with locked(out_dir, "ablation"):
+            return fn(first, out_dir, *args, **kwargs)
+
+    return wrapper
+
+
+# ====================================================================== files an ablation (re)writes
 REPORT_FILE = "report.html"
 FIGURES_DIR = "figures"
 FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "cardinality_vs",
                 "cardinality_va")
-"""The figures :func:`mmslam.pipelines.report.make_figures` always draws (``figures/<name>.png``; plus
-``map_<label>.png``)."""
+"""The figures :func:`make_figures` always draws (``figures/<name>.png``; plus ``map_<label>.png``)."""
 
 
 def _json_with(path: Path, keys: tuple[str, ...]) -> bool:
@@ -181,39 +217,3 @@ def check_ablation_outputs(out_dir: str | Path) -> None:
         if p.is_symlink() or (p.exists() and (p.is_dir() or not ours(p))):
             raise MmslamError(f"{p}: exists and is not a file mmslam wrote; move it out of {out} or choose "
                               f"another folder ({NEVER})")
-
-
-ABLATION_KIND = "ablation"
-"""Output-marker kind of an ablation directory (:mod:`mmslam.outputs`)."""
-
-
-def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
-    """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
-
-    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``). Raises a one-line
-    error otherwise, whatever ``force`` (:mod:`mmslam.outputs`: never into a folder mmslam did not make).
-    """
-    from mmslam.outputs import check_target, output_kind, write_marker
-
-    if Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
-    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
-    if out.is_dir():
-        check_ablation_outputs(out)  # a user's summary / report / figure of the same name (issue 25)
-    out.mkdir(parents=True, exist_ok=True)
-    if output_kind(out) != ABLATION_KIND:
-        write_marker(out, ABLATION_KIND)
-    return out
-
-
-def _holding_out_lock(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Run ``fn(first, out_dir, ...)`` holding the writer lock of ``out_dir`` (one writer per directory)."""
-
-    @functools.wraps(fn)
-    def wrapper(first: Any, out_dir: str | Path, *args: Any, **kwargs: Any) -> Any:
-        from mmslam.outputs import locked
-
-        with locked(out_dir, "ablation"):
-            return fn(first, out_dir, *args, **kwargs)
-
-    return wrapper
