@@ -14,7 +14,7 @@ from pathlib import Path
 import typer
 
 from mmslam import __version__
-from mmslam.errors import (Interrupted, MmslamError, environment_cause, interrupt_signal, note_interrupt,
+from mmslam.errors import (Interrupted, MmslamError, environment_failure, interrupt_signal, note_interrupt,
                            was_interrupted)
 
 EXIT_CODES = ("Exit codes: 0 success; 2 a user error (one line naming the thing and the fix) or an environment "
@@ -161,11 +161,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # a bug: one line, the traceback in a log file
         if was_interrupted(e):  # Ctrl-C re-raised as another type by a library (e.g. Dr.Jit)
             return _interrupted()
-        cause = environment_cause(e)
-        if cause is not None:  # the machine failed, not mmslam: say what to change
-            print(f"error: {cause}; finished work is kept (atomic writes): free memory or lower --particles, "
-                  "--steps or --workers (or restart the Dask cluster), then re-run the same command to resume",
-                  file=sys.stderr)
+        failure = environment_failure(e)
+        if failure is not None:  # the machine failed, not mmslam: say what to change
+            print(f"error: {failure[0]}; finished work is kept (atomic writes): {failure[1]}, then re-run the same "
+                  "command to resume", file=sys.stderr)
             return 2
         log = _log_traceback(e)
         print(f"error: internal error ({type(e).__name__}: {' '.join(str(e).split())[:200]}); this is a bug, "

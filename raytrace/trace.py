@@ -22,8 +22,8 @@ from typing import Any, Callable, KeysView
 
 import numpy as np
 
-from mmslam.errors import (BackendError, CacheError, ConfigError, Interrupted, check_interrupt, deferred_sigint,
-                           was_interrupted)
+from mmslam.errors import (BackendError, CacheError, ConfigError, EnvironmentFailure, Interrupted, check_interrupt,
+                           deferred_sigint, environment_failure, was_interrupted)
 from mmslam.outputs import acquire_lock, lock_path, release_lock  # noqa: F401  (lock_path: public)
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
@@ -382,10 +382,15 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
                 write_manifest(cache_dir, new)
                 m = new
     except BaseException as e:
+        kept = f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir}"
         if not was_interrupted(e):
-            raise
-        raise Interrupted(f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir} (the chunk in "
-                          "progress was dropped); re-run the same command to resume") from None
+            failure = environment_failure(e)  # out of memory, a lost Dask scheduler
+            if failure is None:
+                raise
+            raise EnvironmentFailure(f"{failure[0]}; {kept}; {failure[1]}, then re-run the same command to "
+                                     "resume") from None
+        raise Interrupted(f"{kept} (the chunk in progress was dropped); re-run the same command to resume"
+                          ) from None
     finally:
         if bar is not None:
             bar.stop()

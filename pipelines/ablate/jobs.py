@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_cause,
+from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_failure,
                            was_interrupted)
 from mmslam.slam.specs.variants import COMPARED_WITH
 from mmslam.executor import THREAD_VARS, Pool, open_pool
@@ -174,11 +174,6 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
 
 
-ENVIRONMENT_FIX = ("free memory or lower --workers / --particles, or restart the Dask scheduler and its workers "
-                   "(or drop --scheduler)")
-"""What the user can change after an environment failure of an ablation."""
-
-
 def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
            steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
     """Submit ``pending``, save each result as it arrives; cancel the rest on error.
@@ -226,10 +221,10 @@ def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles:
                 bar.update(task, advance=1, last=f"{job.name} done")
     except BaseException as e:
         interrupted = was_interrupted(e)
-        cause = None if interrupted else environment_cause(e)
+        failure = None if interrupted else environment_failure(e)
         with contextlib.suppress(Exception):
             pool.cancel(list(futs))
-        if not interrupted and cause is None:
+        if not interrupted and failure is None:
             raise
         keep_collected()
         if bar is not None:
@@ -240,8 +235,8 @@ def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles:
                 f"this run); {left} unfinished jobs were cancelled")
         if interrupted:
             raise Interrupted(f"{kept}; re-run the same command to resume") from None
-        raise EnvironmentFailure(f"{cause}; {kept}; {ENVIRONMENT_FIX}, then re-run the same command to "
-                                 "resume") from None
+        raise EnvironmentFailure(f"{failure[0]}; {kept}; {failure[1]}, then re-run the same command to resume"
+                                 ) from None
     finally:
         if bar is not None:
             bar.stop()
