@@ -30,7 +30,7 @@ def _print_summary(summary, title: str, extra: list[str]) -> None:
     con = Console()
     if not con.is_terminal:  # piped or logged: rich would wrap the table at 80 columns
         con = Console(width=160)
-    con.print(summary_console_table(summary, title))
+    con.print(summary_console_table(summary, title, width=con.width))
     for line in extra:
         con.print(line, highlight=False, soft_wrap=True, markup=False)
 
