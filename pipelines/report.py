@@ -210,7 +210,7 @@ def _variants_html(variants: list[str]) -> str:
         s = get_variant(v)
         rows.append(f'<tr data-variant="{html.escape(v)}"><td>{html.escape(v)}</td><td>{html.escape(s.label)}</td>'
                     f"<td>{html.escape(s.describe())}</td></tr>")
-    return ('<table id="variants"><thead><tr><th>variant</th><th>label</th><th>runs</th></tr></thead><tbody>'
+    return ('<table id="variants"><thead><tr><th>variant</th><th>label</th><th>maps and countermeasures</th></tr></thead><tbody>'
             + "".join(rows) + "</tbody></table>")
 
 
