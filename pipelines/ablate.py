@@ -650,8 +650,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
             "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
-                                                  info["source"], out, steps, seed0=seed0, sets=sets,
-                                                  grid=grid)}
+                                                  info["source"], out, steps, executor, seed0=seed0,
+                                                  sets=sets, grid=grid, scheduler=scheduler)}
     if old is not None:
         _check_compatible(out, old, spec)
     start_ablation_dir(out, force=True)
@@ -669,6 +669,10 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     ran: list[Job] = []
     desc = "nothing to run"
     if pending:
+        if executor == "local" or scheduler is None:  # workers on this machine: compile once, here, not in each
+            from mmslam.slam.precompile import compile_for_workers
+
+            compile_for_workers({j.variant for j in pending}, progress)
         pool_cm = (_local_pool(workers, len(pending)) if executor == "local"
                    else _dask_pool(scheduler, workers, len(pending)))
         with pool_cm as pool:
@@ -732,8 +736,8 @@ def _drive(pool: _Pool, pending: list[Job], out: Path, cache_dir: str, particles
 
 def default_command(scenario: str, variants: Sequence[str], mc: int, particles: int, source: str | None,
                     out: Path, steps: int | None, executor: str = "local", seed0: int = 0,
-                    sets: Sequence[str] = (), grid: Sequence[str] = ()) -> str:
-    """The ``mmslam ablate`` command line that reproduces an ablation."""
+                    sets: Sequence[str] = (), grid: Sequence[str] = (), scheduler: str | None = None) -> str:
+    """The ``mmslam ablate`` command line that reproduces an ablation (with its ``--scheduler``)."""
     import shlex
 
     argv = ["mmslam", "ablate", scenario, "--variants", ",".join(variants), "--mc", str(mc),
@@ -748,6 +752,8 @@ def default_command(scenario: str, variants: Sequence[str], mc: int, particles: 
         argv += ["--grid", x]
     if executor != "local":
         argv += ["--executor", executor]
+    if executor != "local" and scheduler:
+        argv += ["--scheduler", scheduler]
     return shlex.join(argv)
 
 

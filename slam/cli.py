@@ -56,6 +56,9 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a previous "
                                    "result (never the input cache)."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
+        sets: list[str] = typer.Option([], "--set", help="section.key=value override of a filter, fusion, sensor "
+                                       "or evaluation parameter (repeatable), e.g. --set fusion.vs_reduction=gate; "
+                                       "see docs/scenario.md. Parameters of the trace are refused."),
     ) -> None:
         """Run cooperative MM-PHD-SLAM on a path cache and write the Result (vehicles, metrics, landmarks)."""
         import numpy as np
@@ -78,7 +81,9 @@ def register(app: typer.Typer) -> None:
         with locked(out, "slam"):
             check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
             try:
-                res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
+                res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps,
+                               overrides=tuple(sets), compile_notice=lambda m: Console(stderr=True).print(
+                                   m, highlight=False, soft_wrap=True))
             except BaseException as e:
                 if not was_interrupted(e):
                     raise

@@ -586,3 +586,20 @@ def test_summary_table_keeps_variant_and_map_columns_at_80_columns() -> None:
     wide = Console(width=160, record=True, color_system=None)
     wide.print(summary_console_table(s, "mmslam ablate: paper", width=160))
     assert "proposed[fusion.vs_reduction=gate]" in wide.export_text()  # one line per row where it fits
+
+
+def test_reproduce_command_keeps_the_dask_scheduler() -> None:
+    cmd = A.default_command("paper", ["baseline"], 2, 50, "analytic", Path("out/a"), None, "dask",
+                            scheduler="tcp://host:8786")
+    assert cmd.endswith("--executor dask --scheduler tcp://host:8786")
+    assert "--scheduler" not in A.default_command("paper", ["baseline"], 2, 50, "analytic", Path("out/a"), None)
+
+
+def test_variants_table_heads_its_descriptions_as_such() -> None:
+    from mmslam.pipelines.report import _variants_html
+    from mmslam.slam.variants import get_variant
+
+    text = _variants_html(["proposed"])
+    head = [h.split("</th>")[0] for h in text.split("<th>")[1:]]
+    assert head == ["variant", "label", "maps and countermeasures"]
+    assert get_variant("proposed").describe().split(";")[0] in text
