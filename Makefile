@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev]'
 	@# compile the filter's numba kernels now, not in the first run (a pip install gets a notice instead)
-	$(PY) -m mmslam.slam.precompile
+	$(PY) -m mmslam.slam.filter.precompile
 	@touch $(STAMP)
 
 # the lowest allowed direct dependencies (transitive ones: the newest they allow, as pip would pick);

@@ -5,7 +5,7 @@ on the path source), then times whole ``mmslam slam`` processes (wall clock, and
 process and its children: the compile workers) on a new, empty ``NUMBA_CACHE_DIR`` each, followed by
 the same command on the now warm cache. Also reports the run's own ``wall_time_s`` (stored in the
 result, compile excluded) and the compile notice the first run printed. ``--serial`` compiles in
-the run's own process (``--processes 1`` of :mod:`mmslam.slam.precompile`), the behaviour before
+the run's own process (``--processes 1`` of :mod:`mmslam.slam.filter.precompile`), the behaviour before
 parallel compilation, for comparison.
 
     python benchmarks/bench_coldstart.py                    # baseline, 2 cold + 1 warm runs

@@ -57,7 +57,7 @@ def test_slam_out_never_deletes_a_user_folder_or_the_cache(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(args + ["--out", str(run)]) == 0
     assert main(args + ["--seed", "1", "--out", str(run)]) == 0  # a previous result is replaced
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
     assert Result.load(run).meta["seed"] == 1
 
 
@@ -113,7 +113,7 @@ def test_slam_set_overrides_a_filter_parameter_and_refuses_an_unknown_one(tmp_pa
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.raytrace.trace import trace_scenario
     from mmslam.scenes.scenario import load_preset
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     scn = load_preset("paper")
     cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "c", steps=3, progress=False)

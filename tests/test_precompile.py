@@ -1,4 +1,4 @@
-"""Compiling the filter's kernels before a run (:mod:`mmslam.slam.precompile`): the run's clock never
+"""Compiling the filter's kernels before a run (:mod:`mmslam.slam.filter.precompile`): the run's clock never
 includes numba compilation or cache loading, and the signature table covers what the variants call."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset
-from mmslam.slam import precompile
-from mmslam.slam.variants import variant_names
+from mmslam.slam.filter import precompile
+from mmslam.slam.specs.variants import variant_names
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def cache(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 def test_signature_table_names_existing_kernels_with_parseable_types():
-    from mmslam.slam.kernel_signatures import SIGNATURES
+    from mmslam.slam.filter.kernel_signatures import SIGNATURES
 
     disp = precompile.kernel_dispatchers()
     assert {"baseline", "cm1", "proposed"} <= {v for *_, used in SIGNATURES for v in used} <= set(variant_names())
@@ -40,7 +40,7 @@ def test_signature_table_names_existing_kernels_with_parseable_types():
 # from the disk cache) when the run's clock starts and when the run ends
 _PROBE = """
 import json, sys
-from mmslam.slam import precompile, run
+from mmslam.slam.filter import precompile, run
 disp = precompile.kernel_dispatchers()
 count = lambda: sum(len(d.overloads) for d in disp.values())
 marks = []
@@ -62,7 +62,7 @@ print(json.dumps(out))
 def test_run_slam_neither_compiles_nor_loads_kernels_while_its_clock_runs(cache):
     """``meta['wall_time_s']`` (the per-run time of ``mmslam slam`` and of every ablation job) covers
     the filter only: every kernel a variant calls is compiled / loaded before the run starts. Fails
-    when the signature table misses a kernel (re-record it: ``python -m mmslam.slam.precompile --record``)."""
+    when the signature table misses a kernel (re-record it: ``python -m mmslam.slam.filter.record_kernels CACHE``)."""
     variants = [v for v in variant_names()]
     res = subprocess.run([sys.executable, "-c", _PROBE, cache, *variants], capture_output=True, text=True,
                          check=True)
@@ -77,7 +77,7 @@ def test_run_slam_neither_compiles_nor_loads_kernels_while_its_clock_runs(cache)
 def test_first_slam_on_a_fresh_kernel_cache_says_it_compiles_and_reuses_the_cache(cache, tmp_path):
     """A fresh install (empty NUMBA_CACHE_DIR): one notice line on stderr while compiling, the run's
     stored wall time without compilation; the second run compiles nothing and prints no notice."""
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
     cmd = [sys.executable, "-m", "mmslam", "slam", cache, "--variant", "baseline", "--particles", "20"]
