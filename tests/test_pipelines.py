@@ -597,7 +597,7 @@ def test_reproduce_command_keeps_the_dask_scheduler() -> None:
 
 def test_variants_table_heads_its_descriptions_as_such() -> None:
     from mmslam.pipelines.report import _variants_html
-    from mmslam.slam.variants import get_variant
+    from mmslam.slam.specs.variants import get_variant
 
     text = _variants_html(["proposed"])
     head = [h.split("</th>")[0] for h in text.split("<th>")[1:]]
