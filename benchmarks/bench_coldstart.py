@@ -45,7 +45,7 @@ def run_once(cache: str, variant: str, numba_dir: str, out: str, serial: bool) -
     if p.returncode != 0:
         raise SystemExit(f"mmslam slam failed ({p.returncode}): {p.stderr.strip()}")
     meta = json.loads((Path(out) / "meta.json").read_text())
-    notice = [ln for ln in p.stderr.splitlines() if "compiling" in ln]
+    notice = [ln for ln in p.stdout.splitlines() if "compiling" in ln]
     return {"wall_s": wall, "cpu_s": cpu, "run_wall_time_s": float(meta.get("wall_time_s", float("nan"))),
             "notice": notice[0] if notice else ""}
 

@@ -89,8 +89,8 @@ def register(app: typer.Typer) -> None:
             check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps,
-                               overrides=tuple(sets), compile_notice=lambda m: Console(stderr=True).print(
-                                   m, highlight=False, soft_wrap=True))
+                               overrides=tuple(sets), compile_notice=lambda m: Console().print(
+                                   m, highlight=False, soft_wrap=True))  # stdout: stderr is for errors
             except BaseException as e:
                 if not was_interrupted(e):
                     raise

@@ -75,7 +75,7 @@ def test_run_slam_neither_compiles_nor_loads_kernels_while_its_clock_runs(cache)
 
 @pytest.mark.slow
 def test_first_slam_on_a_fresh_kernel_cache_says_it_compiles_and_reuses_the_cache(cache, tmp_path):
-    """A fresh install (empty NUMBA_CACHE_DIR): one notice line on stderr while compiling, the run's
+    """A fresh install (empty NUMBA_CACHE_DIR): one notice line on stdout while compiling, the run's
     stored wall time without compilation; the second run compiles nothing and prints no notice."""
     from mmslam.slam.filter.result import Result
 
@@ -83,10 +83,10 @@ def test_first_slam_on_a_fresh_kernel_cache_says_it_compiles_and_reuses_the_cach
     cmd = [sys.executable, "-m", "mmslam", "slam", cache, "--variant", "baseline", "--particles", "20"]
     first = subprocess.run(cmd + ["--out", str(tmp_path / "a")], env=env, capture_output=True, text=True)
     assert first.returncode == 0, first.stderr
-    notes = [ln for ln in first.stderr.splitlines() if "compiling" in ln]
+    notes = [ln for ln in first.stdout.splitlines() if "compiling" in ln]
     assert len(notes) == 1 and str(tmp_path / "numba") in notes[0]
     second = subprocess.run(cmd + ["--out", str(tmp_path / "b")], env=env, capture_output=True, text=True)
-    assert second.returncode == 0 and "compiling" not in second.stderr
+    assert second.returncode == 0 and "compiling" not in second.stdout
     a, b = Result.load(tmp_path / "a"), Result.load(tmp_path / "b")
     for k in a.vehicles:  # kernels compiled in worker processes compute what the cached ones do
         assert (a.vehicles[k] == b.vehicles[k]).all(), k

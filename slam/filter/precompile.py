@@ -103,12 +103,6 @@ def _compile_one(name: str, sig_text: str) -> tuple[str, float]:
     return name, time.process_time() - t
 
 
-def _worker_init() -> None:
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's
-
-
 def default_processes() -> int:
     """Compile processes: ``$MMSLAM_COMPILE_PROCESSES`` if set, else the CPUs this process may use."""
     if os.environ.get("MMSLAM_COMPILE_PROCESSES", "").strip().isdigit():
@@ -154,17 +148,22 @@ def ensure_compiled(variants: Iterable[str] = (), processes: int | None = None,
 def compile_for_workers(variants: Iterable[str], progress: bool = True) -> int:
     """Before starting worker processes on this machine (``mmslam ablate``): compile what the
     variants need once, in parallel, so that the workers only load it (instead of each compiling the
-    same kernels while the first jobs wait). Prints the notice on stderr when ``progress``."""
-    return ensure_compiled(variants, notice=(lambda m: print(m, file=sys.stderr, flush=True)) if progress else None,
-                           load=False)
+    same kernels while the first jobs wait). Prints the notice on stdout when ``progress`` (stderr is
+    for the one-line errors)."""
+    return ensure_compiled(variants, notice=(lambda m: print(m, flush=True)) if progress else None, load=False)
 
 
 def _compile_parallel(todo: Sequence[tuple[str, str]], n: int) -> None:
+    from mmslam.executor import starting_workers, worker_init
+
     threads = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
     old = {k: os.environ.get(k) for k in threads}
     os.environ.update({k: "1" for k in threads})  # the workers only compile: one BLAS thread each
     try:
-        ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"), initializer=_worker_init)
+        ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"), initializer=worker_init,
+                                    initargs=(os.getpid(),))
+        with starting_workers():  # a Ctrl-C reaches this process only, not a half-started worker
+            futs = [ex.submit(_compile_one, k, s) for k, s in todo]
     finally:
         for k, v in old.items():
             if v is None:
@@ -172,7 +171,6 @@ def _compile_parallel(todo: Sequence[tuple[str, str]], n: int) -> None:
             else:
                 os.environ[k] = v
     try:
-        futs = [ex.submit(_compile_one, k, s) for k, s in todo]
         for f in cf.as_completed(futs):
             f.result()
     except BaseException:
