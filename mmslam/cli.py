@@ -121,6 +121,22 @@ def _install_signals() -> dict[int, object]:
     return old
 
 
+def _usage_errors() -> tuple[type[Exception], ...]:
+    """The base classes of typer's usage errors: ``typer.TyperException`` (typer >= 0.17, which carries
+    its own copy of click) and click's ``ClickException`` (older typer on click)."""
+    out: list[type[Exception]] = [typer.TyperException] if hasattr(typer, "TyperException") else []
+    try:
+        import click
+
+        out.append(click.ClickException)
+    except ImportError:  # a typer without click
+        pass
+    return tuple(out)
+
+
+_USAGE_ERRORS = _usage_errors()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point; returns the exit code.
 
@@ -152,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {where}: {e.strerror or e}; choose a writable path (parent directories must exist "
               "and not be files)", file=sys.stderr)
         return 2
-    except typer.TyperException as e:  # usage errors: bad option values, missing arguments
+    except _USAGE_ERRORS as e:  # usage errors: bad option values, missing arguments
         ctx = getattr(e, "ctx", None)
         cmd = ctx.command_path if ctx is not None else "mmslam"
         msg = " ".join(e.format_message().split()) if hasattr(e, "format_message") else str(e)

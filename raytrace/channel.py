@@ -151,7 +151,8 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
 
 def cache_channel_response(cache, *, kind: str, bandwidth_hz: float, n_subcarriers: int,
                            steps: np.ndarray | None = None, l_min: int = 0, l_max: int | None = None,
-                           num_time_steps: int = 1, normalize_delays: bool = True) -> ChannelResponse:
+                           num_time_steps: int = 1, normalize_delays: bool = True,
+                           sampling_frequency_hz: float | None = None) -> ChannelResponse:
     """:func:`channel_response` of a loaded :class:`~mmslam.raytrace.cache.PathCache` (its ``rays``)."""
     rays = cache.read_rays()
     if steps is None:
@@ -164,9 +165,11 @@ def cache_channel_response(cache, *, kind: str, bandwidth_hz: float, n_subcarrie
     h, axis, times, steps = channel_response(rays, kind=kind, carrier_hz=fc, bandwidth_hz=bandwidth_hz,
                                              n_subcarriers=n_subcarriers, n_rx=len(cache.vehicle_names),
                                              steps=steps, l_min=l_min, l_max=l_max,
-                                             num_time_steps=num_time_steps, normalize_delays=normalize_delays)
+                                             num_time_steps=num_time_steps, normalize_delays=normalize_delays,
+                                             sampling_frequency_hz=sampling_frequency_hz)
     meta = {"kind": kind, "carrier_hz": fc, "bandwidth_hz": float(bandwidth_hz), "n_subcarriers": int(n_subcarriers),
             "normalize_delays": bool(normalize_delays), "num_time_steps": int(num_time_steps),
+            "sampling_frequency_hz": float(bandwidth_hz if sampling_frequency_hz is None else sampling_frequency_hz),
             "axis": "baseband frequency (Hz)" if kind == "cfr" else "tap index l (delay l / bandwidth s)",
             "h": "(steps, rx, time, axis) complex", "cache": str(Path(cache.path).resolve()),
             "scenario": cache.manifest["scenario"], "source": cache.manifest["source"],

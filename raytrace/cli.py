@@ -20,6 +20,47 @@ from mmslam.raytrace.schema import TYPE_LABELS as _TYPE_LABELS
 _TYPE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:gray")
 
 
+def parse_steps(text: str | None, n_steps: int) -> np.ndarray | None:
+    """``--steps`` of ``mmslam export``: ``"a:b"`` (b exclusive; either end may be left out), ``"a,b,c"``
+    or a mix (``"0:5,9"``); None: every step. Raises a one-line ConfigError naming the bad part."""
+    if text is None:
+        return None
+    out: list[int] = []
+    for part in (p.strip() for p in str(text).split(",")):
+        try:
+            if ":" in part:
+                lo, hi = (x.strip() for x in part.split(":", 1))
+                a, b = int(lo) if lo else 0, int(hi) if hi else n_steps
+                if not 0 <= a < b <= n_steps:
+                    raise ValueError
+                out.extend(range(a, b))
+            else:
+                k = int(part)
+                if not 0 <= k < n_steps:
+                    raise ValueError
+                out.append(k)
+        except ValueError:
+            raise ConfigError(f"--steps {text}: '{part}' is not a step or a:b range within the cache's "
+                              f"0..{n_steps - 1} (e.g. --steps 0:10 or --steps 3,7)") from None
+    return np.array(sorted(set(out)), np.int64)
+
+
+def parse_rx(text: str | None, names: list[str]) -> list[int] | None:
+    """``--rx`` of ``mmslam export``: receiver names or indices, comma separated; None: every receiver."""
+    if text is None:
+        return None
+    out = []
+    for part in (p.strip() for p in str(text).split(",")):
+        if part in names:
+            out.append(names.index(part))
+        elif part.isdigit() and int(part) < len(names):
+            out.append(int(part))
+        else:
+            raise ConfigError(f"--rx {text}: no receiver '{part}'; expected names or indices of "
+                              f"{', '.join(f'{i} {n}' for i, n in enumerate(names))}")
+    return sorted(set(out))
+
+
 def path_counts(paths: dict[str, np.ndarray], steps: int, n_rx: int) -> np.ndarray:
     """Number of path rows per (step, rx, type) as an ``(steps, n_rx, 5)`` int array."""
     key = (paths["step"].astype(np.int64) * n_rx + paths["rx"]) * len(_TYPE_LABELS) + paths["type"]
@@ -190,6 +231,13 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
                                        + span(1, MAX_TIME_STEPS)),
         no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
                                                  help="Keep absolute delays (default: first ray of a link at 0)."),
+        steps: Optional[str] = typer.Option(None, "--steps", help="Steps to export: a:b (b exclusive), a,b,c or a "
+                                            "mix, e.g. 0:10 (default: every cached step)."),
+        rx: Optional[str] = typer.Option(None, "--rx", help="Receivers to export: vehicle names or indices, comma "
+                                         "separated (default: every vehicle)."),
+        sampling_frequency: Optional[float] = typer.Option(None, "--sampling-frequency", help="Sampling frequency "
+                                                           "fs in Hz of the --time-steps samples t = n / fs within a "
+                                                           "step (default: --bandwidth)."),
         out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta); "
                                  "an existing one must be an export mmslam wrote."),
         force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
@@ -206,16 +254,27 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
             raise ConfigError(f"--out {out}: expected a file name ending in .npz")
         check_int("--subcarriers", subcarriers, 1, MAX_SUBCARRIERS)
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
+        if sampling_frequency is not None and not (0 < sampling_frequency < float("inf")):
+            raise ConfigError(f"--sampling-frequency {sampling_frequency:g}: expected a frequency > 0 in Hz")
         c = load_cache(cache_dir)
+        step_sel = parse_steps(steps, c.steps)
+        rx_sel = parse_rx(rx, list(c.vehicle_names))
         check_npz_target(out, NPZ_KIND, force, protect=(c.path,))
-        size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
+        n_steps = c.steps if step_sel is None else step_sel.size
+        n_rx = len(c.vehicle_names) if rx_sel is None else len(rx_sel)
+        size = n_steps * n_rx * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
                               f"--time-steps x --subcarriers); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
                               "--subcarriers or --time-steps")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
-                                      n_subcarriers=subcarriers, l_min=l_min, num_time_steps=time_steps,
-                                      normalize_delays=not no_normalize_delays)
+                                      n_subcarriers=subcarriers, steps=step_sel, l_min=l_min,
+                                      num_time_steps=time_steps, normalize_delays=not no_normalize_delays,
+                                      sampling_frequency_hz=sampling_frequency)
+        if rx_sel is not None:  # h is (steps, rx, ...)
+            import dataclasses
+
+            resp = dataclasses.replace(resp, h=resp.h[:, rx_sel], rx_names=[resp.rx_names[i] for i in rx_sel])
         atomic_write_bytes(out, resp.to_npz_bytes())
         typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
                    f"{'frequency' if cfr else 'tap'})")

@@ -376,7 +376,7 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
             # a chunk is kept only once the manifest on disk names it; Ctrl-C waits for that write,
             # so the "kept" count of the message is the one on disk
             with deferred_sigint():
-                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, file_metadata(m))
+                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, {**file_metadata(m), "versions": versions})
                 entry["versions"] = versions  # a resumed trace may run under other library versions
                 new = {**m, "chunks": m["chunks"] + [entry], "steps_completed": stop}
                 write_manifest(cache_dir, new)

@@ -395,6 +395,17 @@ GEOMETRY: dict[str, tuple[str, ParamSpec]] = {
     "vehicles[].roof_gap": ("0.05", _spec("antenna height above the roof", "m", 0.01, 1.0)),
     "vehicles[].material": ('"metal"', _spec("ITU material", choices=MATERIALS)),
     "vehicles[].scattering_coefficient": ("0.5", _spec("share of diffusely scattered energy", "", 0.0, 1.0)),
+    "vehicles[].route": ("none", _spec("[[x, y], ...] (>= 2 points), with an xml_scene, instead of initial_state / "
+                                       "motion / waypoints: each point is snapped to the nearest street centreline "
+                                       "(free space) and the car drives along the streets between them; a point "
+                                       "outside the scene's street map is refused", "m", -_C, _C)),
+    "vehicles[].speed": ("6", _spec("constant speed of a route vehicle", "m/s", 0.0, 60.0, lo_open=True)),
+    "vehicles[].clock_bias": ("0", _spec("initial clock bias (x c) of a route vehicle", "m", -_C, _C)),
+    "vehicles[].antenna_height": ("1.6", _spec("antenna height of a route vehicle above the terrain", "m", 0.5,
+                                               10.0)),
+    "n_vehicles": ("none", _spec("with an xml_scene: N more cars car_000, car_001, ... on seeded random street "
+                                 "routes near the BS (speeds U(4, 8) m/s, clock biases 100 m, 200 m, ...)", "", 1,
+                                 100, integer=True)),
 }
 """Every geometry / time key of a scenario file: (default, spec with doc, unit and bounds)."""
 
@@ -698,7 +709,7 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
                    "street routes need an xml_scene (an external city scene); give waypoints instead")
     n_rand = 0
     if "n_vehicles" in data:
-        n_rand = int(_num(src, "n_vehicles", data["n_vehicles"], lo=1, hi=100, integer=True))
+        n_rand = int(_num(src, "n_vehicles", data["n_vehicles"], **_b("n_vehicles")))
     from mmslam.scenes.streets import scenario_street_context
 
     ctx = scenario_street_context(src, data, bs)
@@ -715,11 +726,18 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
         if not isinstance(pts, list) or len(pts) < 2:
             raise _err(src, w + "route", "expected at least two [x, y] points")
         xy = np.array([_vec(src, f"{w}route[{j}]", p, 2) for j, p in enumerate(pts)])
-        speed = _num(src, w + "speed", v.get("speed", 6.0), lo=0.0, lo_open=True, hi=60.0)
-        ah = _num(src, w + "antenna_height", v.get("antenna_height", 1.6), lo=0.5, hi=10.0)
+        speed = _num(src, w + "speed", v.get("speed", 6.0), **_b("vehicles[].speed"))
+        ah = _num(src, w + "antenna_height", v.get("antenna_height", 1.6), **_b("vehicles[].antenna_height"))
+        bias = _num(src, w + "clock_bias", v.get("clock_bias", 0.0), **_b("vehicles[].clock_bias"))
+        x0, x1, y0, y1 = ctx.sm.extent
+        for j, (x, y) in enumerate(xy):
+            if not (x0 <= x <= x1 and y0 <= y <= y1):  # would be snapped to a far street without a word
+                raise _err(src, f"{w}route[{j}]", f"[{x:g}, {y:g}] is outside the street map of the xml_scene "
+                           f"(x {x0:.0f}..{x1:.0f} m, y {y0:.0f}..{y1:.0f} m); choose a point inside it "
+                           "(points inside are snapped to the nearest street)")
         wp = ctx.route(xy, ah)
         rest = {k: v[k] for k in v if k not in ("route", "speed", "clock_bias", "antenna_height")}
-        out.append(_waypoint_vehicle(rest, wp, speed, float(v.get("clock_bias", 0.0))))
+        out.append(_waypoint_vehicle(rest, wp, speed, bias))
     if n_rand:
         rng = np.random.default_rng([seed, 0x5354])
         speeds = rng.uniform(4.0, 8.0, n_rand)
@@ -891,7 +909,7 @@ def scenario_reference() -> str:
             "angles in radians. `[[buildings]]`, `[[scatterers]]` and `[[vehicles]]` are arrays of tables "
             "(`buildings[].min` is the key `min` of each `[[buildings]]` entry). The `[sensor]`, `[filter]`, "
             "`[fusion]` and `[evaluation]` keys can also be set per run with "
-            "`mmslam ablate --set section.key=value`.\n\n"
+            "`mmslam slam --set section.key=value` or `mmslam ablate --set section.key=value`.\n\n"
             "## Geometry and time\n\n"
             "| key | default | unit | bounds | meaning |\n|---|---|---|---|---|")
     rows = [f"| `{k}` | {d} | {s.unit or '-'} | {_cell(s.bounds_text()) if s.choices or s.lo is not None or s.hi is not None else '-'}"

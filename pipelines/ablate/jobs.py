@@ -146,8 +146,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
             "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
-                                                  info["source"], out, steps, seed0=seed0, sets=sets,
-                                                  grid=grid)}
+                                                  info["source"], out, steps, executor, seed0=seed0,
+                                                  sets=sets, grid=grid, scheduler=scheduler)}
     if old is not None:
         _check_compatible(out, old, spec)
     start_ablation_dir(out, force=True)
@@ -166,6 +166,10 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     ran: list[Job] = []
     desc = "nothing to run"
     if pending:
+        if executor == "local" or scheduler is None:  # workers on this machine: compile once, here, not in each
+            from mmslam.slam.filter.precompile import compile_for_workers
+
+            compile_for_workers({j.variant for j in pending}, progress)
         with open_pool(executor, scheduler, workers, len(pending)) as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),

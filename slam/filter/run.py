@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -279,8 +279,12 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
 
 def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", particles: int | None = None,
              seed: int = 0, steps: int | None = None, include_types: Sequence[int] | None = None,
-             overrides: Sequence[str] = ()) -> Result:
+             overrides: Sequence[str] = (), compile_notice: Callable[[str], None] | None = None) -> Result:
     """Load a path cache and run :func:`run_filter` on it.
+
+    The variant's numba kernels are compiled (in parallel processes, if not cached yet: a fresh
+    install; ``compile_notice`` gets a one-line message first) and loaded before the run starts, so
+    ``meta['wall_time_s']`` never includes compilation (:func:`mmslam.slam.filter.precompile.ensure_compiled`).
 
     ``overrides``: ``section.key=value`` strings (e.g. ``"fusion.vs_reduction=gate"``) applied to
     the cached scenario's [sensor], [filter], [fusion] and [evaluation] parameters
@@ -303,5 +307,8 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
                           "trace a new cache with that scenario instead")
     meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
             "cache_path": str(cache.path), "overrides": list(overrides)}
+    from .precompile import ensure_compiled
+
+    ensure_compiled([get_variant(variant).name], notice=compile_notice)
     return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
                       seed=seed, steps=steps, include_types=include_types, meta=meta)
