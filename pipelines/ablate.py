@@ -467,7 +467,7 @@ def check_overrides(info: dict[str, Any], sets: Sequence[str], arms: Sequence[tu
     """Validate ``sets`` + every arm on the cached scenario (bounds, names) before anything is written."""
     from mmslam.scenes.scenario import scenario_from_resolved, with_overrides
 
-    base = scenario_from_resolved(info["scenario"])
+    base = scenario_from_resolved(info["scenario"], str(Path(info["cache_dir"]) / "manifest.json"))
     for arm in arms:
         scn = with_overrides(base, list(sets) + list(arm))
         if scn.geometry_hash() != base.geometry_hash():
