@@ -70,3 +70,44 @@ def test_a_5000_deep_toml_array_is_a_one_line_error(tmp_path, capsys, where):
     assert main(argv) == 2
     one_line(capsys, "nested too deeply")
     assert not (tmp_path / "a").exists()
+
+
+# ============================================================ edited and re-hashed caches
+def _edit_paths(src: Path, dst: Path, edit) -> Path:
+    """Copy cache ``src`` to ``dst`` with chunk 0's paths table edited by ``edit(table) -> table``, re-hashed."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    m = json.loads((dst / MANIFEST).read_text())
+    c = m["chunks"][0]
+    f = dst / c["files"]["paths"]
+    pq.write_table(edit(pq.read_table(f)), f)
+    c["sha256"]["paths"] = hashlib.sha256(f.read_bytes()).hexdigest()
+    (dst / MANIFEST).write_text(json.dumps(m))
+    return dst
+
+
+def _set(col: str, value: float):
+    import pyarrow as pa
+
+    def edit(t):
+        v = t.column(col).to_numpy().copy()
+        v[1] = value
+        return t.set_column(t.schema.get_field_index(col), t.schema.field(col), pa.array(v))
+    return edit
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (_set("toa_m", 1e300), "'toa_m' is 1e+300"),
+    (_set("toa_m", -5.0), "'toa_m' is -5.0"),
+    (_set("aoa_az", 7.0), "'aoa_az' is 7.0"),
+    (_set("aod_el", -2.0), "'aod_el' is -2.0"),
+    (lambda t: __import__("pyarrow").concat_tables([t, t.slice(2, 1)]), "duplicated row"),
+])
+def test_an_edited_and_rehashed_cache_is_refused_on_load(tmp_path, capsys, clean_cache, edit, needle):
+    # before: a re-hashed cache with toa = 1e300, a negative toa or a duplicated row loaded and ran
+    load_cache(clean_cache)  # the original is fine
+    bad = _edit_paths(clean_cache, tmp_path / clean_cache.name, edit)
+    assert main(["slam", str(bad), "--particles", "3", "--out", str(tmp_path / "r")]) == 2
+    one_line(capsys, str(bad), needle, "--force")
+    assert not (tmp_path / "r").exists()
