@@ -285,6 +285,8 @@ def read_manifest(cache_dir: Path) -> dict:
         m = json.loads(mp.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CacheError(f"{mp}: not valid JSON ({e.__class__.__name__}); {FORCE_HINT}") from None
+    except RecursionError:
+        raise CacheError(f"{mp}: nested too deeply to be a manifest; {FORCE_HINT}") from None
     if not isinstance(m, dict):
         raise CacheError(f"{mp}: not a JSON object; {FORCE_HINT}")
     if m.get("schema_version") != SCHEMA_VERSION:
@@ -297,7 +299,64 @@ def read_manifest(cache_dir: Path) -> dict:
     miss = [k for k in need if k not in m]
     if miss:
         raise CacheError(f"{mp}: missing keys {miss}; {FORCE_HINT}")
+    _check_manifest_types(m, mp)
     return m
+
+
+def _is_int(v: Any, lo: int = 0) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _check_manifest_types(m: dict, mp: Path) -> None:
+    """Raise a one-line :class:`CacheError` naming the first manifest value of the wrong type or range.
+
+    Everything later code indexes or converts: ``scenario``, ``config_hash``, ``source`` (strings),
+    ``resolved_scenario`` (an object), ``vehicle_names`` (non-empty list of strings), ``dt`` (> 0),
+    ``steps_completed`` (integer >= 0), ``chunks`` (a list of objects with integer ``index``,
+    ``step_start`` < ``step_stop``, and per table a file ``<table>/part-NNNNN.parquet``, a sha256
+    string and a row count).
+    """
+    def bad(key: str, value: Any, expected: str) -> CacheError:
+        shown = json.dumps(value)
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        return CacheError(f"{mp}: '{key}' is {shown}, expected {expected}; {FORCE_HINT}")
+
+    for k in ("scenario", "config_hash", "source"):
+        if not isinstance(m[k], str):
+            raise bad(k, m[k], "a string")
+    if not isinstance(m["resolved_scenario"], dict):
+        raise bad("resolved_scenario", m["resolved_scenario"], "an object")
+    names = m["vehicle_names"]
+    if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+        raise bad("vehicle_names", names, "a non-empty list of names")
+    dt = m["dt"]
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < float("inf"):
+        raise bad("dt", dt, "a time step > 0 s")
+    if not _is_int(m["steps_completed"]):
+        raise bad("steps_completed", m["steps_completed"], "an integer >= 0")
+    if not isinstance(m["chunks"], list):
+        raise bad("chunks", m["chunks"], "a list of chunk entries")
+    for i, c in enumerate(m["chunks"]):
+        where = f"chunks[{i}]"
+        if not isinstance(c, dict):
+            raise bad(where, c, "an object")
+        for k in ("index", "step_start", "step_stop"):
+            if not _is_int(c.get(k)):
+                raise bad(f"{where}.{k}", c.get(k), "an integer >= 0")
+        if c["step_stop"] <= c["step_start"]:
+            raise bad(f"{where}.step_stop", c["step_stop"], f"a step after step_start {c['step_start']}")
+        for k in ("files", "sha256", "rows"):
+            if not isinstance(c.get(k), dict):
+                raise bad(f"{where}.{k}", c.get(k), "an object with one entry per table")
+        for t in TABLES:
+            f = c["files"].get(t)
+            if not (isinstance(f, str) and f.startswith(f"{t}/part-") and f.endswith(".parquet") and "/" not in f[len(t) + 1:]
+                    and ".." not in f):
+                raise bad(f"{where}.files.{t}", f, f"a file {t}/part-NNNNN.parquet")
+            if not isinstance(c["sha256"].get(t), str):
+                raise bad(f"{where}.sha256.{t}", c["sha256"].get(t), "a sha256 hex string")
+            if not _is_int(c["rows"].get(t)):
+                raise bad(f"{where}.rows.{t}", c["rows"].get(t), "an integer >= 0")
 
 
 def checked_chunks(m: dict, mp: Path) -> list[dict]:

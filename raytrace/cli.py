@@ -194,6 +194,9 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--out {out}: expected a file name ending in .npz")
         check_int("--subcarriers", subcarriers, 1, MAX_SUBCARRIERS)
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
+        if cir and l_min > subcarriers - 1:  # the CIR taps are l_min .. subcarriers - 1 (there is no --l-max)
+            raise ConfigError(f"--l-min {l_min}: expected at most --subcarriers - 1 = {subcarriers - 1} (the CIR "
+                              "taps are l_min .. subcarriers - 1); lower --l-min or raise --subcarriers")
         c = load_cache(cache_dir)
         check_npz_target(out, NPZ_KIND, force, protect=(c.path,))
         size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64

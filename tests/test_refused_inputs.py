@@ -111,3 +111,52 @@ def test_an_edited_and_rehashed_cache_is_refused_on_load(tmp_path, capsys, clean
     assert main(["slam", str(bad), "--particles", "3", "--out", str(tmp_path / "r")]) == 2
     one_line(capsys, str(bad), needle, "--force")
     assert not (tmp_path / "r").exists()
+
+
+# ============================================================ item 9: manifest types, messages
+@pytest.mark.parametrize("key, value, needle", [
+    ("steps_completed", "forty", "'steps_completed' is \"forty\", expected an integer"),
+    ("chunks", None, "'chunks' is null, expected a list"),
+    ("vehicle_names", [1, 2], "'vehicle_names' is [1, 2]"),
+    ("dt", -1, "'dt' is -1"),
+    ("chunks.0.step_start", "0", "'chunks[0].step_start' is \"0\""),
+    ("chunks.0.rows", None, "'chunks[0].rows' is null"),
+    ("chunks.0.files.paths", "../../etc/passwd", "'chunks[0].files.paths'"),
+    ("steps_completed", True, "'steps_completed' is true"),
+])
+def test_a_manifest_with_wrongly_typed_values_is_a_one_line_error(tmp_path, capsys, clean_cache, key, value, needle):
+    # before: steps_completed "forty" or chunks null gave exit 1 (ValueError / TypeError: "this is a bug")
+    import shutil
+
+    d = tmp_path / clean_cache.name
+    shutil.copytree(clean_cache, d)
+    m = json.loads((d / MANIFEST).read_text())
+    *path, last = key.split(".")
+    node = m
+    for k in path:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    node[last] = value
+    (d / MANIFEST).write_text(json.dumps(m))
+    for argv in (["paths", str(d)], ["slam", str(d), "--particles", "3", "--out", str(tmp_path / "r")],
+                 ["export", str(d), "--cfr", "--out", str(tmp_path / "h.npz")]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        one_line(capsys, str(d / MANIFEST), needle, "--force")
+    assert main(TRACE + ["--out", str(tmp_path)]) == 2  # resuming it: refused too
+    one_line(capsys, needle)
+
+
+def test_set_errors_name_the_option_not_a_literal_manifest(tmp_path, capsys):
+    # before: "error: <manifest> with --set: key 'filter.merge': ..."
+    assert main(["ablate", "paper", "--source", "analytic", "--steps", "2", "--mc", "1", "--particles", "3",
+                 "--set", "filter.merge=-1", "--quiet", "--out", str(tmp_path / "a")]) == 2
+    err = one_line(capsys, "--set", "filter.merge")
+    assert "<" not in err and "manifest" not in err
+
+
+def test_export_l_min_error_names_existing_options(tmp_path, capsys, clean_cache):
+    # before: "error: --l-max 1023 < --l-min 2000: ..." although export has no --l-max option
+    assert main(["export", str(clean_cache), "--cir", "--l-min", "2000", "--out", str(tmp_path / "h.npz")]) == 2
+    err = one_line(capsys, "--l-min 2000", "--subcarriers - 1 = 1023")
+    assert "--l-max" not in err
+    assert not (tmp_path / "h.npz").exists()
