@@ -193,12 +193,12 @@ FIGURE_TOKEN = "mmslam-figure"
 """Written into every figure's metadata (PNG text chunk, PDF / SVG creator): recognises our own figures."""
 
 
-def figure_format(path: str | Path, option: str = "--out") -> str:
-    """The figure format named by ``path``'s suffix (png, pdf, svg); one-line error otherwise."""
+def figure_format(path: str | Path, option: str = "--out", formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
+    """The figure format named by ``path``'s suffix (one of ``formats``); one-line error otherwise."""
     suffix = Path(path).suffix.lower().lstrip(".")
-    if suffix not in FIGURE_FORMATS:
+    if suffix not in formats:
         raise MmslamError(f"{option} {path}: unknown figure format '.{suffix}'; use a file name ending in "
-                          f"{', '.join('.' + f for f in FIGURE_FORMATS)}")
+                          f"{', '.join('.' + f for f in formats)}")
     return suffix
 
 
@@ -211,7 +211,8 @@ def is_mmslam_figure(path: str | Path) -> bool:
         return False
 
 
-def check_figure_target(path: str | Path, force: bool = False, option: str = "--out") -> str:
+def check_figure_target(path: str | Path, force: bool = False, option: str = "--out",
+                        formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
     """Check a figure file target before any computation; returns its format.
 
     Allowed: a missing file, or a figure mmslam wrote before (:func:`is_mmslam_figure`); any other
@@ -219,7 +220,7 @@ def check_figure_target(path: str | Path, force: bool = False, option: str = "--
     with or without ``force`` (see the module docstring). The parent directory must exist.
     """
     p = Path(path)
-    fmt = figure_format(p, option)
+    fmt = figure_format(p, option, formats)
     if not resolve_link(p, option).parent.is_dir():
         raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
     check_target(p, "figure", force, option=option, is_dir=False, recognise=is_mmslam_figure)

@@ -251,6 +251,7 @@ th{background:#f3f3f3} table.kv th,table.kv td{text-align:left}
 figure{display:inline-block;margin:0.5em;max-width:48%;vertical-align:top}
 figure img{max-width:100%} figcaption{font-size:0.85em}
 pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
+.mmslam-viewer svg { max-width: 100%; height: auto; } .mmslam-viewer .legend { font-size: 0.85em; color: #444; }
 """
 
 
@@ -271,8 +272,55 @@ def _variants_html(variants: list[str]) -> str:
             + "".join(rows) + "</tbody></table>")
 
 
+def viewers_html(out_dir: str | Path, summary: Summary) -> str:
+    """The step viewers of the report: one per variant (arm), on its lowest finished seed.
+
+    Each is a :func:`mmslam.pipelines.viewer.viewer_html` fragment; the traced paths come from the
+    ablation's cache when it is still at the recorded ``cache_dir`` with the same config hash (else
+    the viewer says so and shows no paths). The renderer script is embedded once.
+    """
+    from mmslam.pipelines.viewer import VIEWER_JS, viewer_data, viewer_html
+    from mmslam.scenes.scenario import scenario_from_resolved
+    from mmslam.slam.result import Result
+
+    out = Path(out_dir)
+    spec = read_ablation(out)
+    scn = scenario_from_resolved(spec["scenario"])
+    paths = _cache_paths(spec)
+    parts = []
+    for i, label in enumerate(summary.variants):
+        v, arm = parse_label(label)
+        seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s), arm)))
+        if not seeds:
+            continue
+        res = Result.load(job_dir(out, Job(v, seeds[0], arm)))
+        data = viewer_data(res, scn, paths, title=f"{label}, seed {seeds[0]}")
+        parts.append(f'<details{" open" if i == 0 else ""}><summary>{html.escape(label)} (seed {seeds[0]})</summary>'
+                     f"{viewer_html(data, element_id=f'viewer-{label}', script=False)}</details>")
+    if not parts:
+        return ""
+    return "".join(parts) + f"<script>{VIEWER_JS}</script>"
+
+
+def _cache_paths(spec: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``paths`` table of the ablation's cache, or None if it moved, changed or cannot be read."""
+    from mmslam.errors import MmslamError
+    from mmslam.raytrace.cache import load_cache
+
+    d = spec.get("cache_dir")
+    if not d or not Path(d).is_dir():
+        return None
+    try:
+        c = load_cache(d)
+    except MmslamError:
+        return None
+    if spec.get("config_hash") and c.manifest.get("config_hash") != spec.get("config_hash"):
+        return None
+    return c.paths
+
+
 def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path]) -> str:
-    """The report as one HTML string (figures inlined as base64 PNG)."""
+    """The report as one HTML string (figures inlined as base64 PNG, step viewers as inline SVG + script)."""
     out = Path(out_dir)
     spec = read_ablation(out)
     cfg = summary.config
@@ -321,6 +369,11 @@ over runs. A difference whose interval contains 0 is reported as not significant
 {_variants_html(spec.get("variants", []))}
 <h2>Figures</h2>
 {''.join(figs)}
+<h2>Step through a run</h2>
+<p>Per time step: true (dot, solid) and estimated (plus, dashed) vehicle positions and trajectories, the estimated
+landmarks (x) of the chosen map against the truth (hollow), and the traced paths of that step. One run per
+variant (its lowest seed); drag the slider or press play.</p>
+{viewers_html(out, summary)}
 <h2>Reproduce</h2>
 <pre id="command">{html.escape(str(spec.get('command', '')))}</pre>
 <p>Regenerate this report from the stored results: <code>mmslam report {html.escape(str(out))}</code></p>

@@ -58,6 +58,9 @@ def register(app: typer.Typer) -> None:
                                    "--out is replaced only if it is a previous result, and a folder or file mmslam "
                                    "did not write is never touched."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
+        animate: Optional[Path] = typer.Option(None, "--animate", help="Also draw the run step by step (vehicles, "
+                                               "the fused map's estimates vs truth, the traced paths) into this "
+                                               ".gif (or .mp4, needs ffmpeg) file."),
     ) -> None:
         """Run cooperative MM-PHD-SLAM on a path cache and write the Result (vehicles, metrics, landmarks)."""
         import numpy as np
@@ -75,6 +78,10 @@ def register(app: typer.Typer) -> None:
         from mmslam.outputs import check_target, locked
         from mmslam.slam.result import RESULT_FILES, RESULT_KIND
 
+        if animate is not None:
+            from mmslam.pipelines.viewer import check_animation_target
+
+            check_animation_target(animate, force)  # before the computation
         with locked(out, "slam"):
             check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
@@ -102,3 +109,11 @@ def register(app: typer.Typer) -> None:
             name = names[int(i)] if int(i) < len(names) else str(int(i))
             con.print(f"position RMSE {name}: {rmse:.3f} m")
         con.print(f"wall time: {res.meta['wall_time_s']:.1f} s; written to {path}")
+        if animate is not None:
+            from mmslam.pipelines.viewer import animate as draw_animation
+            from mmslam.pipelines.viewer import viewer_data
+            from mmslam.raytrace.cache import load_cache
+
+            c = load_cache(cache)
+            draw_animation(viewer_data(res, c.scenario, c.paths), animate)
+            con.print(f"animation: {animate}")
