@@ -222,17 +222,20 @@ def user_area(root: Path) -> dict[str, Path]:
     tex.write_text("\\documentclass{article}")
     png = root / "photo.png"
     png.write_bytes(b"\x89PNG my photo")
+    gif = root / "cat.gif"
+    gif.write_bytes(b"GIF89a my cat")
     npz = root / "data.npz"
     np.savez(npz, mine=np.arange(3))
     figdir = root / "figure.png"  # a folder with a figure's name
     figdir.mkdir()
     (figdir / "keep.txt").write_text("mine")
     links = {}
-    for name, target in (("link_dir", folder), ("link_tex", tex), ("link_png", png), ("link_npz", npz)):
+    for name, target in (("link_dir", folder), ("link_tex", tex), ("link_png", png), ("link_npz", npz),
+                         ("link_gif", gif)):
         links[name] = root / name
         links[name].symlink_to(target)
     (root / "dangling.png").symlink_to(root / "nowhere" / "x.png")
-    return {"folder": folder, "tex": tex, "png": png, "npz": npz, "figdir": figdir,
+    return {"folder": folder, "tex": tex, "png": png, "npz": npz, "gif": gif, "figdir": figdir,
             "dangling": root / "dangling.png", **links}
 
 
@@ -240,9 +243,12 @@ def user_area(root: Path) -> dict[str, Path]:
 DIR_TARGETS = ("folder", "tex", "link_dir", "link_tex")
 FIG_TARGETS = ("png", "figdir", "link_png", "dangling")
 NPZ_TARGETS = ("npz", "figdir", "link_npz", "tex")
+GIF_TARGETS = ("gif", "link_gif")
 COMMANDS = {
     "trace": (TRACE + ["--out", "{out}"], DIR_TARGETS, True),
     "slam": (["slam", "{cache}", "--particles", "3", "--steps", "2", "--out", "{out}"], DIR_TARGETS, True),
+    "slam --animate": (["slam", "{cache}", "--particles", "3", "--steps", "2", "--out", "{fresh}", "--animate",
+                        "{out}"], GIF_TARGETS, True),
     "ablate": (ABLATE + ["--out", "{out}"], DIR_TARGETS, True),
     "demo": (["demo", "--source", "analytic", "--mc", "1", "--particles", "3", "--workers", "1", "--quiet",
               "--out", "{out}"], DIR_TARGETS, True),
