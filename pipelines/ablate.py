@@ -224,6 +224,8 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
                   seed: int = 0) -> Path:
     """Trace ``scenario`` with ``source`` into ``out_dir/cache`` (reused / resumed if present).
 
+    ``out_dir`` must be missing, empty or an ablation (:func:`start_ablation_dir`, which marks it).
+
     Args:
         scenario: a preset name, a TOML path or a :class:`~mmslam.scenes.scenario.Scenario`.
         source: ``analytic`` or ``sionna``.
@@ -240,6 +242,7 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
     from mmslam.scenes.scenario import resolve_scenario
 
     scn = resolve_scenario(scenario)
+    start_ablation_dir(out_dir)  # out_dir is (or becomes) an ablation: never a user's folder (mmslam.outputs)
     with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
         src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
     return Path(trace_scenario(scn, src, Path(out_dir) / "cache", steps=steps, progress=progress))
