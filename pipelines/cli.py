@@ -13,7 +13,7 @@ import typer
 from mmslam.errors import ConfigError
 from mmslam.limits import (MAX_MC, MAX_PARTICLES, MAX_SAMPLES, MAX_SEED, MAX_STEPS, MAX_WORKERS, check_int, span)
 from mmslam.slam.cli import variant_help
-from mmslam.slam.variants import BUILTIN_VARIANTS
+from mmslam.slam.specs.variants import BUILTIN_VARIANTS
 
 def _check_source(source: str) -> None:
     from mmslam.raytrace.trace import SOURCES

@@ -15,7 +15,7 @@ from mmslam.pipelines.ablate import (VARIANTS, AblationRun, check_run_args, part
                                      run_ablation)
 
 DEMO_SCENARIO = "paper"
-"""The built-in default scenario (DESIGN.md section 5)."""
+"""The built-in default scenario (docs/design.md section 5)."""
 
 
 @dataclass

@@ -114,7 +114,7 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
     """
     from mmslam.pipelines import figures as F
     from mmslam.scenes.scenario import scenario_from_resolved
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     out = Path(out_dir)
     fdir = out / FIGURES_DIR
@@ -257,7 +257,7 @@ pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
 
 def _variants_html(variants: list[str]) -> str:
     """``<table id="variants">``: each variant's legend label and what it runs (:class:`VariantSpec`)."""
-    from mmslam.slam.variants import variant_names, get_variant
+    from mmslam.slam.specs.variants import variant_names, get_variant
 
     rows = []
     for v in variants:
@@ -275,13 +275,13 @@ def _variants_html(variants: list[str]) -> str:
 def viewers_html(out_dir: str | Path, summary: Summary) -> str:
     """The step viewers of the report: one per variant (arm), on its lowest finished seed.
 
-    Each is a :func:`mmslam.pipelines.viewer.viewer_html` fragment; the traced paths come from the
+    Each is a :func:`mmslam.slam.eval.viewer.viewer_html` fragment; the traced paths come from the
     ablation's cache when it is still at the recorded ``cache_dir`` with the same config hash (else
     the viewer says so and shows no paths). The renderer script is embedded once.
     """
-    from mmslam.pipelines.viewer import VIEWER_JS, viewer_data, viewer_html
+    from mmslam.slam.eval.viewer import VIEWER_JS, viewer_data, viewer_html
     from mmslam.scenes.scenario import scenario_from_resolved
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     out = Path(out_dir)
     spec = read_ablation(out)

@@ -1,4 +1,4 @@
-"""Trace a scenario into a resumable path cache (DESIGN.md section 7).
+"""Trace a scenario into a resumable path cache (docs/design.md section 7).
 
 :func:`trace_scenario` computes the true vehicle states, then asks a path source for the paths
 of every step not yet in the cache, writing one chunk of ``chunk_steps`` steps at a time (each

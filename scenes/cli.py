@@ -64,7 +64,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Plot a top-down plan: BS, buildings, SPs, VAs, trajectories and FOV circles."""
         from mmslam.outputs import check_figure_target
-        from mmslam.scenes.meshes import plot_plan
+        from mmslam.scenes.plan import plot_plan
         from mmslam.scenes.scenario import resolve_scenario
 
         check_figure_target(out, force)

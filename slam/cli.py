@@ -18,7 +18,7 @@ def summarize(res) -> list[tuple[str, str, float]]:
     """
     import numpy as np
 
-    from mmslam.slam.evaluation import evaluated_types
+    from mmslam.slam.eval.evaluation import evaluated_types
 
     type_names = [s.name for s in evaluated_types()]
     m = res.metrics
@@ -36,7 +36,7 @@ def summarize(res) -> list[tuple[str, str, float]]:
 
 def variant_help() -> str:
     """Every registered variant and what it runs (:meth:`VariantSpec.describe`), for ``--help``."""
-    from mmslam.slam.variants import get_variant, variant_names
+    from mmslam.slam.specs.variants import get_variant, variant_names
 
     return " ".join(f"{v}: {get_variant(v).describe()}." for v in variant_names())
 
@@ -68,7 +68,7 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         from mmslam.slam.filter import run_slam
-        from mmslam.slam.variants import variant_names
+        from mmslam.slam.specs.variants import variant_names
 
         if variant not in variant_names():
             raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(variant_names())}")
@@ -76,10 +76,10 @@ def register(app: typer.Typer) -> None:
         check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
         from mmslam.outputs import check_target, locked
-        from mmslam.slam.result import RESULT_FILES, RESULT_KIND
+        from mmslam.slam.filter.result import RESULT_FILES, RESULT_KIND
 
         if animate is not None:
-            from mmslam.pipelines.viewer import check_animation_target
+            from mmslam.slam.eval.viewer import check_animation_target
 
             check_animation_target(animate, force)  # before the computation
         with locked(out, "slam"):
@@ -110,8 +110,8 @@ def register(app: typer.Typer) -> None:
             con.print(f"position RMSE {name}: {rmse:.3f} m")
         con.print(f"wall time: {res.meta['wall_time_s']:.1f} s; written to {path}")
         if animate is not None:
-            from mmslam.pipelines.viewer import animate as draw_animation
-            from mmslam.pipelines.viewer import viewer_data
+            from mmslam.slam.eval.viewer import animate as draw_animation
+            from mmslam.slam.eval.viewer import viewer_data
             from mmslam.raytrace.cache import load_cache
 
             c = load_cache(cache)

@@ -18,7 +18,7 @@ import pytest
 from mmslam.cli import main
 from mmslam.pipelines import ablate as A
 from mmslam.pipelines import figures as F
-from mmslam.slam.result import Result
+from mmslam.slam.filter.result import Result
 
 STEPS, PARTICLES, MC = 8, 50, 2
 SMALL = ["--source", "analytic", "--steps", str(STEPS), "--particles", str(PARTICLES), "--mc", str(MC),

@@ -1,4 +1,4 @@
-"""The branch-free ``atan2`` of :mod:`mmslam.slam.trig` against libm, and its polynomial's derivation."""
+"""The branch-free ``atan2`` of :mod:`mmslam.slam.core.trig` against libm, and its polynomial's derivation."""
 from __future__ import annotations
 
 import math
@@ -7,8 +7,8 @@ import numba as nb
 import numpy as np
 import pytest
 
-from mmslam.slam import trig
-from mmslam.slam.measurement import measure_point, wrap
+from mmslam.slam.core import trig
+from mmslam.slam.models.measurement import measure_point, wrap
 
 
 @nb.njit(error_model="numpy")

@@ -20,10 +20,10 @@ import pytest
 
 from mmslam.errors import MmslamError
 from mmslam.model import BS, OTHER, SP, VA
-from mmslam.pipelines.viewer import (ANIMATION_FORMATS, VIEWER_JS, animate, check_animation_target, viewer_data,
+from mmslam.slam.eval.viewer import (ANIMATION_FORMATS, VIEWER_JS, animate, check_animation_target, viewer_data,
                                      viewer_html)
 from mmslam.scenes import load_preset
-from mmslam.slam.result import Result
+from mmslam.slam.filter.result import Result
 
 NAMES = ["veh1", "veh2"]
 

@@ -11,7 +11,7 @@ What is stored (``tests/golden/*.npz``, written by this script from the code as 
   ``paper`` (:data:`SIONNA_STEPS` steps, depth 1, 10^6 rays per source, seed 0, LLVM on the CPU);
 - ``sionna_<variant>.npz``: a run of each fusion variant on those stored Sionna paths.
 
-Per run (:func:`snapshot`): every column of the run's :class:`~mmslam.slam.result.Result` tables
+Per run (:func:`snapshot`): every column of the run's :class:`~mmslam.slam.filter.result.Result` tables
 (``res/<table>/<column>``: vehicle estimates and errors; GOSPA with its localisation / missed /
 false parts, cardinality and counts per step, map and type; the extracted landmark estimates), and
 per step the vehicles' :class:`StepEstimate` (mean, upper triangle of the covariance, ESS, whether
@@ -124,7 +124,7 @@ def snapshot(scn, states: np.ndarray, paths: dict[str, np.ndarray], variant: str
              seed: int, overrides: tuple[str, ...] = (), steps: int | None = None) -> dict[str, np.ndarray]:
     """Run one case step by step; every array it should reproduce, flat (see the module docstring)."""
     from mmslam.scenes.scenario import with_overrides
-    from mmslam.slam.run import CooperativeRun
+    from mmslam.slam.filter import CooperativeRun  # the public facade (the same before and after issue 21)
 
     scn = with_overrides(scn, list(overrides))
     run = CooperativeRun(scn, states, paths, variant, particles, seed, steps)
