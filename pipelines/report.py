@@ -228,7 +228,7 @@ def viewers_html(out_dir: str | Path, summary: Summary) -> str:
 
     out = Path(out_dir)
     spec = read_ablation(out)
-    scn = scenario_from_resolved(spec["scenario"])
+    scn = scenario_from_resolved(spec["scenario"], str(out / "ablation.json"))
     paths = _cache_paths(spec)
     parts = []
     for i, label in enumerate(summary.variants):
