@@ -44,8 +44,8 @@ def _register_all() -> None:
     from mmslam.scenes import cli as scenes_cli
     from mmslam.slam import cli as slam_cli
 
-    scenes_cli.register(app)
-    raytrace_cli.register(app)
+    scene = scenes_cli.register(app)
+    raytrace_cli.register(app, scene)
     slam_cli.register(app)
     pipelines_cli.register(app)
 

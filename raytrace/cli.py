@@ -57,8 +57,10 @@ def plot_toa(cache, out: Path) -> None:
         plt.close(fig)
 
 
-def register(app: typer.Typer) -> None:
-    """Add this subpackage's commands to ``app``."""
+def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
+    """Add this subpackage's commands to ``app`` (and ``coverage`` to the ``scene`` group, if given)."""
+    if scene is not None:
+        _register_coverage(scene)
 
     @app.command("trace")
     def trace_cmd(
@@ -85,7 +87,8 @@ def register(app: typer.Typer) -> None:
         from mmslam.executor import check_executor
 
         check_executor(executor, scheduler, workers)  # the address is checked here, before any work
-        from mmslam.raytrace.trace import SOURCES, DaskExecutor, check_cache_root, make_source, trace_scenario
+        from mmslam.raytrace.trace import (SOURCES, DaskExecutor, check_cache_root, check_scene, make_source,
+                                           trace_scenario)
         from mmslam.scenes.scenario import resolve_scenario
 
         if source not in SOURCES:
@@ -100,6 +103,7 @@ def register(app: typer.Typer) -> None:
             raise ConfigError("--workers / --scheduler are only used with --executor dask")
         check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
+        check_scene(scn, steps)  # before the (slow) scene load of the source
         ex = None
         if executor == "dask":
             ex = DaskExecutor({"name": source, "max_depth": max_depth, "samples": samples, "seed": seed},
@@ -109,6 +113,12 @@ def register(app: typer.Typer) -> None:
                 src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
             d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
                                progress=not quiet, executor=ex)
+        from mmslam.raytrace.cache import load_cache
+        from mmslam.raytrace.trace import coverage_warnings
+
+        c = load_cache(d)
+        for line in coverage_warnings(c.paths, c.steps, c.vehicle_names):
+            typer.echo(f"warning: {line}", err=True)
         typer.echo(str(d))
 
     @app.command("paths")
@@ -212,3 +222,55 @@ def register(app: typer.Typer) -> None:
         atomic_write_bytes(out, resp.to_npz_bytes())
         typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
                    f"{'frequency' if cfr else 'tap'})")
+
+
+def _register_coverage(scene: typer.Typer) -> None:
+    """``mmslam scene coverage``: the Sionna radio map lives in this layer (raytrace), above scenes."""
+
+    @scene.command("coverage")
+    def coverage_cmd(
+        scenario: str = typer.Argument(..., help="Preset name or a scenario .toml file."),
+        out: Path = typer.Option(Path("coverage.png"), "--out", help="Figure of the radio map; the format "
+                                 "follows the suffix (.png, .pdf, .svg)."),
+        height: float = typer.Option(1.5, "--height", help="Plane height above the street (m)."),
+        res: float = typer.Option(2.0, "--res", help="Cell size (m)."),
+        margin: float = typer.Option(40.0, "--margin", help="Map extent beyond the BS and the routes (m)."),
+        samples: int = typer.Option(1_000_000, "--samples", help="Rays shot from the BS."),
+        max_depth: int = typer.Option(1, "--max-depth", help="Interactions per path (as mmslam trace). [1..3]"),
+        seed: int = typer.Option(0, "--seed", help="Sionna's sampling seed."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
+                                   "mmslam wrote."),
+    ) -> None:
+        """Sionna's radio map (RadioMapSolver) of the BS at street level over the plan, with the routes.
+
+        Shows where the BS reaches before anything is traced; prints, per vehicle, the path gain
+        along its route and the steps where no path reaches it.
+        """
+        import numpy as np
+
+        from mmslam.errors import ConfigError
+        from mmslam.limits import MAX_SAMPLES, MAX_SEED, check_int
+        from mmslam.outputs import check_figure_target
+        from mmslam.raytrace.coverage import coverage_map, plot_coverage, route_gain_db
+        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.trajectory import vehicle_trajectories
+
+        check_figure_target(out, force)
+        check_int("--samples", samples, 1, MAX_SAMPLES, "rays")
+        check_int("--seed", seed, 0, MAX_SEED, "a seed")
+        if not 1 <= max_depth <= 3:
+            raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
+        if not 0.0 <= margin <= 1000.0:
+            raise ConfigError(f"--margin {margin}: expected 0 .. 1000 m")
+        scn = resolve_scenario(scenario)
+        states = vehicle_trajectories(scn)
+        cm = coverage_map(scn, states, height=height, res=res, margin=margin, samples=samples,
+                          max_depth=max_depth, seed=seed)
+        g = route_gain_db(cm, states)
+        for i, v in enumerate(scn.vehicles):
+            gi = g[:, i]
+            ok = gi[np.isfinite(gi)]
+            med = f"median {np.median(ok):.1f} dB, min {ok.min():.1f} dB" if ok.size else "no path anywhere"
+            typer.echo(f"{v.name}: path gain along the route {med}; no path in {int(np.isneginf(gi).sum())} "
+                       f"of {len(gi)} steps")
+        typer.echo(f"wrote {plot_coverage(cm, scn, states, out)}")

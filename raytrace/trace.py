@@ -31,7 +31,7 @@ from mmslam.raytrace.cache import (
     read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
-from mmslam.scenes.geometry import check_vehicle_poses
+from mmslam.scenes.geometry import check_bs_position, check_vehicle_overlaps, check_vehicle_poses
 from mmslam.scenes.scenario import Scenario
 from mmslam.scenes.trajectory import true_trajectories
 
@@ -208,6 +208,55 @@ def _is_own_cache(cache_dir: Path) -> bool:
     return True
 
 
+def check_scene(scn: Scenario, steps: int | None = None) -> None:
+    """Refuse, in one line (:class:`ConfigError`), a scene that cannot be traced as meant, before any work.
+
+    A vehicle within ``BS_CLEARANCE_M`` of the BS, two vehicle bodies that overlap at some step
+    (:func:`~mmslam.scenes.geometry.check_vehicle_overlaps`; also cars drawn by ``n_vehicles``) and a
+    BS inside an object (:func:`~mmslam.scenes.geometry.check_bs_position`: Sionna would still find a
+    line-of-sight path out of a closed mesh). The car poses against the meshes are checked by
+    :func:`~mmslam.scenes.geometry.check_vehicle_poses` when the trace starts.
+    """
+    from mmslam.scenes.trajectory import check_bs_clearance
+
+    states = true_trajectories(scn, scn.steps if steps is None else int(steps))
+    check_bs_clearance(scn, states)
+    check_vehicle_overlaps(scn, states)
+    check_bs_position(scn)
+
+
+NO_PATH_WARN = 0.5
+"""Warn when a vehicle gets no path at all in more than this fraction of the steps."""
+LOS_WARN = 0.25
+"""Warn when a vehicle has the line-of-sight path in fewer than this fraction of the steps."""
+
+
+def coverage_warnings(paths: dict[str, np.ndarray], steps: int, vehicle_names: list[str] | tuple[str, ...]
+                      ) -> list[str]:
+    """One line per vehicle that gets no path in most steps or rarely sees the BS (``paths`` of a cache).
+
+    Counted over ``steps`` steps: steps in which the vehicle receives no path at all (above
+    :data:`NO_PATH_WARN` of them) and steps with its line-of-sight path (below :data:`LOS_WARN`).
+    Such a vehicle localises from dead reckoning alone for long stretches: move the BS (``mmslam
+    scene coverage`` draws where it reaches) or the route.
+    """
+    from mmslam.model import LandmarkType
+
+    out = []
+    step = np.asarray(paths["step"], np.int64)
+    rx = np.asarray(paths["rx"], np.int64)
+    typ = np.asarray(paths["type"], np.int64)
+    for i, name in enumerate(vehicle_names):
+        mine = rx == i
+        n_any = np.unique(step[mine]).size
+        n_los = np.unique(step[mine & (typ == int(LandmarkType.BS))]).size
+        none, los = steps - n_any, n_los
+        if none > NO_PATH_WARN * steps or los < LOS_WARN * steps:
+            out.append(f"vehicle '{name}': no path in {none} of {steps} steps, line of sight to the BS in {los}; "
+                       "move the BS or the route (mmslam scene coverage draws where the BS reaches)")
+    return out
+
+
 def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, steps: int | None = None,
                    chunk_steps: int = 5, force: bool = False, progress: bool = True,
                    executor: "DaskExecutor | None" = None) -> Path:
@@ -235,11 +284,9 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         raise ConfigError(f"--steps {steps}: expected a positive number of steps")
     if chunk_steps < 1:
         raise ConfigError(f"chunk_steps {chunk_steps}: expected >= 1")
-    from mmslam.scenes.trajectory import check_bs_clearance
-
     from mmslam.outputs import output_kind, write_marker
 
-    check_bs_clearance(scn, true_trajectories(scn, n_steps))  # before anything is written
+    check_scene(scn, n_steps)  # before anything is written
     check_cache_root(out_root, force)
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)

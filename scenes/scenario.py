@@ -688,8 +688,10 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
     Route points are snapped to the street centrelines of the ``xml_scene`` and joined along the
     streets (:func:`mmslam.scenes.streets.plan_route`); ``n_vehicles`` adds N cars ``car_000``...
     on seeded random routes near the BS (:func:`mmslam.scenes.streets.random_routes`; speeds
-    U(4, 8) m/s from ``numpy.random.default_rng([seed, 0x5354])``). Waypoints are 3-D: the
-    antenna (``antenna_height`` m, default 1.6) follows the terrain.
+    U(4, 8) m/s from ``numpy.random.default_rng([seed, 0x5354])``; each car stays >= 6 m from the
+    earlier random cars at every step). Waypoints are 3-D: the antenna (``antenna_height`` m,
+    default 1.6) follows the terrain. Routed cars that overlap each other are refused when the
+    trace starts (:func:`mmslam.scenes.geometry.check_vehicle_overlaps`).
     """
     if not data.get("xml_scene"):
         raise _err(src, "n_vehicles" if "n_vehicles" in data else "vehicles.route",
@@ -721,7 +723,7 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
     if n_rand:
         rng = np.random.default_rng([seed, 0x5354])
         speeds = rng.uniform(4.0, 8.0, n_rand)
-        routes = ctx.random(n_rand, speeds * dt * steps, rng)
+        routes = ctx.random(n_rand, speeds * dt * steps, rng, steps)  # clear of each other
         taken = {v.get("name") for v in out if isinstance(v, dict)}
         for k, (wp, sp) in enumerate(zip(routes, speeds)):
             name = f"car_{k:03d}"
