@@ -238,8 +238,8 @@ def _register_coverage(scene: typer.Typer) -> None:
         samples: int = typer.Option(1_000_000, "--samples", help="Rays shot from the BS."),
         max_depth: int = typer.Option(1, "--max-depth", help="Interactions per path (as mmslam trace). [1..3]"),
         seed: int = typer.Option(0, "--seed", help="Sionna's sampling seed."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
-                                   "mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Sionna's radio map (RadioMapSolver) of the BS at street level over the plan, with the routes.
 

@@ -255,6 +255,7 @@ COMMANDS = {
     "report": (["report", "{out}"], DIR_TARGETS, False),
     "scene build": (["scene", "build", "paper", "--out", "{out}"], DIR_TARGETS, True),
     "scene show": (["scene", "show", "paper", "--out", "{out}"], FIG_TARGETS, True),
+    "scene coverage": (["scene", "coverage", "canyon", "--out", "{out}"], FIG_TARGETS, True),
     "scene streets --out": (["scene", "streets", "sionna:simple_street_canyon", "--out", "{out}"], FIG_TARGETS, False),
     "scene streets --data": (["scene", "streets", "sionna:simple_street_canyon", "--out", "{fresh}.png", "--data",
                               "{out}"], NPZ_TARGETS, False),
