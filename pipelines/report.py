@@ -70,7 +70,7 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
              ("cardinality_va", lambda: F.fig_cardinality(summary, "VA")))
     for name, make in plots:
         made[name] = F.save_figure(make(), fdir / f"{name}.png")
-    scn = scenario_from_resolved(spec["scenario"])
+    scn = scenario_from_resolved(spec["scenario"], str(out / "ablation.json"))
     for label in summary.variants:
         v, arm = parse_label(label)
         seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s), arm)))
@@ -227,7 +227,7 @@ def viewers_html(out_dir: str | Path, summary: Summary) -> str:
 
     out = Path(out_dir)
     spec = read_ablation(out)
-    scn = scenario_from_resolved(spec["scenario"])
+    scn = scenario_from_resolved(spec["scenario"], str(out / "ablation.json"))
     paths = _cache_paths(spec)
     parts = []
     for i, label in enumerate(summary.variants):

@@ -132,9 +132,11 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
     if kind == "cfr":
         axis = subcarrier_frequencies(n_subcarriers, bandwidth_hz / n_subcarriers)
     else:
+        l_max_given = l_max is not None
         l_max = int(n_subcarriers) - 1 if l_max is None else int(l_max)
         if l_max < l_min:
-            raise ConfigError(f"--l-max {l_max} < --l-min {l_min}: expected l_min <= l_max")
+            src = "l_max" if l_max_given else "n_subcarriers - 1"
+            raise ConfigError(f"l_min {l_min}: expected at most {src} = {l_max} (the taps are l_min .. {src})")
         axis = np.arange(int(l_min), l_max + 1, dtype=float)
     h = np.zeros((n_links, times.size, axis.size), complex)
     ok = np.flatnonzero(link >= 0)

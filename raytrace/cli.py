@@ -256,6 +256,9 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
         if sampling_frequency is not None and not (0 < sampling_frequency < float("inf")):
             raise ConfigError(f"--sampling-frequency {sampling_frequency:g}: expected a frequency > 0 in Hz")
+        if cir and l_min > subcarriers - 1:  # the CIR taps are l_min .. subcarriers - 1 (there is no --l-max)
+            raise ConfigError(f"--l-min {l_min}: expected at most --subcarriers - 1 = {subcarriers - 1} (the CIR "
+                              "taps are l_min .. subcarriers - 1); lower --l-min or raise --subcarriers")
         c = load_cache(cache_dir)
         step_sel = parse_steps(steps, c.steps)
         rx_sel = parse_rx(rx, list(c.vehicle_names))
@@ -294,8 +297,8 @@ def _register_coverage(scene: typer.Typer) -> None:
         samples: int = typer.Option(1_000_000, "--samples", help="Rays shot from the BS."),
         max_depth: int = typer.Option(1, "--max-depth", help="Interactions per path (as mmslam trace). [1..3]"),
         seed: int = typer.Option(0, "--seed", help="Sionna's sampling seed."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
-                                   "mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Sionna's radio map (RadioMapSolver) of the BS at street level over the plan, with the routes.
 

@@ -771,8 +771,10 @@ def dict_from_resolved(d: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
-def scenario_from_resolved(d: dict[str, Any], source: str = "<manifest>") -> Scenario:
-    """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache)."""
+def scenario_from_resolved(d: dict[str, Any], source: str = "the stored scenario") -> Scenario:
+    """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache).
+
+    ``source``: the file it came from, named in error messages (give the manifest's path)."""
     return scenario_from_dict(dict_from_resolved(d), source)
 
 
@@ -815,7 +817,10 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
             raise ConfigError(f"--set {key}: unknown parameter; expected section.key with one of "
                               f"{', '.join(known)} (see docs/scenario.md)")
         d.setdefault(section, {})[name] = value
-    return scenario_from_dict(d, f"{scn.source_file} with --set")
+    out = scenario_from_dict(d, "--set")  # errors name the option: "--set: key 'filter.merge': ..."
+    if any(parse_override(t)[0] == "fusion.start" for t in sets):
+        check_fusion_start(out, "--set", key="fusion.start")
+    return out
 
 
 def _cell(text: str) -> str:
@@ -863,7 +868,27 @@ def load_scenario(path: str | Path, seed_override: int | None = None) -> Scenari
                           "file is TOML, saved as UTF-8") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML ({e}); fix the syntax") from None
-    return scenario_from_dict(data, str(p), seed_override)
+    except RecursionError:  # tomllib recurses once per nesting level: thousands of [ ] exhaust the stack
+        raise ConfigError(f"{p}: arrays or tables nested too deeply for a scenario file (a scenario nests at "
+                          "most three levels, e.g. buildings[].vertices[][]); fix the file") from None
+    scn = scenario_from_dict(data, str(p), seed_override)
+    if isinstance(data.get("fusion"), dict) and "start" in data["fusion"]:
+        check_fusion_start(scn, str(p))
+    return scn
+
+
+def check_fusion_start(scn: Scenario, source: str, steps: int | None = None, key: str = "fusion.start") -> None:
+    """Refuse (one line) a fusion schedule whose first upload ``min(fusion.start)`` is not before the last step.
+
+    The GOSPA / RMSE tables cover steps ``>= min(fusion.start)``: such a run would evaluate nothing
+    (an empty table). ``steps``: the run length (default ``scn.steps``). Checked where the user gives
+    the schedule (a scenario file, ``--set fusion.start``), not on a cache traced with fewer ``--steps``.
+    """
+    n = scn.steps if steps is None else int(steps)
+    first = min(scn.fusion.start)
+    if first >= n:
+        raise ConfigError(f"{source}: key '{key}': first fusion step {first} is not before the last step {n - 1} "
+                          f"(steps = {n}), so nothing would be fused or evaluated; expected a start step below {n}")
 
 
 def list_presets() -> list[str]:
