@@ -177,6 +177,9 @@ def register(app: typer.Typer) -> None:
                                        + span(1, MAX_TIME_STEPS)),
         no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
                                                  help="Keep absolute delays (default: first ray of a link at 0)."),
+        with_arrays: bool = typer.Option(False, "--arrays", help="With the scenario's BS and vehicle arrays "
+                                         "(sensor.tx_array / rx_array elements per axis): antenna axes "
+                                         "(steps, rx, rx_ant, tx_ant, time, K)."),
         out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta)."),
         force: bool = typer.Option(False, "--force/--no-force", help="Replace an existing --out file."),
     ) -> None:
@@ -193,14 +196,15 @@ def register(app: typer.Typer) -> None:
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
         c = load_cache(cache_dir)
         check_target(out, "channel", force, protect=(c.path,))
-        size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
+        ants = int(c.scenario.sensor.tx_array) ** 2 * int(c.scenario.sensor.rx_array) ** 2 if with_arrays else 1
+        size = c.steps * len(c.vehicle_names) * ants * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
-                              f"--time-steps x --subcarriers); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
+                              f"--time-steps x --subcarriers{' x antennas' if with_arrays else ''}); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
                               "--subcarriers or --time-steps")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
                                       n_subcarriers=subcarriers, l_min=l_min, num_time_steps=time_steps,
-                                      normalize_delays=not no_normalize_delays)
+                                      normalize_delays=not no_normalize_delays, arrays=with_arrays)
         atomic_write_bytes(out, resp.to_npz_bytes())
-        typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
+        typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, {'rx_ant, tx_ant, ' if with_arrays else ''}time, "
                    f"{'frequency' if cfr else 'tap'})")
