@@ -16,7 +16,7 @@ from pathlib import Path
 
 import mmslam.model as _model
 
-KERNEL_SOURCES = ("birth.py", "ckf.py", "detection.py", "dynamics.py", "gm.py", "gmphd.py", "jit.py", "linalg.py",
+KERNEL_SOURCES = ("birth.py", "channel_estimator.py", "ckf.py", "detection.py", "dynamics.py", "gm.py", "gmphd.py", "jit.py", "linalg.py",
                   "measurement.py", "reduction.py", "rbpf.py", "sensor.py", "trig.py", "vs.py")
 """The ``slam/`` modules that define numba kernels (one hash over all of them)."""
 
