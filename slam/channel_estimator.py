@@ -194,9 +194,10 @@ def coordinate_search(r2: np.ndarray, w: np.ndarray, grid: Grid, sweeps: int = 2
     return w
 
 
-def refine(r2: np.ndarray, w: np.ndarray, grid: Grid, iters: int = 8, tol: float = 1e-7) -> np.ndarray:
+def refine(r2: np.ndarray, w: np.ndarray, grid: Grid, iters: int = 8, tol: float = 0.02) -> np.ndarray:
     """Newton steps on ``S(w) = |v(w)^H r|^2`` from ``w``, ``r2 (Na, K)``: stops where the Hessian is not
-    negative definite, a step lowers ``S`` (that step undone) or every step is below ``tol`` rad;
+    negative definite, a step lowers ``S`` (that step undone) or every step is below ``tol`` times the
+    axis' CRB standard deviation at the current gain ``c / N`` (converged far inside the noise);
     steps limited to half a DFT cell per axis."""
     w = np.array(w, float)
     half = np.pi / np.asarray(grid.shape, float)
@@ -212,7 +213,7 @@ def refine(r2: np.ndarray, w: np.ndarray, grid: Grid, iters: int = 8, tol: float
         step = np.clip(step, -half, half)
         prev_w, prev_S = w, S
         w = w + step
-        if np.all(np.abs(step) < tol):
+        if np.all(np.abs(step) * np.sqrt(np.diag(fisher_w(c / grid.size, grid))) < tol):
             break
     return w
 
@@ -249,9 +250,11 @@ def newton_step(c: complex, g: np.ndarray, H: np.ndarray) -> np.ndarray | None:
     return -np.linalg.solve(hess, grad)
 
 
-def _would_move(r2: np.ndarray, w: np.ndarray, g: complex, grid: Grid, frac: float = 0.1) -> bool:
+def _would_move(r2: np.ndarray, w: np.ndarray, g: complex, grid: Grid, frac: float = 0.5) -> bool:
     """Whether path ``(w, g)`` re-fitted on ``r + g v(w)`` moves by more than ``frac`` of its CRB standard
-    deviation in some axis (one contraction of the residual; no update of it)."""
+    deviation in some axis (one contraction of the residual; no update of it). Left where it is, its
+    residual holds about ``sum (step / std)^2 / 2 <= 5 frac^2`` noise variances, far below the CFAR
+    threshold (~17 at the default grid): no spurious detection from it."""
     step = newton_step(*value_grad_hess(r2, w, grid, g))
     if step is None:
         return True

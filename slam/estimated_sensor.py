@@ -50,7 +50,7 @@ from .sensor import BOLTZMANN_DBM_HZ, Measurements, clock_bias_walk, clutter_int
 SPEED_OF_LIGHT = ce.SPEED_OF_LIGHT
 GUARD = 4
 """Samples (``1 / B`` each) the receiver's window opens before the first arrival."""
-ESTIMATOR_VERSION = 1
+ESTIMATOR_VERSION = 2
 """Part of the estimates' cache key: bump when the estimator's results change."""
 
 
