@@ -3,7 +3,8 @@
 Received pilots of real links (the ``paper`` scene traced by the closed-form source: LOS, four wall
 VAs, SPs, the other car; ``--steps`` steps x 2 vehicles, noise from seed 0) are estimated with
 :func:`mmslam.slam.channel_estimator.nomp` at the default sizes (BS 8 x 8, vehicle 4 x 4, 256
-subcarriers, pfa 0.01, <= 20 paths) and at other sizes. Per size: the median and 90th percentile of
+subcarriers, pfa 0.01, <= 20 paths) and at other sizes (``--cache``: the links of a traced cache
+instead, e.g. a Sionna trace with its diffuse clusters). Per size: the median and 90th percentile of
 the estimation time per vehicle-step (``time.process_time``: CPU time of this process, one thread;
 BLAS pinned to one thread) and the median number of estimates. Pilot synthesis is not timed.
 
@@ -64,10 +65,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--reps", type=int, default=1, help="repetitions per link (the fastest is kept)")
     ap.add_argument("--sizes", default="all", help="'default' or 'all'")
+    ap.add_argument("--cache", default=None, help="a traced cache to take the links from (e.g. a Sionna trace: "
+                    "diffuse clusters, ~60 rays per link); default: paper traced by the closed-form source")
     a = ap.parse_args()
     scn = load_preset("paper")
     with tempfile.TemporaryDirectory() as tmp:
-        cache = load_cache(trace_scenario(scn, AnalyticSource(scn), tmp, steps=a.steps, progress=False))
+        cache = load_cache(a.cache if a.cache else
+                           trace_scenario(scn, AnalyticSource(scn), tmp, steps=a.steps, progress=False))
         # compile the numba kernel once outside the timing
         g = ce.Grid(2, 2, 8, 1e8)
         ce.nomp(np.zeros((4, 4, 8), complex), g, 0.01)

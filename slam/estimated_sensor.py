@@ -12,7 +12,7 @@ Per vehicle and step, from every traced ray of its link (``rays`` table, all typ
    terms without the array gains: the arrays are in ``H``). Full-channel pilots rather than beam
    sweeping: the estimator then sees every path in one step at the full aperture of both arrays
    (beam sweeping with ``tx^2 rx^2`` beam pairs gives the same energy per path but needs a codebook
-   and loses the paths between beams); the cost is ``tx^2`` pilot symbols per step, ~64 x 3.2 us
+   and loses the paths between beams); the cost is ``tx^2`` pilot symbols per step, 64 x 0.64 us
    at 256 subcarriers, far below the 0.5 s step. ``H`` is :func:`mmslam.raytrace.channel` 's array
    channel at the absolute delays plus the clock bias, after the receiver's window start ``t0``:
    the first arrival's sample (its timing acquisition) minus ``GUARD`` samples. Noise is drawn from
