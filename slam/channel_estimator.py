@@ -121,26 +121,27 @@ def _contract_ant(t: np.ndarray, vs: list[np.ndarray]) -> np.ndarray:
     return t
 
 
-def _self_terms(grid: Grid) -> np.ndarray:
-    """``(v^(p0) (x) .. (x) v^(p4))^H v`` for ``p_d = 0..2``, independent of ``w``: per axis
-    ``sum_i (-j i)^p = [L, -j sum i, -sum i^2]`` (``i`` centred), ``(3, 3, 3, 3, 3)``."""
+def _self_terms(grid: Grid, w: np.ndarray, w_self: np.ndarray) -> np.ndarray:
+    """``(v^(p0)(w) (x) .. (x) v^(p4)(w))^H v(w_self)`` for ``p_d = 0..2``, ``(3, 3, 3, 3, 3)``: per axis
+    ``sum_i (-j i)^p exp(j (w_self - w) i)`` (``i`` centred), their outer product (separable)."""
     out = np.ones((1,) * 0)
-    for n, o in zip(grid.shape, grid.offsets):
+    for d, (n, o) in enumerate(zip(grid.shape, grid.offsets)):
         i = np.arange(n) - o
-        out = np.multiply.outer(out, np.array([n, -1j * i.sum(), -(i * i).sum()], complex))
+        e = np.exp(1j * (w_self[d] - w[d]) * i)
+        out = np.multiply.outer(out, np.array([e.sum(), (-1j * i * e).sum(), (-(i * i) * e).sum()]))
     return out
 
 
-def value_grad_hess(r2: np.ndarray, w: np.ndarray, grid: Grid, g_self: complex = 0j
-                    ) -> tuple[complex, np.ndarray, np.ndarray]:
-    """``c = v(w)^H (r + g_self v(w))``, its gradient ``(5,)`` and Hessian ``(5, 5)`` (complex) in ``w``
-    (the atom's own term held at ``w``: the derivatives of ``v(w')^H (r + g_self v(w))`` at ``w' = w``);
-    ``r2 (Na, K)``."""
+def value_grad_hess(r2: np.ndarray, w: np.ndarray, grid: Grid, g_self: complex = 0j,
+                    w_self: np.ndarray | None = None) -> tuple[complex, np.ndarray, np.ndarray]:
+    """``c = v(w)^H (r + g_self v(w_self))``, its gradient ``(5,)`` and Hessian ``(5, 5)`` (complex) in ``w``
+    (``w_self`` default ``w``: the atom's own term held where it is); ``r2 (Na, K)``. The added atom's
+    term is separable, so ``r`` is not touched."""
     vs = atoms(w, grid, 2)
     T = _contract_ant(_ant_tensor(r2, vs[4], grid), vs[:4])  # (p4, p3, p2, p1, p0)
     T = T.transpose(4, 3, 2, 1, 0)
     if g_self != 0:
-        T = T + g_self * _self_terms(grid)
+        T = T + g_self * _self_terms(grid, w, w if w_self is None else w_self)
     c = T[0, 0, 0, 0, 0]
     g = np.empty(5, complex)
     H = np.empty((5, 5), complex)
@@ -194,16 +195,18 @@ def coordinate_search(r2: np.ndarray, w: np.ndarray, grid: Grid, sweeps: int = 2
     return w
 
 
-def refine(r2: np.ndarray, w: np.ndarray, grid: Grid, iters: int = 8, tol: float = 0.02) -> np.ndarray:
+def refine(r2: np.ndarray, w: np.ndarray, grid: Grid, iters: int = 8, tol: float = 0.02, g_self: complex = 0j,
+           w_self: np.ndarray | None = None) -> np.ndarray:
     """Newton steps on ``S(w) = |v(w)^H r|^2`` from ``w``, ``r2 (Na, K)``: stops where the Hessian is not
     negative definite, a step lowers ``S`` (that step undone) or every step is below ``tol`` times the
     axis' CRB standard deviation at the current gain ``c / N`` (converged far inside the noise);
-    steps limited to half a DFT cell per axis."""
+    steps limited to half a DFT cell per axis. ``g_self, w_self``: refine on ``r + g_self v(w_self)``."""
     w = np.array(w, float)
+    w_self = None if w_self is None else np.asarray(w_self, float)
     half = np.pi / np.asarray(grid.shape, float)
     prev_w, prev_S = None, -1.0
     for _ in range(iters):
-        c, g, H = value_grad_hess(r2, w, grid)
+        c, g, H = value_grad_hess(r2, w, grid, g_self, w_self)
         S = abs(c) ** 2
         if S < prev_S:
             return prev_w
@@ -262,6 +265,16 @@ def _would_move(r2: np.ndarray, w: np.ndarray, g: complex, grid: Grid, frac: flo
 
 
 @nb.njit(cache=True)
+def _rank2_update(X: np.ndarray, a1: np.ndarray, b1: np.ndarray, g1: complex, a2: np.ndarray, b2: np.ndarray,
+                  g2: complex) -> None:
+    """``X -= g1 a1 b1^T + g2 a2 b2^T`` in place (one pass)."""
+    for i in range(X.shape[0]):
+        c1, c2 = g1 * a1[i], g2 * a2[i]
+        for k in range(X.shape[1]):
+            X[i, k] -= c1 * b1[k] + c2 * b2[k]
+
+
+@nb.njit(cache=True)
 def _rank1_update_argmax(X: np.ndarray, a: np.ndarray, b: np.ndarray, g: complex) -> tuple[int, float]:
     """``X -= g a b^T`` in place (``X (Na, K)``, ``a (Na,)``, ``b (K,)``); returns the flat index and value of
     ``max |X|^2`` after the update (one pass)."""
@@ -315,20 +328,24 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
         j, pmax = _rank1_update_argmax(R2, _ant_atom([np.fft.fft(v) for v in vs]), np.fft.fft(vk), g)
         ws.append(w)
         gs.append(g)
-        # cyclic refinement (NOMP): every earlier path re-fitted on the residual plus itself
+        # cyclic refinement (NOMP): every earlier path re-fitted on the residual plus itself (its own
+        # term added in closed form; the residual updated once per moved path, its DFT once per pass)
         for _ in range(int(cyclic_passes)):
+            moved = False
             for l in range(len(ws) - 1):
                 if not _would_move(r2, ws[l], gs[l], grid):
                     continue
-                vs = [a[0] for a in atoms(ws[l], grid, 0)]
-                va_old, vk_old = _ant_atom(vs), vs[4]
-                _rank1_update_argmax(r2, va_old, vk_old, -gs[l])
-                w_new = refine(r2, ws[l], grid, iters=3)
-                g_new, va, vk, vs_new = fit(w_new)
-                _rank1_update_argmax(r2, va, vk, g_new)
-                _rank1_update_argmax(R2, _ant_atom([np.fft.fft(v) for v in vs]), np.fft.fft(vk_old), -gs[l])
-                j, pmax = _rank1_update_argmax(R2, _ant_atom([np.fft.fft(v) for v in vs_new]), np.fft.fft(vk), g_new)
+                w_new = refine(r2, ws[l], grid, iters=3, g_self=gs[l], w_self=ws[l])
+                vs_old = [a[0] for a in atoms(ws[l], grid, 0)]
+                g_new, va, vk, _ = fit(w_new)
+                g_new += gs[l] * complex(np.prod([np.vdot(a, b) for a, b in zip(
+                    [a[0] for a in atoms(w_new, grid, 0)], vs_old)])) / N
+                _rank2_update(r2, va, vk, g_new, _ant_atom(vs_old), vs_old[4], -gs[l])
                 ws[l], gs[l] = w_new, g_new
+                moved = True
+            if moved:
+                R2 = scipy.fft.fftn(r2.reshape(grid.shape), workers=1).reshape(Na, K)
+                j, pmax = _rank1_update_argmax(R2, np.zeros(Na, complex), np.zeros(K, complex), 0j)
     w_out = np.angle(np.exp(1j * np.array(ws, float).reshape(-1, 5)))  # wrapped to (-pi, pi]
     return w_out, np.array(gs, complex)
 
