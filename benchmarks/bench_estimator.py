@@ -2,7 +2,7 @@
 
 Received pilots of real links (the ``paper`` scene traced by the closed-form source: LOS, four wall
 VAs, SPs, the other car; ``--steps`` steps x 2 vehicles, noise from seed 0) are estimated with
-:func:`mmslam.slam.channel_estimator.nomp` at the default sizes (BS 8 x 8, vehicle 4 x 4, 256
+:func:`mmslam.slam.sim.channel_estimator.nomp` at the default sizes (BS 8 x 8, vehicle 4 x 4, 256
 subcarriers, pfa 0.01, <= 20 paths) and at other sizes (``--cache``: the links of a traced cache
 instead, e.g. a Sionna trace with its diffuse clusters). Per size: the median and 90th percentile of
 the estimation time per vehicle-step (``time.process_time``: CPU time of this process, one thread;
@@ -27,8 +27,8 @@ from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
 from mmslam.raytrace.cache import load_cache  # noqa: E402
 from mmslam.raytrace.trace import trace_scenario  # noqa: E402
 from mmslam.scenes.scenario import load_preset, with_overrides  # noqa: E402
-from mmslam.slam import channel_estimator as ce  # noqa: E402
-from mmslam.slam import estimated_sensor as es  # noqa: E402
+from mmslam.slam.sim import channel_estimator as ce  # noqa: E402
+from mmslam.slam.sim import estimated_sensor as es  # noqa: E402
 
 SIZES = [(8, 4, 256), (8, 4, 128), (4, 4, 256), (4, 4, 128), (8, 4, 512), (4, 2, 256)]
 """(tx_array, rx_array, subcarriers); the first is the default."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from mmslam.slam import channel_estimator as ce
+from mmslam.slam.sim import channel_estimator as ce
 
 GRID = ce.Grid(tx_array=8, rx_array=4, n_subcarriers=256, bandwidth_hz=400e6)  # the defaults
 

@@ -9,9 +9,9 @@ from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import load_cache
 from mmslam.raytrace.trace import trace_scenario
 from mmslam.scenes.scenario import load_preset, with_overrides
-from mmslam.slam import channel_estimator as ce
-from mmslam.slam import estimated_sensor as es
-from mmslam.slam.measurement import BS
+from mmslam.slam.sim import channel_estimator as ce
+from mmslam.slam.sim import estimated_sensor as es
+from mmslam.slam.models.measurement import BS
 
 C = 299_792_458.0
 
@@ -95,7 +95,7 @@ def test_association_merges_and_false_alarms_by_hand():
 def test_filter_runs_on_the_estimates(paper2):
     """run_slam with sensor.model=estimated: a result with the per-step estimator counts in its meta;
     measurements reach the filter (the vehicles' maps are not all empty)."""
-    from mmslam.slam.run import run_slam
+    from mmslam.slam.filter.run import run_slam
 
     _, c = paper2
     r = run_slam(c.path, "proposed", particles=20, seed=1, overrides=["sensor.model=estimated"])
