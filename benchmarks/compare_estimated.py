@@ -54,9 +54,9 @@ def main() -> None:
     for arm, runs in sorted(arms.items()):
         keys = next(iter(runs.values())).keys()
         res[arm] = {k: ci95(np.array([runs[s][k] for s in runs])) for k in keys}
-        res[arm]["runs"] = len(runs)
         print(f"{a.variant}[sensor.model={arm}] ({len(runs)} runs): " + ", ".join(
-            f"{k} {m:.2f} +- {h:.2f}" for k, (m, h) in res[arm].items() if k != "runs"))
+            f"{k} {m:.2f} +- {h:.2f}" for k, (m, h) in res[arm].items()))
+        res[arm]["runs"] = len(runs)
     if {"link", "estimated"} <= set(arms):
         common = sorted(set(arms["link"]) & set(arms["estimated"]))
         for k in ("gospa_VA", "gospa_VS", "pos_rmse"):
