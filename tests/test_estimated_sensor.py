@@ -102,3 +102,20 @@ def test_filter_runs_on_the_estimates(paper2):
     cnt = np.asarray(r.meta["estimator_counts"]["per_step_vehicle"])
     assert cnt.shape == (2, 2, 5) and cnt[..., 0].min() >= 1
     assert list((c.path / "estimates").rglob("seed-1-steps-2.npz"))
+
+
+def test_a_cache_with_estimates_is_reused_by_trace(paper2, tmp_path):
+    """The estimates folder inside a cache is the cache's own: tracing the same scenario into the same root
+    reuses the cache (it raised 'exists and is not a cache mmslam wrote' before, so a second ablation on
+    a cache with estimates was refused); a foreign file next to them still is refused."""
+    from mmslam.errors import CacheError
+
+    scn, _ = paper2
+    d = trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False)
+    c = load_cache(d)
+    es.estimated_run(scn, c.states, c.read_rays(), c.paths, np.random.default_rng(0), d, seed=0)
+    assert list((d / "estimates").rglob("*.npz"))
+    assert trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False) == d
+    (d / "estimates" / "mine.txt").write_text("x")
+    with pytest.raises(CacheError, match="not a cache mmslam wrote"):
+        trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False)
