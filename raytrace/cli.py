@@ -238,6 +238,9 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         sampling_frequency: Optional[float] = typer.Option(None, "--sampling-frequency", help="Sampling frequency "
                                                            "fs in Hz of the --time-steps samples t = n / fs within a "
                                                            "step (default: --bandwidth)."),
+        with_arrays: bool = typer.Option(False, "--arrays", help="With the scenario's BS and vehicle arrays "
+                                         "(sensor.tx_array / rx_array elements per axis): antenna axes "
+                                         "(steps, rx, rx_ant, tx_ant, time, K)."),
         out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta); "
                                  "an existing one must be an export mmslam wrote."),
         force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
@@ -265,21 +268,22 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         check_npz_target(out, NPZ_KIND, force, protect=(c.path,))
         n_steps = c.steps if step_sel is None else step_sel.size
         n_rx = len(c.vehicle_names) if rx_sel is None else len(rx_sel)
-        size = n_steps * n_rx * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
+        ants = int(c.scenario.sensor.tx_array) ** 2 * int(c.scenario.sensor.rx_array) ** 2 if with_arrays else 1
+        size = n_steps * n_rx * ants * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
-                              f"--time-steps x --subcarriers); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
+                              f"--time-steps x --subcarriers{' x antennas' if with_arrays else ''}); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
                               "--subcarriers or --time-steps")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
                                       n_subcarriers=subcarriers, steps=step_sel, l_min=l_min,
                                       num_time_steps=time_steps, normalize_delays=not no_normalize_delays,
-                                      sampling_frequency_hz=sampling_frequency)
+                                      sampling_frequency_hz=sampling_frequency, arrays=with_arrays)
         if rx_sel is not None:  # h is (steps, rx, ...)
             import dataclasses
 
             resp = dataclasses.replace(resp, h=resp.h[:, rx_sel], rx_names=[resp.rx_names[i] for i in rx_sel])
         atomic_write_bytes(out, resp.to_npz_bytes())
-        typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, time, "
+        typer.echo(f"wrote {out}: {resp.kind} h{tuple(resp.h.shape)} (steps, rx, {'rx_ant, tx_ant, ' if with_arrays else ''}time, "
                    f"{'frequency' if cfr else 'tap'})")
 
 

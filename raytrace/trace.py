@@ -196,10 +196,19 @@ def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
     return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches)
 
 
+def _is_own_files(d: Path, suffixes: tuple[str, ...]) -> bool:
+    return d.is_dir() and not d.is_symlink() and all(
+        f.is_file() and not f.is_symlink() and f.name.endswith(suffixes) for f in d.iterdir())
+
+
 def _is_own_cache(cache_dir: Path) -> bool:
-    """``cache_dir`` holds only what a trace writes: the manifest, table folders of chunk files, temp files."""
+    """``cache_dir`` holds only what a trace writes (the manifest, table folders of chunk files, temp files)
+    and the ``estimates/<key>/`` folders of the estimated sensor model (``.npz`` and temp files)."""
     for e in cache_dir.iterdir():
         if e.name == MANIFEST or (e.name.startswith(".") and e.name.endswith(".tmp") and e.is_file()):
+            continue
+        if e.name == "estimates" and e.is_dir() and not e.is_symlink() and all(
+                _is_own_files(k, (".npz", ".tmp")) for k in e.iterdir()):
             continue
         if e.name in TABLES and e.is_dir() and not e.is_symlink() and all(
                 f.is_file() and not f.is_symlink() and f.name.endswith((".parquet", ".tmp")) for f in e.iterdir()):

@@ -118,8 +118,9 @@ class SensorParams:
                                      "true, traced trajectory too (off: the traced trajectory is the truth)")
     emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")
     model: str = param("constant", "detection / noise model: constant (p_detect, toa_std, angle_std for every "
-                       "path) or link (p_D and noise std from each path's power via the link budget below: "
-                       "mmslam.slam.sim.sensor.LinkBudget)", choices=("constant", "link"))
+                       "path), link (p_D and noise std from each path's power via the link budget below: "
+                       "mmslam.slam.sim.sensor.LinkBudget) or estimated (a channel estimator on the received "
+                       "MIMO-OFDM pilots: mmslam.slam.sim.estimated_sensor)", choices=("constant", "link", "estimated"))
     tx_power_dbm: float = param(20.0, "link model: BS transmit power", "dBm", lo=-50.0, hi=80.0)
     tx_gain_dbi: float = param(18.06, "link model: BS array gain (8 x 8 elements: 10 log10 64)", "dBi",
                                lo=-20.0, hi=60.0)
@@ -133,6 +134,13 @@ class SensorParams:
                        lo=0.0, lo_open=True, hi=1.0, hi_open=True)
     tx_array: int = param(8, "link model: BS array elements per axis (AOD accuracy)", "", lo=2, hi=1024)
     rx_array: int = param(4, "link model: vehicle array elements per axis (AOA accuracy)", "", lo=2, hi=1024)
+    est_subcarriers: int = param(256, "estimated model: pilot subcarriers K over the bandwidth (delay window "
+                                 "c K / bandwidth: 192 m at 256 and 400 MHz)", "", lo=8, hi=4096)
+    est_pfa: float = param(0.01, "estimated model: CFAR false-alarm probability per vehicle and step on noise "
+                           "only (the estimator's detection threshold)", "", lo=0.0, lo_open=True, hi=1.0,
+                           hi_open=True)
+    est_max_paths: int = param(20, "estimated model: at most this many estimates per vehicle and step", "",
+                               lo=1, hi=200)
 
 
 @dataclass(frozen=True)
