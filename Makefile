@@ -2,14 +2,18 @@
 #   make demo   set up, then run the main job on the built-in default scenario
 #   make test   set up, then run the whole test suite (slow end-to-end tests included)
 #   make bench  set up, then run the benchmarks
+#   make test-min  the fast tests in a second venv (.venv-min) holding the lowest version of every
+#               dependency that pyproject.toml allows (uv's --resolution lowest-direct)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mmslam-installed
+VENV_MIN ?= .venv-min
+MIN_STAMP := $(VENV_MIN)/.mmslam-installed
 DEMO_ARGS ?=
 
-.PHONY: setup llvm demo test test-fast bench clean
+.PHONY: setup llvm demo test test-fast test-min bench clean
 
 setup: $(STAMP) llvm
 
@@ -17,7 +21,17 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev]'
+	@# compile the filter's numba kernels now, not in the first run (a pip install gets a notice instead)
+	$(PY) -m mmslam.slam.filter.precompile
 	@touch $(STAMP)
+
+# the lowest allowed direct dependencies (transitive ones: the newest they allow, as pip would pick);
+# its own numba cache: kernels of another numba version would otherwise replace the main venv's
+$(MIN_STAMP): pyproject.toml
+	@test -x $(VENV_MIN)/bin/python || $(PYTHON) -m venv $(VENV_MIN)
+	$(VENV_MIN)/bin/python -m pip install --quiet --upgrade pip uv
+	$(VENV_MIN)/bin/python -m uv pip install --quiet --python $(VENV_MIN)/bin/python --resolution lowest-direct -e '.[dev]'
+	@touch $(MIN_STAMP)
 
 # Sionna RT (Dr.Jit) on the CPU needs libLLVM >= 16; Debian 12's default libLLVM-15 aborts.
 llvm: $(STAMP)
@@ -39,8 +53,11 @@ test: setup
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
+test-min: $(MIN_STAMP) llvm
+	NUMBA_CACHE_DIR=$(abspath $(VENV_MIN))/numba-cache $(VENV_MIN)/bin/python -m pytest -q -m "not slow"
+
 bench: setup
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) out .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(VENV_MIN) out .pytest_cache build *.egg-info

@@ -14,7 +14,7 @@ from pathlib import Path
 import typer
 
 from mmslam import __version__
-from mmslam.errors import (Interrupted, MmslamError, environment_cause, interrupt_signal, note_interrupt,
+from mmslam.errors import (Interrupted, MmslamError, environment_failure, interrupt_signal, note_interrupt,
                            was_interrupted)
 
 EXIT_CODES = ("Exit codes: 0 success; 2 a user error (one line naming the thing and the fix) or an environment "
@@ -44,8 +44,8 @@ def _register_all() -> None:
     from mmslam.scenes import cli as scenes_cli
     from mmslam.slam import cli as slam_cli
 
-    scenes_cli.register(app)
-    raytrace_cli.register(app)
+    scene = scenes_cli.register(app)
+    raytrace_cli.register(app, scene)
     slam_cli.register(app)
     pipelines_cli.register(app)
 
@@ -121,6 +121,22 @@ def _install_signals() -> dict[int, object]:
     return old
 
 
+def _usage_errors() -> tuple[type[Exception], ...]:
+    """The base classes of typer's usage errors: ``typer.TyperException`` (typer >= 0.17, which carries
+    its own copy of click) and click's ``ClickException`` (older typer on click)."""
+    out: list[type[Exception]] = [typer.TyperException] if hasattr(typer, "TyperException") else []
+    try:
+        import click
+
+        out.append(click.ClickException)
+    except ImportError:  # a typer without click
+        pass
+    return tuple(out)
+
+
+_USAGE_ERRORS = _usage_errors()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point; returns the exit code.
 
@@ -152,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {where}: {e.strerror or e}; choose a writable path (parent directories must exist "
               "and not be files)", file=sys.stderr)
         return 2
-    except typer.TyperException as e:  # usage errors: bad option values, missing arguments
+    except _USAGE_ERRORS as e:  # usage errors: bad option values, missing arguments
         ctx = getattr(e, "ctx", None)
         cmd = ctx.command_path if ctx is not None else "mmslam"
         msg = " ".join(e.format_message().split()) if hasattr(e, "format_message") else str(e)
@@ -161,11 +177,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # a bug: one line, the traceback in a log file
         if was_interrupted(e):  # Ctrl-C re-raised as another type by a library (e.g. Dr.Jit)
             return _interrupted()
-        cause = environment_cause(e)
-        if cause is not None:  # the machine failed, not mmslam: say what to change
-            print(f"error: {cause}; finished work is kept (atomic writes): free memory or lower --particles, "
-                  "--steps or --workers (or restart the Dask cluster), then re-run the same command to resume",
-                  file=sys.stderr)
+        failure = environment_failure(e)
+        if failure is not None:  # the machine failed, not mmslam: say what to change
+            print(f"error: {failure[0]}; finished work is kept (atomic writes): {failure[1]}, then re-run the same "
+                  "command to resume", file=sys.stderr)
             return 2
         log = _log_traceback(e)
         print(f"error: internal error ({type(e).__name__}: {' '.join(str(e).split())[:200]}); this is a bug, "

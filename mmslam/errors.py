@@ -78,8 +78,8 @@ def interrupt_signal() -> int:
     return int(_INTERRUPT_SIGNAL) if _INTERRUPT_SIGNAL is not None else int(signal.SIGINT)
 
 
-def environment_cause(exc: BaseException) -> str | None:
-    """A short phrase if ``exc`` (or an exception in its chain) is a failure of the machine or the
+def environment_failure(exc: BaseException) -> tuple[str, str] | None:
+    """``(cause, fix)`` if ``exc`` (or an exception in its chain) is a failure of the machine or the
     cluster rather than of mmslam or its input; ``None`` otherwise.
 
     Out of memory (:class:`MemoryError`), a worker process that died (``BrokenProcessPool``: killed by
@@ -92,21 +92,29 @@ def environment_cause(exc: BaseException) -> str | None:
         seen.add(id(e))
         name, module = type(e).__name__, type(e).__module__ or ""
         if isinstance(e, MemoryError):
-            return f"out of memory ({name}: {_short(e)})"
+            return (f"out of memory ({name}: {_short(e)})",
+                    "free memory, or lower --particles, --steps or --workers")
         if name == "BrokenProcessPool":
-            return ("a worker process died (killed by the system, e.g. out of memory, or by a signal sent "
-                    "to it alone)")
+            return ("a worker process died (killed by the system, e.g. out of memory, or by a signal sent to it "
+                    "alone)", "free memory or lower --workers")
         if module.startswith(("distributed", "tornado")) and name in (
                 "CommClosedError", "FutureCancelledError", "CancelledError", "StreamClosedError", "KilledWorker",
                 "TimeoutError", "FutureLost"):
-            return f"lost the Dask cluster ({name}: {_short(e)})"
+            return (f"lost the Dask scheduler or a worker ({name}: {_short(e, 100)})",
+                    "restart the Dask scheduler and its workers, or drop --scheduler")
         e = e.__cause__ or e.__context__
     return None
 
 
-def _short(e: BaseException) -> str:
+def environment_cause(exc: BaseException) -> str | None:
+    """The cause phrase of :func:`environment_failure` (``None`` if ``exc`` is not an environment failure)."""
+    f = environment_failure(exc)
+    return None if f is None else f[0]
+
+
+def _short(e: BaseException, n: int = 150) -> str:
     msg = " ".join(str(e).split()) or type(e).__name__
-    return msg if len(msg) <= 150 else msg[:147] + "..."
+    return msg if len(msg) <= n else msg[:n - 3] + "..."
 
 
 def was_interrupted(exc: BaseException) -> bool:

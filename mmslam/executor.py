@@ -49,6 +49,17 @@ _DASK_MISSING = ("--executor dask needs dask.distributed; install it with `pip i
                  "--executor local")
 
 
+def quiet_dask_logs() -> None:
+    """Silence ``distributed``'s own log records (a lost scheduler logs tracebacks at ERROR level); the
+    caller reports failures itself, in one line. Every ``distributed.*`` logger is set, since Dask's
+    logging configuration gives some of them (``distributed.client``) their own level."""
+    import logging
+
+    for name in ["distributed", *logging.root.manager.loggerDict]:
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
 def one_line(e: BaseException) -> str:
     """An exception's message on one line, at most 200 characters (its type name if it has none)."""
     msg = " ".join(str(e).split()) or type(e).__name__
@@ -243,9 +254,7 @@ def connect_dask(scheduler: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
         from distributed import Client
     except ImportError:
         raise MmslamError(_DASK_MISSING) from None
-    import logging
-
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    quiet_dask_logs()
     try:
         return Client(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
     except Exception as e:  # OSError / TimeoutError / ValueError for a malformed address
@@ -280,13 +289,14 @@ def dask_pool(scheduler: str | None, workers: int | None, n_tasks: int, client: 
             raise MmslamError(_DASK_MISSING) from None
         import logging
 
-        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        quiet_dask_logs()
         n = pool_size(workers, n_tasks)
         with single_thread_env(), starting_workers():
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR)
             client = Client(cluster, set_as_default=False)
         where = "local cluster"
+    quiet_dask_logs()  # loggers made since (e.g. by the client)
     try:
         from distributed import as_completed
 

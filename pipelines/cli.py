@@ -37,7 +37,7 @@ def _print_summary(summary, title: str, extra: list[str]) -> None:
     con = Console()
     if not con.is_terminal:  # piped or logged: rich would wrap the table at 80 columns
         con = Console(width=160)
-    con.print(summary_console_table(summary, title))
+    con.print(summary_console_table(summary, title, width=con.width))
     for line in extra:
         con.print(line, highlight=False, soft_wrap=True, markup=False)
 
@@ -132,7 +132,7 @@ def register(app: typer.Typer) -> None:
             cache = prepare_cache(scn, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
                                   samples=samples)
             cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
-                                  sets=sets_c, grid=grid)
+                                  sets=sets_c, grid=grid, scheduler=scheduler)
             run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
                                scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
                                seed0=seed0, sets=sets_c, grid=grid, truth=truth,

@@ -24,7 +24,6 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from mmslam.errors import MmslamError
 from mmslam.pipelines.ablate import (SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
                                      plan_jobs, read_ablation, spec_arms)
 from mmslam.pipelines.ablate.store import FIGURE_NAMES, FIGURES_DIR, REPORT_FILE, check_ablation_outputs  # noqa: F401
@@ -74,7 +73,7 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
              ("cardinality_va", lambda: F.fig_cardinality(summary, "VA")))
     for name, make in plots:
         made[name] = F.save_figure(make(), fdir / f"{name}.png")
-    scn = scenario_from_resolved(spec["scenario"])
+    scn = scenario_from_resolved(spec["scenario"], str(out / "ablation.json"))
     for label in summary.variants:
         v, arm = parse_label(label)
         seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s), arm)))
@@ -220,7 +219,7 @@ def _variants_html(variants: list[str]) -> str:
         s = get_variant(v)
         rows.append(f'<tr data-variant="{html.escape(v)}"><td>{html.escape(v)}</td><td>{html.escape(s.label)}</td>'
                     f"<td>{html.escape(s.describe())}</td></tr>")
-    return ('<table id="variants"><thead><tr><th>variant</th><th>label</th><th>runs</th></tr></thead><tbody>'
+    return ('<table id="variants"><thead><tr><th>variant</th><th>label</th><th>maps and countermeasures</th></tr></thead><tbody>'
             + "".join(rows) + "</tbody></table>")
 
 
@@ -237,7 +236,7 @@ def viewers_html(out_dir: str | Path, summary: Summary) -> str:
 
     out = Path(out_dir)
     spec = read_ablation(out)
-    scn = scenario_from_resolved(spec["scenario"])
+    scn = scenario_from_resolved(spec["scenario"], str(out / "ablation.json"))
     paths = _cache_paths(spec)
     parts = []
     for i, label in enumerate(summary.variants):
@@ -365,19 +364,48 @@ _CONSOLE_HEADERS = {"gospa_VA": "VA", "gospa_SP": "SP", "gospa_VS": "VS", "pos_r
                     "card_VS": "VS card", "wall_time_s": "s/run", "runs": "runs"}
 
 
-def summary_console_table(summary: Summary, title: str = "Summary") -> Any:
-    """The summary table as a :class:`rich.table.Table` (for the CLI)."""
+def summary_console_table(summary: Summary, title: str = "Summary", width: int | None = None) -> Any:
+    """The summary table as a :class:`rich.table.Table` (for the CLI), for a console ``width`` wide.
+
+    When one line per row does not fit ``width`` (an 80-column terminal), the table turns compact
+    instead of letting rich squeeze columns to nothing: each number's ``±`` interval goes on a second
+    line of its cell, two-word headers on two lines, and a long variant (grid-arm) label folds onto
+    more lines; the variant and map columns always stay (``tests/test_pipelines.py`` renders it 80
+    columns wide)."""
     from rich.markup import escape
     from rich.table import Table
 
     fs = summary.config.get("fusion_start")
+    rows = summary_rows(summary)
+    heads = ["variant", "map"] + [_CONSOLE_HEADERS[k] for k, _ in HEADLINE_COLUMNS]
+    cells = [[str(r["variant"]), str(r["map"])] + [_cell(r, k) for k, _ in HEADLINE_COLUMNS] for r in rows]
+
+    def natural(j: int, compact: bool) -> int:
+        words = [heads[j]] + [c[j] for c in cells]
+        if compact:
+            words = [w for t in words for w in t.replace("± ", "±").split()]
+        return max(map(len, words))
+
+    n = len(heads)
+    wide = sum(natural(j, False) for j in range(n)) + 3 * n + 1  # one space of padding each side, borders
+    compact = width is not None and wide > width
     t = Table(title=escape(f"{title}\nmean GOSPA [m] and position RMSE [m] over runs and steps k >= {fs}"))
-    t.add_column("variant")
-    t.add_column("map")
-    for k, _ in HEADLINE_COLUMNS:
-        t.add_column(_CONSOLE_HEADERS[k], justify="right", no_wrap=True)
-    for r in summary_rows(summary):
-        t.add_row(escape(r["variant"]), escape(r["map"]), *[_cell(r, k) for k, _ in HEADLINE_COLUMNS])
+    if compact:
+        rest = sum(natural(j, True) for j in range(1, n)) + 3 * n + 1
+        label_w = max(min(natural(0, False), width - rest), 8)  # at least "proposed"
+        t.add_column("variant", width=label_w, overflow="fold")
+        t.add_column("map", no_wrap=True)
+        for k, _ in HEADLINE_COLUMNS:
+            t.add_column(_CONSOLE_HEADERS[k].replace(" ", "\n"), justify="right", no_wrap=True)
+        for c in cells:
+            t.add_row(escape(c[0]), escape(c[1]), *[escape(x.replace(" ± ", "\n±")) for x in c[2:]])
+    else:
+        t.add_column("variant")
+        t.add_column("map")
+        for k, _ in HEADLINE_COLUMNS:
+            t.add_column(_CONSOLE_HEADERS[k], justify="right", no_wrap=True)
+        for c in cells:
+            t.add_row(*[escape(x) for x in c])
     return t
 
 

@@ -226,6 +226,18 @@ class PathCache:
                 if bad.any():
                     raise CacheError(f"{self.path}: rays column '{k}' is not finite at step "
                                      f"{int(rays['step'][np.argmax(bad)])}; {FORCE_HINT}")
+            d = rays["delay_s"]
+            bad = (d <= 0) | (d > MAX_LENGTH_M / 299_792_458.0)  # c = 299 792 458 m/s
+            if bad.any():
+                raise CacheError(f"{self.path}: rays column 'delay_s' is {d[np.argmax(bad)]} at step "
+                                 f"{int(rays['step'][np.argmax(bad)])}, expected a delay in (0, "
+                                 f"{MAX_LENGTH_M:g} m / c]; {FORCE_HINT}")
+            st, rx, ray = rays["step"], rays["rx"], rays["ray"]  # sorted by (step, rx, ray)
+            dup = (st[1:] == st[:-1]) & (rx[1:] == rx[:-1]) & (ray[1:] == ray[:-1])
+            if dup.any():
+                i = int(np.argmax(dup))
+                raise CacheError(f"{self.path}: two rays numbered {int(ray[i])} at step {int(st[i])}, rx {int(rx[i])} "
+                                 f"(a duplicated row); {FORCE_HINT}")
             self._rays = rays
         return self._rays
 
@@ -273,6 +285,8 @@ def read_manifest(cache_dir: Path) -> dict:
         m = json.loads(mp.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CacheError(f"{mp}: not valid JSON ({e.__class__.__name__}); {FORCE_HINT}") from None
+    except RecursionError:
+        raise CacheError(f"{mp}: nested too deeply to be a manifest; {FORCE_HINT}") from None
     if not isinstance(m, dict):
         raise CacheError(f"{mp}: not a JSON object; {FORCE_HINT}")
     if m.get("schema_version") != SCHEMA_VERSION:
@@ -285,7 +299,64 @@ def read_manifest(cache_dir: Path) -> dict:
     miss = [k for k in need if k not in m]
     if miss:
         raise CacheError(f"{mp}: missing keys {miss}; {FORCE_HINT}")
+    _check_manifest_types(m, mp)
     return m
+
+
+def _is_int(v: Any, lo: int = 0) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _check_manifest_types(m: dict, mp: Path) -> None:
+    """Raise a one-line :class:`CacheError` naming the first manifest value of the wrong type or range.
+
+    Everything later code indexes or converts: ``scenario``, ``config_hash``, ``source`` (strings),
+    ``resolved_scenario`` (an object), ``vehicle_names`` (non-empty list of strings), ``dt`` (> 0),
+    ``steps_completed`` (integer >= 0), ``chunks`` (a list of objects with integer ``index``,
+    ``step_start`` < ``step_stop``, and per table a file ``<table>/part-NNNNN.parquet``, a sha256
+    string and a row count).
+    """
+    def bad(key: str, value: Any, expected: str) -> CacheError:
+        shown = json.dumps(value)
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        return CacheError(f"{mp}: '{key}' is {shown}, expected {expected}; {FORCE_HINT}")
+
+    for k in ("scenario", "config_hash", "source"):
+        if not isinstance(m[k], str):
+            raise bad(k, m[k], "a string")
+    if not isinstance(m["resolved_scenario"], dict):
+        raise bad("resolved_scenario", m["resolved_scenario"], "an object")
+    names = m["vehicle_names"]
+    if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+        raise bad("vehicle_names", names, "a non-empty list of names")
+    dt = m["dt"]
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < float("inf"):
+        raise bad("dt", dt, "a time step > 0 s")
+    if not _is_int(m["steps_completed"]):
+        raise bad("steps_completed", m["steps_completed"], "an integer >= 0")
+    if not isinstance(m["chunks"], list):
+        raise bad("chunks", m["chunks"], "a list of chunk entries")
+    for i, c in enumerate(m["chunks"]):
+        where = f"chunks[{i}]"
+        if not isinstance(c, dict):
+            raise bad(where, c, "an object")
+        for k in ("index", "step_start", "step_stop"):
+            if not _is_int(c.get(k)):
+                raise bad(f"{where}.{k}", c.get(k), "an integer >= 0")
+        if c["step_stop"] <= c["step_start"]:
+            raise bad(f"{where}.step_stop", c["step_stop"], f"a step after step_start {c['step_start']}")
+        for k in ("files", "sha256", "rows"):
+            if not isinstance(c.get(k), dict):
+                raise bad(f"{where}.{k}", c.get(k), "an object with one entry per table")
+        for t in TABLES:
+            f = c["files"].get(t)
+            if not (isinstance(f, str) and f.startswith(f"{t}/part-") and f.endswith(".parquet") and "/" not in f[len(t) + 1:]
+                    and ".." not in f):
+                raise bad(f"{where}.files.{t}", f, f"a file {t}/part-NNNNN.parquet")
+            if not isinstance(c["sha256"].get(t), str):
+                raise bad(f"{where}.sha256.{t}", c["sha256"].get(t), "a sha256 hex string")
+            if not _is_int(c["rows"].get(t)):
+                raise bad(f"{where}.rows.{t}", c["rows"].get(t), "an integer >= 0")
 
 
 def checked_chunks(m: dict, mp: Path) -> list[dict]:
@@ -379,6 +450,59 @@ def check_paths_finite(paths: dict[str, np.ndarray], where: str, hint: str = FOR
                              f"(rx {int(paths['rx'][i])}, landmark '{paths['landmark_id'][i]}'); {hint}")
 
 
+MAX_LENGTH_M = 1e7
+"""Largest physical path length / TOA / delay spread accepted on load (m): far above any scene
+(coordinates are bounded by :data:`mmslam.limits.COORD_MAX` = 1e6 m), low enough to refuse an edited 1e300."""
+MAX_DOPPLER_HZ = 1e7
+"""Largest |Doppler| accepted on load (Hz): 1000 m/s at 3 THz is 1e7 Hz."""
+_ANGLE_TOL = 1e-6
+
+
+def _first_bad(paths: dict[str, np.ndarray], bad: np.ndarray, k: str, where: str, expected: str, hint: str) -> None:
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise CacheError(f"{where}: column '{k}' is {paths[k][i]} at step {int(paths['step'][i])} "
+                         f"(rx {int(paths['rx'][i])}), expected {expected}; {hint}")
+
+
+def check_paths_physical(paths: dict[str, np.ndarray], where: str, hint: str = FORCE_HINT) -> None:
+    """Raise :class:`CacheError` on the first path value outside its physical range, or a duplicated row.
+
+    Ranges: ``0 < toa_m <= MAX_LENGTH_M``, ``0 <= delay_spread_m <= MAX_LENGTH_M``, azimuths in
+    ``[-pi, pi]``, elevations in ``[-pi/2, pi/2]``, ``|doppler_hz| <= MAX_DOPPLER_HZ``, ``bounces >= 0``,
+    ``n_paths >= 1``, ``ray >= 0``, coordinates within ``COORD_MAX``. Unique: ``(step, rx, ray)`` (a
+    ray is the strongest of one path row). NaN passes here (:func:`check_paths_finite` decides).
+    Vectorised, O(n log n) for the uniqueness sort.
+    """
+    from mmslam.limits import COORD_MAX
+
+    with np.errstate(invalid="ignore"):
+        toa = paths["toa_m"]
+        _first_bad(paths, ~((toa > 0) & (toa <= MAX_LENGTH_M)), "toa_m", where, f"a path length in (0, {MAX_LENGTH_M:g}] m", hint)
+        ds = paths["delay_spread_m"]
+        _first_bad(paths, (ds < 0) | (ds > MAX_LENGTH_M), "delay_spread_m", where, f"0 .. {MAX_LENGTH_M:g} m", hint)
+        for k in ("aod_az", "aoa_az"):
+            _first_bad(paths, np.abs(paths[k]) > np.pi + _ANGLE_TOL, k, where, "an azimuth in [-pi, pi] rad", hint)
+        for k in ("aod_el", "aoa_el"):
+            _first_bad(paths, np.abs(paths[k]) > np.pi / 2 + _ANGLE_TOL, k, where,
+                       "an elevation in [-pi/2, pi/2] rad", hint)
+        _first_bad(paths, np.abs(paths["doppler_hz"]) > MAX_DOPPLER_HZ, "doppler_hz", where,
+                   f"|Doppler| <= {MAX_DOPPLER_HZ:g} Hz", hint)
+        for k in ("bounce_x", "bounce_y", "bounce_z", "lm_x", "lm_y", "lm_z"):
+            _first_bad(paths, np.abs(paths[k]) > COORD_MAX, k, where, f"a coordinate within +-{COORD_MAX:g} m", hint)
+    for k, lo in (("bounces", 0), ("n_paths", 1), ("ray", 0)):
+        _first_bad(paths, paths[k] < lo, k, where, f">= {lo}", hint)
+    n = len(paths["step"])
+    if n > 1:
+        key = np.lexsort((paths["ray"], paths["rx"], paths["step"]))
+        st, rx, ray = paths["step"][key], paths["rx"][key], paths["ray"][key]
+        dup = (st[1:] == st[:-1]) & (rx[1:] == rx[:-1]) & (ray[1:] == ray[:-1])
+        if dup.any():
+            i = int(key[1:][np.argmax(dup)])
+            raise CacheError(f"{where}: two path rows for step {int(paths['step'][i])}, rx {int(paths['rx'][i])}, "
+                             f"ray {int(paths['ray'][i])} (a duplicated row; each ray heads one path); {hint}")
+
+
 def load_cache(path: str | Path) -> PathCache:
     """Load and validate a path cache.
 
@@ -417,12 +541,18 @@ def load_cache(path: str | Path) -> PathCache:
                          f"{nv} vehicles; {FORCE_HINT}")
     order = np.lexsort((veh["vehicle"], veh["step"]))
     veh = {k: v[order] for k, v in veh.items()}
+    grid_ok = (np.array_equal(veh["step"], np.repeat(np.arange(n_done), nv))
+               and np.array_equal(veh["vehicle"], np.tile(np.arange(nv), n_done)))
+    if not grid_ok:  # right row count, but a (step, vehicle) twice and another missing
+        raise CacheError(f"{mp}: vehicles table does not hold each (step, vehicle) exactly once (a duplicated "
+                         f"row); {FORCE_HINT}")
     for k in ("t", "x", "y", "z", "heading", "speed", "turn_rate", "vx", "vy", "vz"):
         bad = ~np.isfinite(veh[k])
         if bad.any():
             raise CacheError(f"{d}: vehicles column '{k}' is not finite at step "
                              f"{int(veh['step'][np.argmax(bad)])}; {FORCE_HINT}")
     check_paths_finite(paths, str(d))
+    check_paths_physical(paths, str(d))
     states = np.empty((n_done, nv, 7))
     for j, k in enumerate(("x", "y", "z", "heading", "speed", "turn_rate")):
         states[:, :, j] = veh[k].reshape(n_done, nv)

@@ -14,6 +14,14 @@ against them in the tests), for one transmitter (the BS) and single isotropic an
   for ``l = l_min .. l_max`` (``sinc(x) = sin(pi x) / (pi x)``).
 
 Note that Sionna's baseband phase uses the normalised delay; so does this module.
+
+With arrays (``tx_array`` / ``rx_array`` elements per axis, :mod:`mmslam.arrays`: horizontal
+half-wavelength URAs, the BS's facing down, each vehicle's facing up with its rows along the
+heading) every ray is weighted by its array responses, Sionna's synthetic-array model:
+``H_{m,n}(f, t) = sum_i a_i^b(t) a_rx,m(k_rx,i) a_tx,n(k_tx,i) exp(-j 2 pi f tau_i')`` with ``k_tx``
+the departure direction (``aod_az, aod_el``) and ``k_rx`` the arrival direction (``aoa_az,
+aoa_el``, pointing back along the incoming ray), shape ``(steps, rx, rx_ant, tx_ant, time, K)``
+(Sionna's ``Paths.cfr`` order: receive antennas before transmit antennas, time before frequency).
 """
 from __future__ import annotations
 
@@ -23,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mmslam import arrays
 from mmslam.errors import ConfigError
 
 KINDS = ("cfr", "cir")
@@ -100,7 +109,8 @@ class ChannelResponse:
 def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: float, bandwidth_hz: float,
                      n_subcarriers: int, n_rx: int, steps: np.ndarray | None = None, l_min: int = 0,
                      l_max: int | None = None, num_time_steps: int = 1, sampling_frequency_hz: float | None = None,
-                     normalize_delays: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     normalize_delays: bool = True, tx_array: int | None = None, rx_array: int | None = None,
+                     rx_heading: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """CFR or CIR taps of every (step, rx) link from a ``rays`` table (see the module docstring).
 
     Args:
@@ -111,9 +121,14 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
         n_rx: number of receivers. steps: steps to compute (default: all steps in ``rays``).
         num_time_steps, sampling_frequency_hz: Doppler evolution at ``t = n / fs`` (default fs = W).
         normalize_delays: first ray of each link at delay 0 (Sionna's default).
+        tx_array, rx_array: BS / vehicle URA elements per axis (both or neither; None: one
+            isotropic antenna each). rx_heading: ``(n_steps, n_rx)`` vehicle headings (rad) of
+            the computed steps (needed with arrays).
 
     Returns:
-        ``(h (n_steps, n_rx, num_time_steps, K), axis (K,), times_s (T,), steps (n_steps,))``.
+        ``(h, axis (K,), times_s (T,), steps (n_steps,))`` with ``h`` of shape ``(n_steps, n_rx,
+        num_time_steps, K)`` without arrays, ``(n_steps, n_rx, rx_array^2, tx_array^2,
+        num_time_steps, K)`` with them.
     """
     if kind not in KINDS:
         raise ConfigError(f"kind '{kind}': expected one of {', '.join(KINDS)}")
@@ -123,6 +138,10 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
         raise ConfigError(f"--subcarriers {n_subcarriers}: expected a positive number")
     if int(num_time_steps) < 1:
         raise ConfigError(f"--time-steps {num_time_steps}: expected a positive number")
+    if (tx_array is None) != (rx_array is None):
+        raise ConfigError("channel_response: give both tx_array and rx_array or neither")
+    if tx_array is not None and (int(tx_array) < 1 or int(rx_array) < 1):
+        raise ConfigError(f"--tx-array {tx_array} / --rx-array {rx_array}: expected positive element counts per axis")
     steps = np.unique(np.asarray(rays["step"], np.int64)) if steps is None else np.asarray(steps, np.int64)
     fs = float(bandwidth_hz if sampling_frequency_hz is None else sampling_frequency_hz)
     times = np.arange(int(num_time_steps)) / fs
@@ -132,10 +151,20 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
     if kind == "cfr":
         axis = subcarrier_frequencies(n_subcarriers, bandwidth_hz / n_subcarriers)
     else:
+        l_max_given = l_max is not None
         l_max = int(n_subcarriers) - 1 if l_max is None else int(l_max)
         if l_max < l_min:
-            raise ConfigError(f"--l-max {l_max} < --l-min {l_min}: expected l_min <= l_max")
+            src = "l_max" if l_max_given else "n_subcarriers - 1"
+            raise ConfigError(f"l_min {l_min}: expected at most {src} = {l_max} (the taps are l_min .. {src})")
         axis = np.arange(int(l_min), l_max + 1, dtype=float)
+    if tx_array is not None:
+        heading = np.asarray(rx_heading, float) if rx_heading is not None else None
+        if heading is None or heading.shape != (steps.size, n_rx):
+            raise ConfigError(f"channel_response: rx_heading of shape ({steps.size}, {n_rx}) is needed with arrays")
+        kern_fn = ((lambda t: np.exp(-2j * np.pi * t[:, None] * axis[None, :])) if kind == "cfr" else
+                   (lambda t: np.sinc(axis[None, :] - bandwidth_hz * t[:, None]).astype(complex)))
+        h = array_channel(rays, link, ab, tau, int(tx_array), int(rx_array), heading.reshape(-1), kern_fn)
+        return h.reshape(steps.size, n_rx, *h.shape[1:]), axis, times, steps
     h = np.zeros((n_links, times.size, axis.size), complex)
     ok = np.flatnonzero(link >= 0)
     for s in range(0, ok.size, 4096):  # bounded memory: (block, K) kernels
@@ -149,10 +178,58 @@ def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: floa
     return h.reshape(steps.size, n_rx, times.size, axis.size), axis, times, steps
 
 
+def ray_array_responses(rays: dict[str, np.ndarray], idx: np.ndarray, tx_array: int, rx_array: int,
+                        heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Transmit and receive array responses ``((n, tx_array^2), (n, rx_array^2))`` of rays ``idx``.
+
+    ``heading``: ``(n,)`` or scalar, the receiving vehicle's heading (rad) per ray.
+    """
+    ut = arrays.direction_to_local(np.asarray(rays["aod_az"], float)[idx], np.asarray(rays["aod_el"], float)[idx],
+                                   0.0, arrays.BS_PITCH)
+    ur = arrays.direction_to_local(np.asarray(rays["aoa_az"], float)[idx], np.asarray(rays["aoa_el"], float)[idx],
+                                   heading, arrays.VEHICLE_PITCH)
+    return arrays.response(tx_array, ut), arrays.response(rx_array, ur)
+
+
+def array_channel(rays: dict[str, np.ndarray], link: np.ndarray, ab: np.ndarray, tau: np.ndarray, tx_array: int,
+                  rx_array: int, heading: np.ndarray, kern_fn) -> np.ndarray:
+    """``(n_links, rx_array^2, tx_array^2, T, K)``: per link, ``sum_i ar_i (x) at_i (x) ab_i (x) kern(tau_i)``.
+
+    One matrix product per link: ``(rx*tx, n_i)^T`` times ``(n_i, T*K)``. ``heading (n_links,)``.
+    """
+    n_links = heading.size
+    nr, nt = rx_array * rx_array, tx_array * tx_array
+    T = ab.shape[1]
+    order = np.argsort(link, kind="stable")
+    lk = link[order]
+    bounds = np.searchsorted(lk, np.arange(n_links + 1))
+    out = None
+    for L in range(n_links):
+        i = order[bounds[L]:bounds[L + 1]]
+        kern = kern_fn(tau[i])
+        if out is None:
+            out = np.zeros((n_links, nr, nt, T, kern.shape[1]), complex)
+        if i.size == 0:
+            continue
+        at, ar = ray_array_responses(rays, i, tx_array, rx_array, heading[L])
+        x = (ar[:, :, None] * at[:, None, :]).reshape(i.size, nr * nt)
+        y = (ab[i, :, None] * kern[:, None, :]).reshape(i.size, -1)
+        out[L] = (x.T @ y).reshape(nr, nt, T, -1)
+    if out is None:
+        out = np.zeros((n_links, nr, nt, T, kern_fn(np.zeros(0)).shape[1]), complex)
+    return out
+
+
 def cache_channel_response(cache, *, kind: str, bandwidth_hz: float, n_subcarriers: int,
                            steps: np.ndarray | None = None, l_min: int = 0, l_max: int | None = None,
-                           num_time_steps: int = 1, normalize_delays: bool = True) -> ChannelResponse:
-    """:func:`channel_response` of a loaded :class:`~mmslam.raytrace.cache.PathCache` (its ``rays``)."""
+                           num_time_steps: int = 1, normalize_delays: bool = True,
+                           sampling_frequency_hz: float | None = None, arrays: bool = False) -> ChannelResponse:
+    """:func:`channel_response` of a loaded :class:`~mmslam.raytrace.cache.PathCache` (its ``rays``).
+
+    ``arrays``: with the scenario's BS and vehicle arrays (``sensor.tx_array`` / ``rx_array``
+    elements per axis, the vehicles' headings from the cache): ``h (steps, rx, rx_ant, tx_ant,
+    time, K)``; else single isotropic antennas, ``h (steps, rx, time, K)``.
+    """
     rays = cache.read_rays()
     if steps is None:
         steps = np.arange(cache.steps)
@@ -161,14 +238,22 @@ def cache_channel_response(cache, *, kind: str, bandwidth_hz: float, n_subcarrie
     if bad.size:
         raise ConfigError(f"--steps: step {int(bad[0])} is outside the cache's 0..{cache.steps - 1}")
     fc = float(cache.scenario.frequency_hz)
+    sp = cache.scenario.sensor
+    arr = dict(tx_array=int(sp.tx_array), rx_array=int(sp.rx_array), rx_heading=cache.states[steps, :, 3]) if arrays else {}
     h, axis, times, steps = channel_response(rays, kind=kind, carrier_hz=fc, bandwidth_hz=bandwidth_hz,
                                              n_subcarriers=n_subcarriers, n_rx=len(cache.vehicle_names),
                                              steps=steps, l_min=l_min, l_max=l_max,
-                                             num_time_steps=num_time_steps, normalize_delays=normalize_delays)
+                                             num_time_steps=num_time_steps, normalize_delays=normalize_delays,
+                                             sampling_frequency_hz=sampling_frequency_hz, **arr)
     meta = {"kind": kind, "carrier_hz": fc, "bandwidth_hz": float(bandwidth_hz), "n_subcarriers": int(n_subcarriers),
             "normalize_delays": bool(normalize_delays), "num_time_steps": int(num_time_steps),
+            "sampling_frequency_hz": float(bandwidth_hz if sampling_frequency_hz is None else sampling_frequency_hz),
             "axis": "baseband frequency (Hz)" if kind == "cfr" else "tap index l (delay l / bandwidth s)",
-            "h": "(steps, rx, time, axis) complex", "cache": str(Path(cache.path).resolve()),
+            "h": "(steps, rx, rx_ant, tx_ant, time, axis) complex" if arrays else "(steps, rx, time, axis) complex",
+            **({"tx_array": int(sp.tx_array), "rx_array": int(sp.rx_array),
+                "arrays": "mmslam.arrays: horizontal half-wavelength URAs, Sionna PlanarArray element order; "
+                          "BS normal down (yaw 0), vehicle normal up (yaw = heading)"} if arrays else {}),
+            "cache": str(Path(cache.path).resolve()),
             "scenario": cache.manifest["scenario"], "source": cache.manifest["source"],
             "config_hash": cache.manifest["config_hash"]}
     return ChannelResponse(kind, h, axis, times, steps, list(cache.vehicle_names), meta)

@@ -251,7 +251,9 @@ def rays_columns(*, step: int, rx: np.ndarray, typ: np.ndarray, landmark_id: np.
     rx = np.asarray(rx)
     n = rx.size
     a = np.asarray(a, complex).reshape(n)
-    itype = np.asarray(itype, np.int64).reshape(n, -1)
+    itype = np.asarray(itype, np.int64)
+    # (n, D); with no path at all (n = 0) reshape(0, -1) cannot infer D: keep the given width
+    itype = itype.reshape(n, itype.shape[-1] if n == 0 and itype.ndim == 2 else (-1 if n else 0))
     D = itype.shape[1]
     if D > MAX_BOUNCES:
         raise ValueError(f"rays_columns: {D} interaction slots, the schema holds {MAX_BOUNCES}")

@@ -364,3 +364,52 @@ class SionnaSource:
                             delay_s=raw["delay_s"], angles=raw["angles"], doppler_hz=raw["doppler_hz"], itype=code,
                             objects=objects, verts=raw["verts"], ray=ray)
         return {"rays": rays, "paths": paths}
+
+
+def sionna_radio_map(scn: Scenario, center: tuple[float, float, float], size: tuple[float, float], cell: float,
+                     samples: int = 10**6, max_depth: int = 1, seed: int = 0) -> np.ndarray:
+    """Sionna's own radio map (:class:`sionna.rt.RadioMapSolver`) of the BS over a horizontal plane.
+
+    The scene is the scenario's static scene (external XML shapes, box buildings, scatterers,
+    ground) without the cars; the transmitter is an isotropic vertically polarised antenna at the
+    BS, as in :class:`SionnaSource`, with the same interactions (LOS, specular and diffuse
+    reflection, no refraction or diffraction) up to ``max_depth`` bounces.
+
+    Args:
+        center: ``(x, y, z)`` m, centre of the measurement plane (parallel to x-y).
+        size: ``(sx, sy)`` m, extent of the plane; cells of ``cell`` m (``sx / cell`` cells along x).
+        samples: rays shot from the BS; seed: Sionna's sampling seed.
+
+    Returns:
+        ``(ny, nx)`` path gain per cell (linear, the cell average of ``sum |a|^2``, eq. 54 of Sionna's
+        radio map solver docs); row ``i`` is at ``y = center_y - size_y / 2 + (i + 0.5) cell``,
+        column ``j`` at ``x = center_x - size_x / 2 + (j + 0.5) cell``.
+    """
+    import dataclasses
+
+    mi = import_mitsuba()
+    import sionna.rt as rt
+
+    static = dataclasses.replace(scn, vehicles=())
+    with tempfile.TemporaryDirectory(prefix="mmslam-radiomap-") as d:
+        xml = build_scene(static, d)
+        try:
+            scene = rt.load_scene(str(xml), merge_shapes=True)
+        except Exception as e:
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ConfigError(f"{xml}: Sionna could not load the scene ({msg}); check xml_scene") from None
+    try:
+        scene.frequency = float(scn.frequency_hz)
+    except Exception as e:
+        raise ConfigError(f"{scn.source_file}: frequency_hz={scn.frequency_hz:g}: a radio material is not "
+                          f"defined at this frequency ({str(e).splitlines()[0]}); choose other materials") from None
+    scene.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
+    scene.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
+    scene.add(rt.Transmitter(TX_NAME, position=mi.Point3f(*map(float, scn.bs))))
+    rm = rt.RadioMapSolver()(scene, center=mi.Point3f(*map(float, center)), orientation=mi.Point3f(0.0, 0.0, 0.0),
+                             size=mi.Point2f(*map(float, size)), cell_size=mi.Point2f(float(cell), float(cell)),
+                             samples_per_tx=int(samples), max_depth=int(max_depth), los=True,
+                             specular_reflection=True, diffuse_reflection=True, refraction=False,
+                             diffraction=False, seed=int(seed))
+    pg = np.asarray(rm.path_gain.numpy(), float)  # (num_tx, ny, nx)
+    return pg[0]

@@ -22,8 +22,8 @@ from typing import Any, Callable, KeysView
 
 import numpy as np
 
-from mmslam.errors import (BackendError, CacheError, ConfigError, Interrupted, check_interrupt, deferred_sigint,
-                           was_interrupted)
+from mmslam.errors import (BackendError, CacheError, ConfigError, EnvironmentFailure, Interrupted, check_interrupt,
+                           deferred_sigint, environment_failure, was_interrupted)
 from mmslam.outputs import acquire_lock, lock_path, release_lock  # noqa: F401  (lock_path: public)
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
@@ -31,7 +31,7 @@ from mmslam.raytrace.cache import (
     read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
-from mmslam.scenes.geometry import check_vehicle_poses
+from mmslam.scenes.geometry import check_bs_position, check_vehicle_overlaps, check_vehicle_poses
 from mmslam.scenes.scenario import Scenario
 from mmslam.scenes.trajectory import true_trajectories
 
@@ -196,16 +196,74 @@ def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
     return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches)
 
 
+def _is_own_files(d: Path, suffixes: tuple[str, ...]) -> bool:
+    return d.is_dir() and not d.is_symlink() and all(
+        f.is_file() and not f.is_symlink() and f.name.endswith(suffixes) for f in d.iterdir())
+
+
 def _is_own_cache(cache_dir: Path) -> bool:
-    """``cache_dir`` holds only what a trace writes: the manifest, table folders of chunk files, temp files."""
+    """``cache_dir`` holds only what a trace writes (the manifest, table folders of chunk files, temp files)
+    and the ``estimates/<key>/`` folders of the estimated sensor model (``.npz`` and temp files)."""
     for e in cache_dir.iterdir():
         if e.name == MANIFEST or (e.name.startswith(".") and e.name.endswith(".tmp") and e.is_file()):
+            continue
+        if e.name == "estimates" and e.is_dir() and not e.is_symlink() and all(
+                _is_own_files(k, (".npz", ".tmp")) for k in e.iterdir()):
             continue
         if e.name in TABLES and e.is_dir() and not e.is_symlink() and all(
                 f.is_file() and not f.is_symlink() and f.name.endswith((".parquet", ".tmp")) for f in e.iterdir()):
             continue
         return False
     return True
+
+
+def check_scene(scn: Scenario, steps: int | None = None) -> None:
+    """Refuse, in one line (:class:`ConfigError`), a scene that cannot be traced as meant, before any work.
+
+    A vehicle within ``BS_CLEARANCE_M`` of the BS, two vehicle bodies that overlap at some step
+    (:func:`~mmslam.scenes.geometry.check_vehicle_overlaps`; also cars drawn by ``n_vehicles``) and a
+    BS inside an object (:func:`~mmslam.scenes.geometry.check_bs_position`: Sionna would still find a
+    line-of-sight path out of a closed mesh). The car poses against the meshes are checked by
+    :func:`~mmslam.scenes.geometry.check_vehicle_poses` when the trace starts.
+    """
+    from mmslam.scenes.trajectory import check_bs_clearance
+
+    states = true_trajectories(scn, scn.steps if steps is None else int(steps))
+    check_bs_clearance(scn, states)
+    check_vehicle_overlaps(scn, states)
+    check_bs_position(scn)
+
+
+NO_PATH_WARN = 0.5
+"""Warn when a vehicle gets no path at all in more than this fraction of the steps."""
+LOS_WARN = 0.25
+"""Warn when a vehicle has the line-of-sight path in fewer than this fraction of the steps."""
+
+
+def coverage_warnings(paths: dict[str, np.ndarray], steps: int, vehicle_names: list[str] | tuple[str, ...]
+                      ) -> list[str]:
+    """One line per vehicle that gets no path in most steps or rarely sees the BS (``paths`` of a cache).
+
+    Counted over ``steps`` steps: steps in which the vehicle receives no path at all (above
+    :data:`NO_PATH_WARN` of them) and steps with its line-of-sight path (below :data:`LOS_WARN`).
+    Such a vehicle localises from dead reckoning alone for long stretches: move the BS (``mmslam
+    scene coverage`` draws where it reaches) or the route.
+    """
+    from mmslam.model import LandmarkType
+
+    out = []
+    step = np.asarray(paths["step"], np.int64)
+    rx = np.asarray(paths["rx"], np.int64)
+    typ = np.asarray(paths["type"], np.int64)
+    for i, name in enumerate(vehicle_names):
+        mine = rx == i
+        n_any = np.unique(step[mine]).size
+        n_los = np.unique(step[mine & (typ == int(LandmarkType.BS))]).size
+        none, los = steps - n_any, n_los
+        if none > NO_PATH_WARN * steps or los < LOS_WARN * steps:
+            out.append(f"vehicle '{name}': no path in {none} of {steps} steps, line of sight to the BS in {los}; "
+                       "move the BS or the route (mmslam scene coverage draws where the BS reaches)")
+    return out
 
 
 def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, steps: int | None = None,
@@ -235,11 +293,9 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         raise ConfigError(f"--steps {steps}: expected a positive number of steps")
     if chunk_steps < 1:
         raise ConfigError(f"chunk_steps {chunk_steps}: expected >= 1")
-    from mmslam.scenes.trajectory import check_bs_clearance
-
     from mmslam.outputs import output_kind, write_marker
 
-    check_bs_clearance(scn, true_trajectories(scn, n_steps))  # before anything is written
+    check_scene(scn, n_steps)  # before anything is written
     check_cache_root(out_root, force)
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -329,16 +385,21 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
             # a chunk is kept only once the manifest on disk names it; Ctrl-C waits for that write,
             # so the "kept" count of the message is the one on disk
             with deferred_sigint():
-                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, file_metadata(m))
+                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, {**file_metadata(m), "versions": versions})
                 entry["versions"] = versions  # a resumed trace may run under other library versions
                 new = {**m, "chunks": m["chunks"] + [entry], "steps_completed": stop}
                 write_manifest(cache_dir, new)
                 m = new
     except BaseException as e:
+        kept = f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir}"
         if not was_interrupted(e):
-            raise
-        raise Interrupted(f"{m['steps_completed']} of {n_steps} steps are kept in {cache_dir} (the chunk in "
-                          "progress was dropped); re-run the same command to resume") from None
+            failure = environment_failure(e)  # out of memory, a lost Dask scheduler
+            if failure is None:
+                raise
+            raise EnvironmentFailure(f"{failure[0]}; {kept}; {failure[1]}, then re-run the same command to "
+                                     "resume") from None
+        raise Interrupted(f"{kept} (the chunk in progress was dropped); re-run the same command to resume"
+                          ) from None
     finally:
         if bar is not None:
             bar.stop()

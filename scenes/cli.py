@@ -7,8 +7,8 @@ from typing import Optional
 import typer
 
 
-def register(app: typer.Typer) -> None:
-    """Add the ``scene`` command group to ``app``."""
+def register(app: typer.Typer) -> typer.Typer:
+    """Add the ``scene`` command group to ``app``; returns it (``raytrace`` adds ``scene coverage``)."""
     scene = typer.Typer(no_args_is_help=True, rich_markup_mode=None,
                         help="Scenario presets, scene meshes (PLY + Mitsuba XML), plan plots.")
     app.add_typer(scene, name="scene")
@@ -67,9 +67,17 @@ def register(app: typer.Typer) -> None:
         from mmslam.scenes.plan import plot_plan
         from mmslam.scenes.scenario import resolve_scenario
 
+        from mmslam.scenes.geometry import inside_report
+        from mmslam.scenes.trajectory import vehicle_trajectories
+
         check_figure_target(out, force)
         scn = resolve_scenario(scenario)
-        typer.echo(f"wrote {plot_plan(scn, out)}")
+        inside = inside_report(scn, vehicle_trajectories(scn))
+        for who, k, obj, p in inside:
+            at = "" if k < 0 else f" at step {k}"
+            typer.echo(f"warning: {who}{at} (x={p[0]:.1f}, y={p[1]:.1f}, z={p[2]:.1f}) is inside object '{obj}'; "
+                       "marked on the plan, and refused by mmslam trace", err=True)
+        typer.echo(f"wrote {plot_plan(scn, out, inside=inside)}")
 
     @scene.command("streets")
     def streets_cmd(
@@ -122,3 +130,5 @@ def register(app: typer.Typer) -> None:
                    f"({int(sm.free.sum() * res * res)} m^2 free space, {int(sm.centre.sum())} centreline cells)")
         if data is not None:
             typer.echo(f"wrote {save_street_map(sm, data)}")
+
+    return scene

@@ -425,16 +425,9 @@ def check_vehicle_poses(scn: Scenario, states: np.ndarray, geom: StaticGeometry 
             raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, y={st[k, 1]:.1f}) "
                               f"is {zu[k] - bottom[k]:.2f} m below the surface of object '{geom.names[ou[k]]}' "
                               f"(z = {zu[k]:.2f} m); raise its antenna height z or let it follow the terrain")
-        pts = np.concatenate([footprint_points(v, st[k]) for k in range(steps)])  # (steps * 9, 2)
-        z0 = np.repeat(bottom + v.height / 2.0, 9)
-        pt, z, t = geom.vertical_hits(pts)
-        above = z > z0[pt]
-        key = pt[above] * len(geom.names) + geom.obj[t[above]]
-        uk, cnt = np.unique(key, return_counts=True)
-        odd = uk[cnt % 2 == 1]
-        if odd.size:
-            k = int(odd[0] // len(geom.names)) // 9
-            obj = geom.names[int(odd[0] % len(geom.names))]
+        inside = vehicle_inside(geom, v, st)
+        if inside is not None:
+            k, obj = inside
             raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, y={st[k, 1]:.1f}) "
                               f"is inside object '{obj}' of the scene; move its route onto a street "
                               "(mmslam scene streets shows them)")
@@ -445,3 +438,135 @@ def check_vehicle_poses(scn: Scenario, states: np.ndarray, geom: StaticGeometry 
                 raise ConfigError(f"{scn.source_file}: vehicle '{v.name}' at step {k} (x={st[k, 0]:.1f}, "
                                   f"y={st[k, 1]:.1f}) is off the map (no ground under it); keep its route inside "
                                   "the scene")
+
+
+def points_inside(geom: StaticGeometry, points: np.ndarray) -> np.ndarray:
+    """Object that encloses each point ``(n, 3)`` (m): ``(n,)`` index into ``geom.names``, -1 for none.
+
+    A point is inside an object when the vertical line upwards from it crosses that object's
+    triangles an odd number of times (a closed mesh around it; a roof over an open-bottomed
+    building counts too; a slab such as a bridge deck above it, crossed twice, does not). A
+    crossing reported twice on an edge shared by two triangles of the object counts once (same
+    height to 1e-6 m). Of several enclosing objects the first in ``geom.names`` is returned.
+    """
+    p = np.asarray(points, float).reshape(-1, 3)
+    out = np.full(len(p), -1, np.int64)
+    if not len(p) or not len(geom.triangles):
+        return out
+    pt, z, t = geom.vertical_hits(p[:, :2])
+    above = z > p[pt, 2]
+    pt, z, o = pt[above], z[above], geom.obj[t[above]]
+    if not pt.size:
+        return out
+    # one crossing per (point, object, height): an edge shared by two triangles reports both
+    crossing = np.unique(np.stack([pt, o, np.round(z * 1e6).astype(np.int64)], axis=1), axis=0)
+    key, cnt = np.unique(crossing[:, 0] * len(geom.names) + crossing[:, 1], return_counts=True)
+    odd = key[cnt % 2 == 1]
+    first = np.unique(odd // len(geom.names), return_index=True)
+    out[first[0]] = odd[first[1]] % len(geom.names)
+    return out
+
+
+def vehicle_inside(geom: StaticGeometry, v, states: np.ndarray) -> tuple[int, str] | None:
+    """First step ``k`` and object name at which a car's body is inside an object, or None.
+
+    ``states (steps, 7)`` of vehicle ``v``; the nine footprint points (:func:`footprint_points`)
+    at the body's mid-height are tested with :func:`points_inside`.
+    """
+    st = np.asarray(states, float)
+    if not len(geom.triangles) or not len(st):
+        return None
+    pts = np.concatenate([footprint_points(v, st[k]) for k in range(len(st))])  # (steps * 9, 2)
+    zmid = st[:, 2] - v.roof_gap - v.height / 2.0
+    obj = points_inside(geom, np.concatenate([pts, np.repeat(zmid, 9)[:, None]], axis=1))
+    hit = np.flatnonzero(obj >= 0)
+    if not hit.size:
+        return None
+    return int(hit[0] // 9), geom.names[int(obj[hit[0]])]
+
+
+def bs_inside(scn: Scenario, geom: StaticGeometry | None = None) -> str | None:
+    """Name of the object (building, scatterer, shape of the XML scene, the ground) that encloses the BS, or None."""
+    geom = static_geometry(scn) if geom is None else geom
+    o = int(points_inside(geom, np.asarray(scn.bs, float)[None])[0])
+    return None if o < 0 else geom.names[o]
+
+
+def check_bs_position(scn: Scenario, geom: StaticGeometry | None = None) -> None:
+    """One-line :class:`ConfigError` if the BS antenna is inside an object of the scene (:func:`bs_inside`).
+
+    Sionna would still trace a line-of-sight path out of a closed mesh (its rays start inside
+    and leave through the back faces), so the cache would look plausible and be wrong.
+    """
+    obj = bs_inside(scn, geom)
+    if obj is not None:
+        what = "below the ground" if obj == "ground" else f"inside object '{obj}' of the scene"
+        raise ConfigError(f"{scn.source_file}: the BS {[float(c) for c in scn.bs]} is {what}; put it on a roof "
+                          "(above the top surface: mmslam scene streets draws the heights) or in the open")
+
+
+def vehicle_overlaps(scn: Scenario, states: np.ndarray) -> tuple[int, int, int] | None:
+    """First ``(step, i, j)`` at which the bodies of vehicles ``i < j`` overlap, or None.
+
+    ``states (steps, n_vehicles, >=4)``. A body is the box ``length x width`` centred on the
+    antenna's plan position, turned by the heading, from ``z - roof_gap - height`` to
+    ``z - roof_gap``; two boxes overlap when their height ranges overlap and no axis of the two
+    rectangles separates them in plan (separating-axis test). Touching is not overlapping.
+    """
+    st = np.asarray(states, float)
+    vs = scn.vehicles
+    first = None
+    for i in range(len(vs)):
+        for j in range(i + 1, len(vs)):
+            a, b = st[:, i], st[:, j]
+            d = b[:, :2] - a[:, :2]
+            ua = np.stack([np.cos(a[:, 3]), np.sin(a[:, 3])], axis=1)
+            ub = np.stack([np.cos(b[:, 3]), np.sin(b[:, 3])], axis=1)
+            va, vb = ua[:, ::-1] * [-1.0, 1.0], ub[:, ::-1] * [-1.0, 1.0]
+
+            def r(u, w, veh, ax):  # half-width of a body's projection on axis ax
+                return 0.5 * veh.length * np.abs(np.einsum("ij,ij->i", u, ax)) + \
+                    0.5 * veh.width * np.abs(np.einsum("ij,ij->i", w, ax))
+
+            sep = np.zeros(len(st), bool)
+            for ax in (ua, va, ub, vb):
+                sep |= np.abs(np.einsum("ij,ij->i", d, ax)) >= r(ua, va, vs[i], ax) + r(ub, vb, vs[j], ax)
+            ta, tb = a[:, 2] - vs[i].roof_gap, b[:, 2] - vs[j].roof_gap
+            sep |= (ta - vs[i].height >= tb) | (tb - vs[j].height >= ta)
+            k = np.flatnonzero(~sep)
+            if k.size and (first is None or int(k[0]) < first[0]):
+                first = (int(k[0]), i, j)
+    return first
+
+
+def check_vehicle_overlaps(scn: Scenario, states: np.ndarray) -> None:
+    """One-line :class:`ConfigError` naming the first two vehicles whose bodies overlap (:func:`vehicle_overlaps`)."""
+    hit = vehicle_overlaps(scn, states)
+    if hit is None:
+        return
+    k, i, j = hit
+    a, b = np.asarray(states, float)[k, [i, j], :2]
+    fix = ("draw other routes: change the scenario's seed or n_vehicles"
+           if all(scn.vehicles[q].name.startswith("car_0") for q in (i, j)) else
+           "move one route to another lane or street, or change a speed or start")
+    raise ConfigError(f"{scn.source_file}: vehicles '{scn.vehicles[i].name}' and '{scn.vehicles[j].name}' overlap "
+                      f"at step {k} (x={a[0]:.1f}, y={a[1]:.1f} and x={b[0]:.1f}, y={b[1]:.1f}); {fix}")
+
+
+def inside_report(scn: Scenario, states: np.ndarray, geom: StaticGeometry | None = None) -> list[tuple[str, int, str, np.ndarray]]:
+    """What sits inside an object of the scene: ``[(who, step, object, xyz (3,)), ...]``.
+
+    ``who`` is ``"BS"`` (step -1) or a vehicle name (the first step its body is inside,
+    :func:`vehicle_inside`); ``states (steps, n_vehicles, 7)``. Empty when all is in the open.
+    """
+    geom = static_geometry(scn) if geom is None else geom
+    out = []
+    obj = bs_inside(scn, geom)
+    if obj is not None:
+        out.append(("BS", -1, obj, np.asarray(scn.bs, float)))
+    st = np.asarray(states, float)
+    for i, v in enumerate(scn.vehicles):
+        hit = vehicle_inside(geom, v, st[:, i])
+        if hit is not None:
+            out.append((v.name, hit[0], hit[1], st[hit[0], i, :3]))
+    return out

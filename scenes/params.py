@@ -113,8 +113,8 @@ def check_value(f: dataclasses.Field, v: Any) -> Any:
     default = f.default
     if isinstance(default, tuple):
         if not isinstance(v, list) or not v or (spec.length is not None and len(v) != spec.length):
-            n = f"{spec.length} " if spec.length is not None else "a non-empty list of "
-            raise ValueError(f"expected a list of {n}{'integers' if spec.integer else 'numbers'}, got {v!r}")
+            n = f"a list of {spec.length} " if spec.length is not None else "a non-empty list of "
+            raise ValueError(f"expected {n}{'integers' if spec.integer else 'numbers'}, got {v!r}")
         out = []
         for i, x in enumerate(v):
             try:
@@ -138,6 +138,9 @@ def parse_override(text: str) -> tuple[str, Any]:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw
+    except RecursionError:  # e.g. thousands of nested [ ]: tomllib recurses per level
+        raise ValueError(f"--set {key}: the value is nested too deeply; give a number, a word or a flat "
+                         "list") from None
     return key, value
 
 

@@ -48,7 +48,8 @@ def _draw_xml_heights(ax, scn: Scenario, traj: np.ndarray) -> None:
     ax.figure.colorbar(im, ax=ax, shrink=0.6, label=f"top surface z of {scn.xml_scene} [m]")
 
 
-def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
+def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4,
+              inside: list[tuple[str, int, str, np.ndarray]] | None = None) -> Path:
     """Top-down plan (x east, y north, m): BS, buildings, SPs, VAs, trajectories, FOV circles.
 
     An external XML scene is drawn as its top-surface height map (buildings as shaded footprints).
@@ -56,7 +57,8 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
     Trajectories start at the open circle; the arrow head marks the last step's direction.
 
     FOV circles (radius ``sensor.fov_range``) are drawn around ``fov_points`` evenly spaced
-    trajectory points of each vehicle. Written atomically in the format of the file's suffix (png, pdf, svg); returns the path.
+    trajectory points of each vehicle. ``inside`` (:func:`mmslam.scenes.geometry.inside_report`):
+    a BS or car inside an object is marked with a red cross and named. Written atomically in the format of the file's suffix (png, pdf, svg); returns the path.
     """
     import matplotlib
 
@@ -98,6 +100,11 @@ def plot_plan(scn: Scenario, out_png: str | Path, fov_points: int = 4) -> Path:
         va = np.array(list(vas.values()))
         ax.plot(va[:, 0], va[:, 1], "x", color="tab:purple", ms=8, label="VA (image of BS)")
     ax.plot(scn.bs[0], scn.bs[1], "^", color="k", ms=11, label="BS")
+    for j, (who, k, obj, p) in enumerate(inside if inside is not None else []):
+        ax.plot(p[0], p[1], "X", color="red", ms=14, mec="k", zorder=10,
+                label="inside an object (not traceable)" if j == 0 else None)
+        ax.annotate(f"{who}{'' if k < 0 else f' (step {k})'} inside {obj}", p[:2], textcoords="offset points",
+                    xytext=(6, -12), fontsize=8, color="red", zorder=10)
     ax.set_xlabel("x east [m]")
     ax.set_ylabel("y north [m]")
     ax.set_title(f"scenario '{scn.name}' (plan view)")

@@ -118,8 +118,9 @@ class SensorParams:
                                      "true, traced trajectory too (off: the traced trajectory is the truth)")
     emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")
     model: str = param("constant", "detection / noise model: constant (p_detect, toa_std, angle_std for every "
-                       "path) or link (p_D and noise std from each path's power via the link budget below: "
-                       "mmslam.slam.sim.sensor.LinkBudget)", choices=("constant", "link"))
+                       "path), link (p_D and noise std from each path's power via the link budget below: "
+                       "mmslam.slam.sim.sensor.LinkBudget) or estimated (a channel estimator on the received "
+                       "MIMO-OFDM pilots: mmslam.slam.sim.estimated_sensor)", choices=("constant", "link", "estimated"))
     tx_power_dbm: float = param(20.0, "link model: BS transmit power", "dBm", lo=-50.0, hi=80.0)
     tx_gain_dbi: float = param(18.06, "link model: BS array gain (8 x 8 elements: 10 log10 64)", "dBi",
                                lo=-20.0, hi=60.0)
@@ -133,6 +134,13 @@ class SensorParams:
                        lo=0.0, lo_open=True, hi=1.0, hi_open=True)
     tx_array: int = param(8, "link model: BS array elements per axis (AOD accuracy)", "", lo=2, hi=1024)
     rx_array: int = param(4, "link model: vehicle array elements per axis (AOA accuracy)", "", lo=2, hi=1024)
+    est_subcarriers: int = param(256, "estimated model: pilot subcarriers K over the bandwidth (delay window "
+                                 "c K / bandwidth: 192 m at 256 and 400 MHz)", "", lo=8, hi=4096)
+    est_pfa: float = param(0.01, "estimated model: CFAR false-alarm probability per vehicle and step on noise "
+                           "only (the estimator's detection threshold)", "", lo=0.0, lo_open=True, hi=1.0,
+                           hi_open=True)
+    est_max_paths: int = param(20, "estimated model: at most this many estimates per vehicle and step", "",
+                               lo=1, hi=200)
 
 
 @dataclass(frozen=True)
@@ -408,6 +416,17 @@ GEOMETRY: dict[str, tuple[str, ParamSpec]] = {
     "vehicles[].roof_gap": ("0.05", _spec("antenna height above the roof", "m", 0.01, 1.0)),
     "vehicles[].material": ('"metal"', _spec("ITU material", choices=MATERIALS)),
     "vehicles[].scattering_coefficient": ("0.5", _spec("share of diffusely scattered energy", "", 0.0, 1.0)),
+    "vehicles[].route": ("none", _spec("[[x, y], ...] (>= 2 points), with an xml_scene, instead of initial_state / "
+                                       "motion / waypoints: each point is snapped to the nearest street centreline "
+                                       "(free space) and the car drives along the streets between them; a point "
+                                       "outside the scene's street map is refused", "m", -_C, _C)),
+    "vehicles[].speed": ("6", _spec("constant speed of a route vehicle", "m/s", 0.0, 60.0, lo_open=True)),
+    "vehicles[].clock_bias": ("0", _spec("initial clock bias (x c) of a route vehicle", "m", -_C, _C)),
+    "vehicles[].antenna_height": ("1.6", _spec("antenna height of a route vehicle above the terrain", "m", 0.5,
+                                               10.0)),
+    "n_vehicles": ("none", _spec("with an xml_scene: N more cars car_000, car_001, ... on seeded random street "
+                                 "routes near the BS (speeds U(4, 8) m/s, clock biases 100 m, 200 m, ...)", "", 1,
+                                 100, integer=True)),
 }
 """Every geometry / time key of a scenario file: (default, spec with doc, unit and bounds)."""
 
@@ -701,15 +720,17 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
     Route points are snapped to the street centrelines of the ``xml_scene`` and joined along the
     streets (:func:`mmslam.scenes.streets.plan_route`); ``n_vehicles`` adds N cars ``car_000``...
     on seeded random routes near the BS (:func:`mmslam.scenes.streets.random_routes`; speeds
-    U(4, 8) m/s from ``numpy.random.default_rng([seed, 0x5354])``). Waypoints are 3-D: the
-    antenna (``antenna_height`` m, default 1.6) follows the terrain.
+    U(4, 8) m/s from ``numpy.random.default_rng([seed, 0x5354])``; each car stays >= 6 m from the
+    earlier random cars at every step). Waypoints are 3-D: the antenna (``antenna_height`` m,
+    default 1.6) follows the terrain. Routed cars that overlap each other are refused when the
+    trace starts (:func:`mmslam.scenes.geometry.check_vehicle_overlaps`).
     """
     if not data.get("xml_scene"):
         raise _err(src, "n_vehicles" if "n_vehicles" in data else "vehicles.route",
                    "street routes need an xml_scene (an external city scene); give waypoints instead")
     n_rand = 0
     if "n_vehicles" in data:
-        n_rand = int(_num(src, "n_vehicles", data["n_vehicles"], lo=1, hi=100, integer=True))
+        n_rand = int(_num(src, "n_vehicles", data["n_vehicles"], **_b("n_vehicles")))
     from mmslam.scenes.streets import scenario_street_context
 
     ctx = scenario_street_context(src, data, bs)
@@ -726,15 +747,22 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
         if not isinstance(pts, list) or len(pts) < 2:
             raise _err(src, w + "route", "expected at least two [x, y] points")
         xy = np.array([_vec(src, f"{w}route[{j}]", p, 2) for j, p in enumerate(pts)])
-        speed = _num(src, w + "speed", v.get("speed", 6.0), lo=0.0, lo_open=True, hi=60.0)
-        ah = _num(src, w + "antenna_height", v.get("antenna_height", 1.6), lo=0.5, hi=10.0)
+        speed = _num(src, w + "speed", v.get("speed", 6.0), **_b("vehicles[].speed"))
+        ah = _num(src, w + "antenna_height", v.get("antenna_height", 1.6), **_b("vehicles[].antenna_height"))
+        bias = _num(src, w + "clock_bias", v.get("clock_bias", 0.0), **_b("vehicles[].clock_bias"))
+        x0, x1, y0, y1 = ctx.sm.extent
+        for j, (x, y) in enumerate(xy):
+            if not (x0 <= x <= x1 and y0 <= y <= y1):  # would be snapped to a far street without a word
+                raise _err(src, f"{w}route[{j}]", f"[{x:g}, {y:g}] is outside the street map of the xml_scene "
+                           f"(x {x0:.0f}..{x1:.0f} m, y {y0:.0f}..{y1:.0f} m); choose a point inside it "
+                           "(points inside are snapped to the nearest street)")
         wp = ctx.route(xy, ah)
         rest = {k: v[k] for k in v if k not in ("route", "speed", "clock_bias", "antenna_height")}
-        out.append(_waypoint_vehicle(rest, wp, speed, float(v.get("clock_bias", 0.0))))
+        out.append(_waypoint_vehicle(rest, wp, speed, bias))
     if n_rand:
         rng = np.random.default_rng([seed, 0x5354])
         speeds = rng.uniform(4.0, 8.0, n_rand)
-        routes = ctx.random(n_rand, speeds * dt * steps, rng)
+        routes = ctx.random(n_rand, speeds * dt * steps, rng, steps)  # clear of each other
         taken = {v.get("name") for v in out if isinstance(v, dict)}
         for k, (wp, sp) in enumerate(zip(routes, speeds)):
             name = f"car_{k:03d}"
@@ -764,8 +792,10 @@ def dict_from_resolved(d: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
-def scenario_from_resolved(d: dict[str, Any], source: str = "<manifest>") -> Scenario:
-    """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache)."""
+def scenario_from_resolved(d: dict[str, Any], source: str = "the stored scenario") -> Scenario:
+    """Inverse of :meth:`Scenario.to_dict` (used to read the scenario back from a cache).
+
+    ``source``: the file it came from, named in error messages (give the manifest's path)."""
     return scenario_from_dict(dict_from_resolved(d), source)
 
 
@@ -808,7 +838,10 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
             raise ConfigError(f"--set {key}: unknown parameter; expected section.key with one of "
                               f"{', '.join(known)} (see docs/scenario.md)")
         d.setdefault(section, {})[name] = value
-    return scenario_from_dict(d, f"{scn.source_file} with --set")
+    out = scenario_from_dict(d, "--set")  # errors name the option: "--set: key 'filter.merge': ..."
+    if any(parse_override(t)[0] == "fusion.start" for t in sets):
+        check_fusion_start(out, "--set", key="fusion.start")
+    return out
 
 
 def _cell(text: str) -> str:
@@ -856,7 +889,27 @@ def load_scenario(path: str | Path, seed_override: int | None = None) -> Scenari
                           "file is TOML, saved as UTF-8") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML ({e}); fix the syntax") from None
-    return scenario_from_dict(data, str(p), seed_override)
+    except RecursionError:  # tomllib recurses once per nesting level: thousands of [ ] exhaust the stack
+        raise ConfigError(f"{p}: arrays or tables nested too deeply for a scenario file (a scenario nests at "
+                          "most three levels, e.g. buildings[].vertices[][]); fix the file") from None
+    scn = scenario_from_dict(data, str(p), seed_override)
+    if isinstance(data.get("fusion"), dict) and "start" in data["fusion"]:
+        check_fusion_start(scn, str(p))
+    return scn
+
+
+def check_fusion_start(scn: Scenario, source: str, steps: int | None = None, key: str = "fusion.start") -> None:
+    """Refuse (one line) a fusion schedule whose first upload ``min(fusion.start)`` is not before the last step.
+
+    The GOSPA / RMSE tables cover steps ``>= min(fusion.start)``: such a run would evaluate nothing
+    (an empty table). ``steps``: the run length (default ``scn.steps``). Checked where the user gives
+    the schedule (a scenario file, ``--set fusion.start``), not on a cache traced with fewer ``--steps``.
+    """
+    n = scn.steps if steps is None else int(steps)
+    first = min(scn.fusion.start)
+    if first >= n:
+        raise ConfigError(f"{source}: key '{key}': first fusion step {first} is not before the last step {n - 1} "
+                          f"(steps = {n}), so nothing would be fused or evaluated; expected a start step below {n}")
 
 
 def list_presets() -> list[str]:
@@ -902,7 +955,7 @@ def scenario_reference() -> str:
             "angles in radians. `[[buildings]]`, `[[scatterers]]` and `[[vehicles]]` are arrays of tables "
             "(`buildings[].min` is the key `min` of each `[[buildings]]` entry). The `[sensor]`, `[filter]`, "
             "`[fusion]` and `[evaluation]` keys can also be set per run with "
-            "`mmslam ablate --set section.key=value`.\n\n"
+            "`mmslam slam --set section.key=value` or `mmslam ablate --set section.key=value`.\n\n"
             "## Geometry and time\n\n"
             "| key | default | unit | bounds | meaning |\n|---|---|---|---|---|")
     rows = [f"| `{k}` | {d} | {s.unit or '-'} | {_cell(s.bounds_text()) if s.choices or s.lo is not None or s.hi is not None else '-'}"

@@ -230,15 +230,30 @@ def _truncate(wp: np.ndarray, length: float) -> np.ndarray:
     return np.concatenate([wp[:k], (wp[k - 1] + f * (wp[k] - wp[k - 1]))[None]])
 
 
+def _along(wp: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points ``(len(s), 3)`` at plan arc lengths ``s`` (m) along waypoints ``wp (k, 3)`` (clamped to the ends)."""
+    L = np.hypot(*np.diff(wp[:, :2], axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    s = np.clip(s, 0.0, cum[-1])
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(L) - 1)
+    f = (s - cum[k]) / np.where(L[k] > 0, L[k], 1.0)
+    return wp[k] + f[:, None] * (wp[k + 1] - wp[k])
+
+
 def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, length_m: np.ndarray,
                   rng: np.random.Generator, radius: float = 150.0, min_los: float = 0.6,
-                  antenna_height: float = 1.6, tries: int = 40) -> list[np.ndarray]:
+                  antenna_height: float = 1.6, tries: int = 40, steps: int | None = None,
+                  min_gap: float = 6.0) -> list[np.ndarray]:
     """``n`` seeded routes (3-D waypoints) of at least ``length_m[i]`` m on the centrelines near the BS.
 
     Start points are drawn from the centreline cells within ``radius`` m (plan) of the BS; the end
     is a random reachable cell at street distance ``>= length_m[i]``. A route is kept if the BS is
     in line of sight (static triangles) from at least ``min_los`` of its points sampled every 5 m;
-    else the best of ``tries`` draws is kept.
+    else the best of ``tries`` draws is kept. With ``steps``, car ``i`` is at arc length
+    ``length_m[i] k / steps`` at step ``k`` (constant speed from the start), and a draw that brings
+    it within ``min_gap`` m (plan, antenna to antenna; 6 m clears two 4.5 x 1.8 m bodies in any
+    orientation) of an earlier car at the same step is not kept and not counted as one of the
+    ``tries`` (at most ``10 tries`` draws in all): cars on one centreline would drive through each other.
     """
     from scipy.sparse.csgraph import dijkstra
 
@@ -250,10 +265,14 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
         raise ConfigError(f"no street centreline within {radius:g} m of the BS; move the BS or widen the radius")
     xy_all = sm.centre_xy(cells)
     on_centre = sm.centre[cells[:, 0], cells[:, 1]]
-    out = []
+    out: list[np.ndarray] = []
+    placed: list[np.ndarray] = []  # (steps, 2) plan positions of the routes kept so far
     for i in range(n):
-        best, best_score = None, -1.0
-        for _ in range(tries):
+        best, best_score, used = None, -1.0, 0
+        for _ in range(10 * tries):  # a draw too close to an earlier car is not one of the `tries`
+            if used >= tries:
+                break
+            used += 1
             s = near[rng.integers(len(near))]
             a = int(idx[s[0], s[1]])
             if a < 0:
@@ -275,6 +294,11 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
             k = np.clip(np.searchsorted(cum, t, side="right") - 1, 0, len(L) - 1)
             f = (t - cum[k]) / np.where(L[k] > 0, L[k], 1.0)
             samp = wp[k] + f[:, None] * (wp[k + 1] - wp[k])
+            if steps is not None:
+                pos = _along(wp, length_m[i] * np.arange(steps) / steps)[:, :2]
+                if any(np.min(np.hypot(*(pos - q).T)) < min_gap for q in placed):
+                    used -= 1
+                    continue
             los = ~geom.segments_blocked(np.repeat(np.asarray(bs, float)[None], len(samp), 0), samp)
             score = float(los.mean())
             if score > best_score:
@@ -282,8 +306,11 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
             if score >= min_los:
                 break
         if best is None:
-            raise ConfigError(f"could not draw route {i + 1} of {n} near the BS; lower n_vehicles or the speeds")
+            raise ConfigError(f"could not draw route {i + 1} of {n} near the BS clear of the other cars; lower "
+                              "n_vehicles or change the seed")
         out.append(best)
+        if steps is not None:
+            placed.append(_along(best, length_m[i] * np.arange(steps) / steps)[:, :2])
     return out
 
 
@@ -298,8 +325,9 @@ class _StreetContext:
     def route(self, xy: np.ndarray, antenna_height: float) -> np.ndarray:
         return plan_route(self.sm, xy, antenna_height)
 
-    def random(self, n: int, lengths: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
-        return random_routes(self.sm, self.geom, self.bs, n, lengths, rng)
+    def random(self, n: int, lengths: np.ndarray, rng: np.random.Generator, steps: int | None = None
+               ) -> list[np.ndarray]:
+        return random_routes(self.sm, self.geom, self.bs, n, lengths, rng, steps=steps)
 
 
 _CTX: dict[tuple, _StreetContext] = {}

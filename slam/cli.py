@@ -58,6 +58,9 @@ def register(app: typer.Typer) -> None:
                                    "--out is replaced only if it is a previous result, and a folder or file mmslam "
                                    "did not write is never touched."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
+        sets: list[str] = typer.Option([], "--set", help="section.key=value override of a filter, fusion, sensor "
+                                       "or evaluation parameter (repeatable), e.g. --set fusion.vs_reduction=gate; "
+                                       "see docs/scenario.md. Parameters of the trace are refused."),
         animate: Optional[Path] = typer.Option(None, "--animate", help="Also draw the run step by step (vehicles, "
                                                "the fused map's estimates vs truth, the traced paths) into this "
                                                ".gif (or .mp4, needs ffmpeg) file."),
@@ -85,7 +88,9 @@ def register(app: typer.Typer) -> None:
         with locked(out, "slam"):
             check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
-                res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
+                res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps,
+                               overrides=tuple(sets), compile_notice=lambda m: Console().print(
+                                   m, highlight=False, soft_wrap=True))  # stdout: stderr is for errors
             except BaseException as e:
                 if not was_interrupted(e):
                     raise

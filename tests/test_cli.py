@@ -88,3 +88,41 @@ def test_usage_error_is_one_line(capsys):
     assert main(["slam"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "\n" not in err and "--help" in err
+
+
+def test_usage_errors_of_a_typer_on_click_are_one_line(monkeypatch, capsys):
+    """typer before its own copy of click raises click's ``UsageError`` (no ``typer.TyperException``
+    there): still one line and exit 2, not an 'internal error'."""
+    import click
+    import pytest
+
+    import mmslam.cli as cli
+
+    def app(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        raise click.UsageError("Missing argument 'CACHE'.")
+
+    monkeypatch.setattr(cli, "app", app)
+    assert main(["slam"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Missing argument 'CACHE'" in err and "internal error" not in err
+    with pytest.raises(AttributeError):
+        getattr(click, "TyperException")
+
+
+def test_slam_set_overrides_a_filter_parameter_and_refuses_an_unknown_one(tmp_path, capsys):
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.scenes.scenario import load_preset
+    from mmslam.slam.filter.result import Result
+
+    scn = load_preset("paper")
+    cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "c", steps=3, progress=False)
+    out = tmp_path / "r"
+    assert main(["slam", str(cache), "--particles", "5", "--steps", "3", "--set", "filter.extraction=vo_ma",
+                 "--out", str(out)]) == 0
+    assert Result.load(out).meta["overrides"] == ["filter.extraction=vo_ma"]
+    capsys.readouterr()
+    assert main(["slam", str(cache), "--set", "filter.nope=1", "--out", str(tmp_path / "r2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "filter.nope" in err
+    assert not (tmp_path / "r2").exists()

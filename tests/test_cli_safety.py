@@ -448,7 +448,7 @@ def test_malformed_dask_address_is_one_line_quickly(tmp_path):
 def test_license_and_readme_promises():
     lic = (ROOT / "LICENSE").read_text()
     assert "Apache License" in lic and "Version 2.0, January 2004" in lic and "END OF TERMS AND CONDITIONS" in lic
-    assert 'license = { text = "Apache-2.0" }' in (ROOT / "pyproject.toml").read_text()
+    assert 'license = "Apache-2.0"' in (ROOT / "pyproject.toml").read_text()  # SPDX (PEP 639)
     readme = (ROOT / "README.md").read_text()
     assert "'.[dask]'" in readme and "--executor dask" in readme
     for ref in set(re.findall(r"`(docs/[\w./-]+)`", readme)):

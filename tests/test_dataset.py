@@ -207,3 +207,41 @@ def test_rays_columns_fill_every_bounce_slot_and_refuse_too_many():
                      a=np.array([1.0]), delay_s=np.array([1.0]), angles=np.zeros((1, 4)), doppler_hz=np.zeros(1),
                      itype=np.ones((1, 4)), objects=np.full((1, 4), "o", object), verts=np.zeros((1, 4, 3)),
                      ray=np.zeros(1))
+
+
+def test_export_steps_rx_and_sampling_frequency_select_from_the_full_export(cache, tmp_path, capsys):
+    cache = cache[1]
+    """``--steps a:b,c`` / ``--rx name`` give exactly those rows of the full export; ``--sampling-frequency``
+    sets the sample times t = n / fs (default 1 / bandwidth); bad values: one line, exit 2."""
+    c = load_cache(cache)
+    full, part = tmp_path / "full.npz", tmp_path / "part.npz"
+    base = ["export", str(cache), "--cfr", "--subcarriers", "32", "--time-steps", "3"]
+    assert main(base + ["--out", str(full)]) == 0
+    name = c.vehicle_names[-1]
+    assert main(base + ["--steps", "1:3,4", "--rx", name, "--sampling-frequency", "2000", "--out", str(part)]) == 0
+    f, p = np.load(full), np.load(part)
+    assert p["steps"].tolist() == [1, 2, 4] and p["rx_names"].tolist() == [name]
+    np.testing.assert_allclose(f["times_s"], np.arange(3) / 400e6)
+    np.testing.assert_allclose(p["times_s"], np.arange(3) / 2000.0)
+    np.testing.assert_array_equal(p["h"][:, 0, 0], f["h"][[1, 2, 4], len(c.vehicle_names) - 1, 0])  # t = 0
+    assert json.loads(str(p["meta"]))["sampling_frequency_hz"] == 2000.0
+    capsys.readouterr()
+    for bad in (["--steps", "0:999"], ["--steps", "x"], ["--rx", "nobody"], ["--sampling-frequency", "0"]):
+        assert main(base + bad + ["--out", str(tmp_path / "bad.npz")]) == 2, bad
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and bad[0] in err
+    assert not (tmp_path / "bad.npz").exists()
+
+
+def test_every_file_carries_the_software_versions_of_the_run_that_wrote_it(cache):
+    import mmslam
+
+    _, d = cache
+    m = json.loads((d / MANIFEST).read_text())
+    files = sorted(d.glob("*/*.parquet"))
+    assert len(files) == 3 * len(m["chunks"])
+    for f in files:
+        meta = json.loads(pq.read_schema(f).metadata[b"mmslam"])
+        v = meta["versions"]
+        assert v["mmslam"] == mmslam.__version__ and v["numpy"] == np.__version__ and v["python"]
+        assert v == m["chunks"][0]["versions"]

@@ -6,7 +6,7 @@ Each test fails on the code before these issues (the comment at its top says wha
 """
 from __future__ import annotations
 
-import json
+import contextlib
 import os
 import re
 import shutil
@@ -162,7 +162,7 @@ def _children(pid: int) -> list[tuple[int, str]]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="needs /proc")
-@pytest.mark.parametrize("delay", [0.0, 0.4])
+@pytest.mark.parametrize("delay", [0.2, 0.6])
 def test_ctrl_c_while_workers_start_is_one_line_and_no_worker_traceback(ablation, tmp_path, delay):
     # before: a Ctrl-C to the process group in the first seconds: the `interrupted:` line, then worker
     # KeyboardInterrupt tracebacks (the workers ignored SIGINT only once their imports were done)
@@ -233,9 +233,9 @@ def test_a_signal_as_the_run_ends_still_gives_the_message_and_code(sig, code, wo
 
 
 @pytest.mark.slow
-def test_sigterm_to_an_ablation_keeps_finished_jobs_and_resumes(ablation, tmp_path):
-    out = _copy(ablation, tmp_path)
-    shutil.rmtree(out / "jobs")
+def test_sigterm_to_an_ablation_keeps_finished_jobs_and_resumes(tmp_path):
+    # before: SIGTERM killed the ablation (exit -15, no message; the jobs in flight were lost silently)
+    out = tmp_path / "abl"
     argv = MMSLAM + ["ablate", "paper", "--mc", "6", "--workers", "1", "--out", str(out)] + SMALL
     argv[argv.index("--particles") + 1] = "40"
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -271,11 +271,10 @@ def test_out_of_memory_is_an_environment_failure_not_a_bug(ablation, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
-def test_environment_failure_in_an_ablation_says_what_was_kept():
-    # the driver's classification: a worker's MemoryError, a killed pool, a lost Dask scheduler
+def test_environment_failure_classification():
     from concurrent.futures.process import BrokenProcessPool
 
-    from mmslam.errors import environment_cause
+    from mmslam.errors import environment_cause, environment_failure
 
     assert environment_cause(MemoryError("Unable to allocate 7 GiB")).startswith("out of memory")
     assert "worker process died" in environment_cause(BrokenProcessPool("terminated abruptly"))
@@ -286,7 +285,78 @@ def test_environment_failure_in_an_ablation_says_what_was_kept():
             raise RuntimeError("numba: allocation failed") from e
     except RuntimeError as wrapped:
         assert environment_cause(wrapped).startswith("out of memory")
-    assert environment_cause(ValueError("a real bug")) is None
+    assert environment_cause(ValueError("a real bug")) is None and environment_failure(KeyError("x")) is None
+
+
+def test_out_of_memory_in_a_worker_keeps_finished_jobs_and_says_so(ablation, tmp_path):
+    # before: a worker's MemoryError ended the ablation with "this is a bug" (exit 1), nothing said of the kept jobs
+    import concurrent.futures as cf
+
+    from mmslam.errors import EnvironmentFailure
+    from mmslam.executor import Pool
+    from mmslam.pipelines.ablate import Job
+    from mmslam.pipelines.ablate.jobs import _drive
+    from mmslam.slam.filter.result import Result
+
+    res = Result.load(ablation / "jobs" / "baseline-seed0")
+
+    def submit(fn, *args, key=None):
+        f = cf.Future()
+        if key.endswith("seed0"):
+            f.set_result(res)
+        else:
+            f.set_exception(MemoryError("Unable to allocate 7.45 GiB"))
+        return f
+
+    out = tmp_path / "abl"
+    pool = Pool(submit, lambda fs: iter(fs), lambda fs: None, 1, "fake")
+    with pytest.raises(EnvironmentFailure) as info:
+        _drive(pool, [Job("baseline", 0), Job("baseline", 1)], out, "unused", 3, None, False, 4, 6)
+    msg = str(info.value)
+    assert msg.startswith("out of memory (MemoryError: Unable to allocate 7.45 GiB)") and info.value.exit_code == 2
+    assert "5 of 6 jobs are kept" in msg and "--workers" in msg and "re-run the same command" in msg
+    assert (out / "jobs" / "baseline-seed0" / "meta.json").is_file()
+
+
+@pytest.mark.slow
+def test_losing_the_dask_scheduler_mid_ablation_is_one_line_and_resumes(tmp_path):
+    # before: exit 1 "this is a bug" and 26 lines of distributed tracebacks (the finished jobs were kept)
+    import socket
+
+    pytest.importorskip("distributed")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    addr = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
+                              str(port), "--no-dashboard"], **quiet)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                               "--no-dashboard"], **quiet)
+    out = tmp_path / "abl"
+    argv = MMSLAM + ["ablate", "paper", "--mc", "6", "--executor", "dask", "--scheduler", addr, "--out", str(out)]
+    argv += SMALL
+    argv[argv.index("--particles") + 1] = "40"
+    try:
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 300
+        while not any((out / "jobs").glob("*/meta.json")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        os.killpg(sched.pid, signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        for p in (sched, worker):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert proc.returncode == 2, stderr
+    line = _one_line(stderr, "error: lost the Dask scheduler", "jobs are kept", "re-run the same command")
+    kept = len(list((out / "jobs").glob("*/meta.json")))
+    assert re.search(rf"\b{kept} of 6 jobs are kept", line), (line, kept)
+    local = [a for a in argv if a not in ("--executor", "dask", "--scheduler", addr)]
+    done = subprocess.run(local, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and f"{6 - kept} run, {kept} reused" in done.stdout, done.stderr
 
 
 # ============================================================ 9. temp files, --set before any work
@@ -343,3 +413,29 @@ def test_lock_conflict_does_not_hide_a_bad_set(ablation, tmp_path, capsys):
     finally:
         live.kill()
         live.wait()
+
+
+def test_out_of_memory_during_a_trace_says_how_many_steps_are_kept(tmp_path):
+    # before: a MemoryError in the source ended the trace as "this is a bug" (exit 1)
+    from mmslam.errors import EnvironmentFailure
+    from mmslam.raytrace.cache import read_manifest
+    from mmslam.raytrace.trace import make_source, trace_scenario
+    from mmslam.scenes.scenario import load_preset
+
+    scn = load_preset("paper")
+    src = make_source("analytic", scn)
+    real = src.trace_tables
+
+    def trace_tables(k, states):
+        if k == 7:
+            raise MemoryError("Unable to allocate 3.2 GiB")
+        return real(k, states)
+
+    src.trace_tables = trace_tables
+    with pytest.raises(EnvironmentFailure, match=r"^out of memory .*; 5 of 10 steps are kept in .*re-run the same"):
+        trace_scenario(scn, src, tmp_path / "c", steps=10, chunk_steps=5, progress=False)
+    (m,) = (tmp_path / "c").glob("*/manifest.json")
+    assert read_manifest(m.parent)["steps_completed"] == 5
+    src.trace_tables = real
+    trace_scenario(scn, src, tmp_path / "c", steps=10, chunk_steps=5, progress=False)
+    assert read_manifest(m.parent)["steps_completed"] == 10

@@ -15,7 +15,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("mmslam", "mmslam.errors", "mmslam.limits", "mmslam.model", "mmslam.outputs", "mmslam.backend"),  # mmslam: __version__
+    ("mmslam", "mmslam.errors", "mmslam.limits", "mmslam.model", "mmslam.outputs", "mmslam.backend",
+     "mmslam.executor"),  # mmslam: __version__
     ("mmslam.scenes.params",),
     ("mmslam.scenes.meshes",),
     ("mmslam.scenes.geometry",),

@@ -204,3 +204,80 @@ def test_an_ablation_folder_with_a_users_files_of_its_names_is_not_overwritten(t
         mine.write_bytes(keep[mine])
     capsys.readouterr()
     assert main(["report", str(out)]) == 0  # its own files are rewritten
+
+
+# ============================================================ acceptance: fault injection over every writing command
+def user_area(root: Path) -> dict[str, Path]:
+    """A user's things: a folder with files (and names an ablation writes), files, links to both."""
+    import numpy as np
+
+    root.mkdir(parents=True, exist_ok=True)
+    folder = root / "thesis"
+    user_results(folder)
+    (folder / "thesis.tex").write_text("\\documentclass{article}")
+    (folder / "meshes").mkdir()
+    (folder / "meshes" / "bs.ply").write_text("ply\nmine")
+    (folder / "manifest.json").write_text('{"mine": true}')
+    tex = root / "thesis.tex"
+    tex.write_text("\\documentclass{article}")
+    png = root / "photo.png"
+    png.write_bytes(b"\x89PNG my photo")
+    gif = root / "cat.gif"
+    gif.write_bytes(b"GIF89a my cat")
+    npz = root / "data.npz"
+    np.savez(npz, mine=np.arange(3))
+    figdir = root / "figure.png"  # a folder with a figure's name
+    figdir.mkdir()
+    (figdir / "keep.txt").write_text("mine")
+    links = {}
+    for name, target in (("link_dir", folder), ("link_tex", tex), ("link_png", png), ("link_npz", npz),
+                         ("link_gif", gif)):
+        links[name] = root / name
+        links[name].symlink_to(target)
+    (root / "dangling.png").symlink_to(root / "nowhere" / "x.png")
+    return {"folder": folder, "tex": tex, "png": png, "npz": npz, "gif": gif, "figdir": figdir,
+            "dangling": root / "dangling.png", **links}
+
+
+# command -> (argv with {out} for the target, targets it is run against, has --force)
+DIR_TARGETS = ("folder", "tex", "link_dir", "link_tex")
+FIG_TARGETS = ("png", "figdir", "link_png", "dangling")
+NPZ_TARGETS = ("npz", "figdir", "link_npz", "tex")
+GIF_TARGETS = ("gif", "link_gif")
+COMMANDS = {
+    "trace": (TRACE + ["--out", "{out}"], DIR_TARGETS, True),
+    "slam": (["slam", "{cache}", "--particles", "3", "--steps", "2", "--out", "{out}"], DIR_TARGETS, True),
+    "slam --animate": (["slam", "{cache}", "--particles", "3", "--steps", "2", "--out", "{fresh}", "--animate",
+                        "{out}"], GIF_TARGETS, True),
+    "ablate": (ABLATE + ["--out", "{out}"], DIR_TARGETS, True),
+    "demo": (["demo", "--source", "analytic", "--mc", "1", "--particles", "3", "--workers", "1", "--quiet",
+              "--out", "{out}"], DIR_TARGETS, True),
+    "report": (["report", "{out}"], DIR_TARGETS, False),
+    "scene build": (["scene", "build", "paper", "--out", "{out}"], DIR_TARGETS, True),
+    "scene show": (["scene", "show", "paper", "--out", "{out}"], FIG_TARGETS, True),
+    "scene coverage": (["scene", "coverage", "canyon", "--out", "{out}"], FIG_TARGETS, True),
+    "scene streets --out": (["scene", "streets", "sionna:simple_street_canyon", "--out", "{out}"], FIG_TARGETS, False),
+    "scene streets --data": (["scene", "streets", "sionna:simple_street_canyon", "--out", "{fresh}.png", "--data",
+                              "{out}"], NPZ_TARGETS, False),
+    "paths --plot": (["paths", "{cache}", "--plot", "{out}"], FIG_TARGETS, True),
+    "export": (["export", "{cache}", "--cfr", "--subcarriers", "8", "--out", "{out}"], NPZ_TARGETS, True),
+}
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_every_writing_command_leaves_a_users_files_alone(tmp_path, capsys, cache, command):
+    """Each writing command against a user's folder, file and symbolic links, with and without --force:
+    exit 2 with one line, and the user's tree (every file's sha256, every link) exactly as before."""
+    argv, targets, has_force = COMMANDS[command]
+    area = user_area(tmp_path / "user")
+    before = tree(tmp_path)
+    for target in targets:
+        for force in ([], ["--force"]) if has_force else ([],):
+            args = [a.replace("{out}", str(area[target])).replace("{cache}", str(cache))
+                     .replace("{fresh}", str(tmp_path / "fresh")) for a in argv] + force
+            capsys.readouterr()
+            rc = main(args)
+            err = capsys.readouterr().err.strip()
+            assert rc == 2, (args, rc, err)
+            assert len(err.splitlines()) == 1 and err.startswith("error: "), (args, err)
+            assert tree(tmp_path) == before, (args, err)

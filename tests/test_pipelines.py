@@ -557,6 +557,57 @@ def test_e2e_grid_and_set_through_the_cli(tmp_path: Path, capsys: pytest.Capture
     _assert_one_line_error(code, err, "--set")
 
 
+def test_summary_table_keeps_variant_and_map_columns_at_80_columns() -> None:
+    """The ablate / demo summary in an 80-column terminal: every row's variant (a grid-arm label too)
+    and map are there in full, every number and interval is there unabridged, no line is wider."""
+    from rich.console import Console
+
+    from mmslam.pipelines.report import HEADLINE_COLUMNS, SCORED, summary_console_table
+
+    rows = []
+    for variant in ("odometry", "baseline", "proposed", "proposed[fusion.vs_reduction=gate]"):
+        for mp in ("veh1", "veh2", "fused"):
+            r = {"variant": variant, "map": mp, "runs": 10, "wall_time_s": 175.61, "card_VS": 1.972}
+            for k in SCORED:
+                r[k], r[k + "_ci"] = 28.284, 12.31
+            rows.append(r)
+    s = A.Summary(table={}, headline=rows, config={"fusion_start": 5})
+    con = Console(width=80, record=True, color_system=None)
+    con.print(summary_console_table(s, "mmslam ablate: paper", width=80))
+    text = con.export_text()
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= 80
+    assert "…" not in text
+    body = [ln for ln in lines if ln.startswith("│")]
+    cells = [[c.strip() for c in ln.strip("│").split("│")] for ln in body]
+    assert all(len(c) == 2 + len(HEADLINE_COLUMNS) for c in cells)
+    starts = [i for i, c in enumerate(cells) if c[1]]  # the first line of each row names its map
+    assert [cells[i][1] for i in starts] == [r["map"] for r in rows]
+    labels = ["".join(c[0] for c in cells[i:j]) for i, j in zip(starts, starts[1:] + [len(cells)])]
+    assert labels == [r["variant"] for r in rows]  # a long label folds onto more lines, never cut
+    assert text.count("28.284") == len(rows) * len(SCORED) and text.count("±12.31") == len(rows) * len(SCORED)
+    wide = Console(width=160, record=True, color_system=None)
+    wide.print(summary_console_table(s, "mmslam ablate: paper", width=160))
+    assert "proposed[fusion.vs_reduction=gate]" in wide.export_text()  # one line per row where it fits
+
+
+def test_reproduce_command_keeps_the_dask_scheduler() -> None:
+    cmd = A.default_command("paper", ["baseline"], 2, 50, "analytic", Path("out/a"), None, "dask",
+                            scheduler="tcp://host:8786")
+    assert cmd.endswith("--executor dask --scheduler tcp://host:8786")
+    assert "--scheduler" not in A.default_command("paper", ["baseline"], 2, 50, "analytic", Path("out/a"), None)
+
+
+def test_variants_table_heads_its_descriptions_as_such() -> None:
+    from mmslam.pipelines.report import _variants_html
+    from mmslam.slam.specs.variants import get_variant
+
+    text = _variants_html(["proposed"])
+    head = [h.split("</th>")[0] for h in text.split("<th>")[1:]]
+    assert head == ["variant", "label", "maps and countermeasures"]
+    assert get_variant("proposed").describe().split(";")[0] in text
+
+
 @pytest.mark.slow
 def test_e2e_report_has_a_step_viewer_per_variant(e2e: dict) -> None:
     """One viewer per variant (its lowest seed), with the cache's paths, the renderer embedded once."""

@@ -93,3 +93,32 @@ def test_ten_random_cars_in_munich_stay_on_streets_and_see_the_bs_or_a_va(tmp_pa
         m = np.isin(o["type"], [BS, VA])
         seen[k, np.unique(o["rx"][m].astype(int))] = True
     assert np.all(seen.mean(axis=0) > 0.5), seen.mean(axis=0)
+
+
+def test_route_point_outside_the_street_map_is_refused_in_one_line(tmp_path):
+    """A route point off the scene's street map used to be snapped silently to some far street."""
+    g = street_map(xml_geometry("sionna:simple_street_canyon"))
+    x0, x1, y0, y1 = g.extent
+    toml = tmp_path / "r.toml"
+    toml.write_text(f"""
+name = "routed"
+xml_scene = "sionna:simple_street_canyon"
+bs = [-33.0, -10.0, 25.0]
+[[vehicles]]
+name = "car_r"
+route = [[-60.0, -3.0], [{x1 + 500.0}, 0.0]]
+""")
+    with pytest.raises(ConfigError, match=r"vehicles\[0\]\.route\[1\].*outside the street map") as e:
+        load_scenario(toml)
+    assert "\n" not in str(e.value)
+
+
+def test_every_scenario_file_key_is_in_the_reference():
+    """``mmslam scene reference`` (docs/scenario.md) lists each key a scenario file may hold."""
+    from mmslam.scenes import scenario as S
+
+    keys = set(S.GEOMETRY)
+    documented = keys | {k.split(".")[0].split("[")[0] for k in keys} | set(S.PARAM_SECTIONS)
+    assert not {k for k in S._TOP_KEYS if k not in documented}
+    assert not {k for k in S._ROUTE_KEYS if f"vehicles[].{k}" not in keys
+                and not any(g.startswith(f"vehicles[].{k}") for g in keys)}

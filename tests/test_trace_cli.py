@@ -98,9 +98,9 @@ def test_trace_a_toml_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra, needle", [
-    (["--executor", "spark"], "--executor 'spark': expected local or dask"),
+    (["--executor", "spark"], "--executor spark: expected one of local, dask"),
     (["--workers", "2"], "only used with --executor dask"),
-    (["--executor", "dask", "--workers", "0"], "--workers 0: expected >= 1"),
+    (["--executor", "dask", "--workers", "0"], "--workers 0: expected 1..4096 workers"),
 ])
 def test_trace_executor_options_are_checked(tmp_path, capsys, extra, needle):
     assert main(["trace", "paper", "--source", "analytic", "--out", str(tmp_path), "--quiet", *extra]) == 2

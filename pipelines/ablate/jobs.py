@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_cause,
+from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_failure,
                            was_interrupted)
 from mmslam.slam.specs.variants import COMPARED_WITH
 from mmslam.executor import THREAD_VARS, Pool, open_pool
@@ -195,8 +195,8 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
             "arms": [list(a) for a in arms],
             "command": command or default_command(info["scenario_name"], variants, mc, particles,
-                                                  info["source"], out, steps, seed0=seed0, sets=sets,
-                                                  grid=grid)}
+                                                  info["source"], out, steps, executor, seed0=seed0,
+                                                  sets=sets, grid=grid, scheduler=scheduler)}
     if old is not None:
         _check_compatible(out, old, spec)
     start_ablation_dir(out, force=True)
@@ -215,6 +215,10 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
     ran: list[Job] = []
     desc = "nothing to run"
     if pending:
+        if executor == "local" or scheduler is None:  # workers on this machine: compile once, here, not in each
+            from mmslam.slam.filter.precompile import compile_for_workers
+
+            compile_for_workers({j.variant for j in pending}, progress)
         with open_pool(executor, scheduler, workers, len(pending)) as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
@@ -222,11 +226,6 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
                          truth_file)
     summary = aggregate(out)
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
-
-
-ENVIRONMENT_FIX = ("free memory or lower --workers / --particles, or restart the Dask scheduler and its workers "
-                   "(or drop --scheduler)")
-"""What the user can change after an environment failure of an ablation."""
 
 
 def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
@@ -277,10 +276,10 @@ def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles:
                 bar.update(task, advance=1, last=f"{job.name} done")
     except BaseException as e:
         interrupted = was_interrupted(e)
-        cause = None if interrupted else environment_cause(e)
+        failure = None if interrupted else environment_failure(e)
         with contextlib.suppress(Exception):
             pool.cancel(list(futs))
-        if not interrupted and cause is None:
+        if not interrupted and failure is None:
             raise
         keep_collected()
         if bar is not None:
@@ -291,8 +290,8 @@ def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles:
                 f"this run); {left} unfinished jobs were cancelled")
         if interrupted:
             raise Interrupted(f"{kept}; re-run the same command to resume") from None
-        raise EnvironmentFailure(f"{cause}; {kept}; {ENVIRONMENT_FIX}, then re-run the same command to "
-                                 "resume") from None
+        raise EnvironmentFailure(f"{failure[0]}; {kept}; {failure[1]}, then re-run the same command to resume"
+                                 ) from None
     finally:
         if bar is not None:
             bar.stop()

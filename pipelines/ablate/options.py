@@ -199,8 +199,8 @@ def is_finished(out_dir: str | Path, job: Job) -> bool:
 
 def default_command(scenario: str, variants: Sequence[str], mc: int, particles: int, source: str | None,
                     out: Path, steps: int | None, executor: str = "local", seed0: int = 0,
-                    sets: Sequence[str] = (), grid: Sequence[str] = ()) -> str:
-    """The ``mmslam ablate`` command line that reproduces an ablation."""
+                    sets: Sequence[str] = (), grid: Sequence[str] = (), scheduler: str | None = None) -> str:
+    """The ``mmslam ablate`` command line that reproduces an ablation (with its ``--scheduler``)."""
     import shlex
 
     argv = ["mmslam", "ablate", scenario, "--variants", ",".join(variants), "--mc", str(mc),
@@ -215,4 +215,6 @@ def default_command(scenario: str, variants: Sequence[str], mc: int, particles: 
         argv += ["--grid", x]
     if executor != "local":
         argv += ["--executor", executor]
+    if executor != "local" and scheduler:
+        argv += ["--scheduler", scheduler]
     return shlex.join(argv)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -99,7 +99,8 @@ class CooperativeRun:
     def __init__(self, scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                  variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
                  steps: int | None = None, include_types: Sequence[int] | None = None, *,
-                 measurement_update: bool = True, evaluate: bool = True) -> None:
+                 measurement_update: bool = True, evaluate: bool = True, rays: dict[str, np.ndarray] | None = None,
+                 estimates_dir: str | Path | None = None) -> None:
         from ..sim.sensor import fov_detect_prob, simulate_measurements
 
         self.t0 = time.perf_counter()
@@ -132,8 +133,20 @@ class CooperativeRun:
         # ---- stage 0: measurements of the whole run, prior, filters
         ss = np.random.SeedSequence(int(seed))
         s_meas, s_prior, *s_veh = ss.spawn(2 + n_veh)
-        self.meas = simulate_measurements(scn, states, sub, np.random.default_rng(s_meas),
-                                          include_types=include_types)
+        self.estimator_counts = None
+        if scn.sensor.model == "estimated":  # measurements from the channel estimator (estimated_sensor.py)
+            from ..sim.estimated_sensor import estimated_run, to_measurements
+
+            if rays is None:
+                raise MmslamError("sensor.model = \"estimated\" needs the traced rays: run it on a cache "
+                                  "(mmslam run / ablate), not on paths alone")
+            est = estimated_run(scn, states, {k: np.asarray(v)[np.asarray(rays["step"]) < steps] for k, v in rays.items()},
+                                sub, np.random.default_rng(s_meas), estimates_dir, int(seed))
+            self.meas = to_measurements(scn, est, steps, n_veh)
+            self.estimator_counts = est["counts"]
+        else:
+            self.meas = simulate_measurements(scn, states, sub, np.random.default_rng(s_meas),
+                                              include_types=include_types)
         self.true = np.asarray(self.meas.true_states, float)
         R = scn.filter.r_scale * np.asarray(self.meas.R, float)
         sensor = scn.sensor
@@ -243,6 +256,11 @@ class CooperativeRun:
                               "measurement_update": self.measurement_update,
                               "fusion_start": int(min(scn.fusion.start)),
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
+        if self.estimator_counts is not None:  # evaluation labels of the estimates (never used by the filter)
+            from ..sim.estimated_sensor import COUNT_COLUMNS
+
+            md["estimator_counts"] = {"columns": list(COUNT_COLUMNS),
+                                      "per_step_vehicle": np.asarray(self.estimator_counts)[:self.steps].tolist()}
         md.update(meta or {})
         md["wall_time_s"] = time.perf_counter() - self.t0
         mt = self.scorer.metrics if self.scorer is not None else Table()
@@ -253,7 +271,8 @@ class CooperativeRun:
 def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
                steps: int | None = None, include_types: Sequence[int] | None = None,
-               meta: dict[str, Any] | None = None, *, measurement_update: bool = True) -> Result:
+               meta: dict[str, Any] | None = None, *, measurement_update: bool = True,
+               rays: dict[str, np.ndarray] | None = None, estimates_dir: str | Path | None = None) -> Result:
     """Run cooperative MM-PHD-SLAM on noise-free paths (no cache needed): :meth:`CooperativeRun.run`.
 
     Args:
@@ -269,18 +288,24 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
             default every registered type).
         meta: extra entries for ``Result.meta`` (e.g. the cache hash).
         measurement_update: False runs dead reckoning (prediction only).
+        rays, estimates_dir: the ``rays`` table and where to cache the estimates (``sensor.model =
+            "estimated"`` only, :mod:`mmslam.slam.sim.estimated_sensor`).
 
     Returns:
         A :class:`~mmslam.slam.filter.result.Result` (tables documented in :mod:`mmslam.slam.filter.result`).
     """
     return CooperativeRun(scn, states, paths, variant, particles, seed, steps, include_types,
-                          measurement_update=measurement_update).run(meta)
+                          measurement_update=measurement_update, rays=rays, estimates_dir=estimates_dir).run(meta)
 
 
 def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", particles: int | None = None,
              seed: int = 0, steps: int | None = None, include_types: Sequence[int] | None = None,
-             overrides: Sequence[str] = ()) -> Result:
+             overrides: Sequence[str] = (), compile_notice: Callable[[str], None] | None = None) -> Result:
     """Load a path cache and run :func:`run_filter` on it.
+
+    The variant's numba kernels are compiled (in parallel processes, if not cached yet: a fresh
+    install; ``compile_notice`` gets a one-line message first) and loaded before the run starts, so
+    ``meta['wall_time_s']`` never includes compilation (:func:`mmslam.slam.filter.precompile.ensure_compiled`).
 
     ``overrides``: ``section.key=value`` strings (e.g. ``"fusion.vs_reduction=gate"``) applied to
     the cached scenario's [sensor], [filter], [fusion] and [evaluation] parameters
@@ -303,5 +328,9 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
                           "trace a new cache with that scenario instead")
     meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
             "cache_path": str(cache.path), "overrides": list(overrides)}
+    from .precompile import ensure_compiled
+
+    ensure_compiled([get_variant(variant).name], notice=compile_notice)
+    est = {"rays": cache.read_rays(), "estimates_dir": cache.path} if scn.sensor.model == "estimated" else {}
     return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
-                      seed=seed, steps=steps, include_types=include_types, meta=meta)
+                      seed=seed, steps=steps, include_types=include_types, meta=meta, **est)

@@ -279,6 +279,16 @@ def _used_types(scn: Scenario, include_types: Sequence[int] | None) -> np.ndarra
     return np.array(sorted(types), dtype=int)
 
 
+def clock_bias_walk(states: np.ndarray, std: float, rng: np.random.Generator) -> np.ndarray:
+    """True states ``(steps, n_veh, 7)``: ``states`` with the clock bias (column 6, m) a random walk
+    ``B_k = B_{k-1} + N(0, std^2)`` from ``B_0 = states[0, :, 6]`` (draws ``(steps - 1, n_veh)`` normals)."""
+    steps, n_veh = states.shape[:2]
+    inc = rng.standard_normal((max(steps - 1, 0), n_veh)) * std
+    true = states.copy()
+    true[:, :, 6] = states[0, :, 6][None, :] + np.concatenate([np.zeros((1, n_veh)), np.cumsum(inc, 0)])[:steps]
+    return true
+
+
 def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                           rng: np.random.Generator,
                           include_types: Sequence[int] | None = None,
@@ -330,10 +340,7 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
         if col not in paths:
             raise MmslamError(f"paths table has no column '{col}'; the cache is not of the expected schema")
 
-    # ---- true clock bias: random walk
-    inc = rng.standard_normal((max(steps - 1, 0), n_veh)) * sp.vehicle_noise_std[6]
-    true = states.copy()
-    true[:, :, 6] = states[0, :, 6][None, :] + np.concatenate([np.zeros((1, n_veh)), np.cumsum(inc, 0)])[:steps]
+    true = clock_bias_walk(states, sp.vehicle_noise_std[6], rng)
 
     # ---- select and order the used path rows
     step = np.asarray(paths["step"]).astype(int)

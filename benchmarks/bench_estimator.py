@@ -1,0 +1,88 @@
+"""Channel-parameter estimator (issue 24): CPU time per vehicle-step, and its cost vs array and subcarrier sizes.
+
+Received pilots of real links (the ``paper`` scene traced by the closed-form source: LOS, four wall
+VAs, SPs, the other car; ``--steps`` steps x 2 vehicles, noise from seed 0) are estimated with
+:func:`mmslam.slam.sim.channel_estimator.nomp` at the default sizes (BS 8 x 8, vehicle 4 x 4, 256
+subcarriers, pfa 0.01, <= 20 paths) and at other sizes (``--cache``: the links of a traced cache
+instead, e.g. a Sionna trace with its diffuse clusters). Per size: the median and 90th percentile of
+the estimation time per vehicle-step (``time.process_time``: CPU time of this process, one thread;
+BLAS pinned to one thread) and the median number of estimates. Pilot synthesis is not timed.
+
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_estimator.py --steps 10
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import numpy as np  # noqa: E402
+
+from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
+from mmslam.raytrace.cache import load_cache  # noqa: E402
+from mmslam.raytrace.trace import trace_scenario  # noqa: E402
+from mmslam.scenes.scenario import load_preset, with_overrides  # noqa: E402
+from mmslam.slam.sim import channel_estimator as ce  # noqa: E402
+from mmslam.slam.sim import estimated_sensor as es  # noqa: E402
+
+SIZES = [(8, 4, 256), (8, 4, 128), (4, 4, 256), (4, 4, 128), (8, 4, 512), (4, 2, 256)]
+"""(tx_array, rx_array, subcarriers); the first is the default."""
+
+
+def run(cache, steps: int, tx: int, rx: int, k: int, reps: int) -> dict:
+    scn = with_overrides(cache.scenario, ["sensor.model=estimated", f"sensor.tx_array={tx}",
+                                          f"sensor.rx_array={rx}", f"sensor.est_subcarriers={k}"])
+    sp = scn.sensor
+    pm = es.PilotModel.from_sensor(sp, scn.frequency_hz)
+    rays = cache.read_rays()
+    rng = np.random.default_rng(0)
+    times, counts = [], []
+    for s in range(steps):
+        for v in range(cache.states.shape[1]):
+            idx = np.flatnonzero((rays["step"] == s) & (rays["rx"] == v))
+            st = cache.states[s, v]
+            Y, _ = es.received_pilots(rays, idx, st[3], st[6], pm, rng)
+            best = np.inf
+            for _ in range(reps):
+                t = time.process_time()
+                w, _ = ce.nomp(Y, pm.grid, sp.est_pfa, sp.est_max_paths)
+                best = min(best, time.process_time() - t)
+            times.append(best)
+            counts.append(len(w))
+    t = np.array(times) * 1e3
+    return {"tx_array": tx, "rx_array": rx, "subcarriers": k, "cells": pm.grid.size,
+            "median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)),
+            "median_estimates": float(np.median(counts)), "links": len(times)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--reps", type=int, default=1, help="repetitions per link (the fastest is kept)")
+    ap.add_argument("--sizes", default="all", help="'default' or 'all'")
+    ap.add_argument("--cache", default=None, help="a traced cache to take the links from (e.g. a Sionna trace: "
+                    "diffuse clusters, ~60 rays per link); default: paper traced by the closed-form source")
+    a = ap.parse_args()
+    scn = load_preset("paper")
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = load_cache(a.cache if a.cache else
+                           trace_scenario(scn, AnalyticSource(scn), tmp, steps=a.steps, progress=False))
+        # compile the numba kernel once outside the timing
+        g = ce.Grid(2, 2, 8, 1e8)
+        ce.nomp(np.zeros((4, 4, 8), complex), g, 0.01)
+        out = []
+        for tx, rx, k in (SIZES[:1] if a.sizes == "default" else SIZES):
+            r = run(cache, a.steps, tx, rx, k, a.reps)
+            out.append(r)
+            print(f"tx {tx}x{tx} rx {rx}x{rx} K {k:4d} ({r['cells']:7d} cells): median {r['median_ms']:7.1f} ms, "
+                  f"p90 {r['p90_ms']:7.1f} ms per vehicle-step, {r['median_estimates']:.0f} estimates", flush=True)
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

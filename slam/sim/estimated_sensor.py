@@ -1,0 +1,285 @@
+"""Sensor model ``estimated`` (issue 24): measurements estimated from the received MIMO-OFDM pilots.
+
+Per vehicle and step, from every traced ray of its link (``rays`` table, all types):
+
+1. **pilots** (:class:`PilotModel`, :func:`received_pilots`): the full MIMO-OFDM channel is observed
+   once per step. The BS sends one pilot OFDM symbol per transmit element (``tx_array^2`` symbols,
+   time-orthogonal), each at the full transmit power over ``K = est_subcarriers`` subcarriers spanning
+   the bandwidth ``B``; the vehicle samples all ``rx_array^2`` elements (a digital array). Per
+   subcarrier the pilot power is ``P / K`` and the noise ``N0 B / K``, so every entry of the
+   observed channel has the wideband SNR: ``Y = s H + W``, ``W ~ CN(0, 1)``, ``s^2 = P_tx / (N0 B F)``
+   times the processing gain (``tx_power_dbm - noise_dbm + processing_gain_db``, the link budget's
+   terms without the array gains: the arrays are in ``H``). Full-channel pilots rather than beam
+   sweeping: the estimator then sees every path in one step at the full aperture of both arrays
+   (beam sweeping with ``tx^2 rx^2`` beam pairs gives the same energy per path but needs a codebook
+   and loses the paths between beams); the cost is ``tx^2`` pilot symbols per step, 64 x 0.64 us
+   at 256 subcarriers, far below the 0.5 s step. ``H`` is :func:`mmslam.raytrace.channel` 's array
+   channel at the absolute delays plus the clock bias, after the receiver's window start ``t0``:
+   the first arrival's sample (its timing acquisition) minus ``GUARD`` samples. Noise is drawn from
+   the caller's generator, one ``(rx, tx, K)`` complex normal block per (step, vehicle) in order.
+2. **estimator** (:mod:`mmslam.slam.sim.channel_estimator`): NOMP with a CFAR stop at ``est_pfa`` per
+   vehicle-step, at most ``est_max_paths`` estimates; each estimate ``z = [t0 + tau (m), AOD az,
+   AOD el, AOA az - heading, AOA el]`` with its Fisher-information covariance.
+3. **evaluation labels** (:func:`associate`, never seen by the filter): each estimate is matched to
+   the traced rays within one resolution cell in every axis; its label is the landmark of the
+   strongest such ray, ``merged`` if rays of two or more landmarks fall in the cell, ``false`` if
+   none. A landmark of the ``paths`` table with no estimate labelled with it is ``missed``.
+
+Estimates of a whole Monte Carlo run are cached (:func:`estimated_run`) under
+``CACHE/estimates/<key>/seed-<s>.npz`` (atomic writes; ``key`` a hash of the settings that change
+them), so that ablations over filter options do not re-estimate.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mmslam.scenes.scenario import Scenario, SensorParams
+
+from . import channel_estimator as ce
+from ..models.dynamics import wrap_angle
+from ..models.measurement import MEAS_DIM, OTHER
+from .sensor import BOLTZMANN_DBM_HZ, Measurements, clock_bias_walk, clutter_intensity
+
+SPEED_OF_LIGHT = ce.SPEED_OF_LIGHT
+GUARD = 4
+"""Samples (``1 / B`` each) the receiver's window opens before the first arrival."""
+ESTIMATOR_VERSION = 2
+"""Part of the estimates' cache key: bump when the estimator's results change."""
+
+
+@dataclass(frozen=True)
+class PilotModel:
+    """Geometry and SNR scale of the received pilots (module docstring, item 1)."""
+
+    grid: ce.Grid
+    carrier_hz: float
+    snr_scale_db: float
+
+    @classmethod
+    def from_sensor(cls, sp: SensorParams, carrier_hz: float) -> "PilotModel":
+        noise_dbm = BOLTZMANN_DBM_HZ + 10.0 * math.log10(sp.bandwidth_hz) + sp.noise_figure_db
+        return cls(ce.Grid(int(sp.tx_array), int(sp.rx_array), int(sp.est_subcarriers), float(sp.bandwidth_hz)),
+                   float(carrier_hz), float(sp.tx_power_dbm - noise_dbm + sp.processing_gain_db))
+
+    def window_start_m(self, toa_m: np.ndarray) -> float:
+        """Window start (m, receiver clock): the first arrival's sample minus :data:`GUARD` samples."""
+        dr = SPEED_OF_LIGHT / self.grid.bandwidth_hz
+        return float((math.floor(float(np.min(toa_m)) / dr) - GUARD) * dr)
+
+
+def received_pilots(rays: dict[str, np.ndarray], idx: np.ndarray, heading: float, bias_m: float,
+                    pm: PilotModel, rng: np.random.Generator | None) -> tuple[np.ndarray, float]:
+    """The observed channel ``Y (rx^2, tx^2, K)`` (unit noise) of rays ``idx`` of one link, and ``t0`` (m).
+
+    ``heading`` (rad), ``bias_m`` the true clock bias (m). ``rng`` None: noise-free.
+    """
+    from mmslam.raytrace.channel import ray_array_responses
+
+    g = pm.grid
+    toa = np.asarray(rays["delay_s"], float)[idx] * SPEED_OF_LIGHT + bias_m
+    t0 = pm.window_start_m(toa) if idx.size else 0.0
+    a = (np.asarray(rays["a_re"], float)[idx] + 1j * np.asarray(rays["a_im"], float)[idx])
+    a = a * np.exp(-2j * np.pi * pm.carrier_hz * np.asarray(rays["delay_s"], float)[idx]) * 10 ** (pm.snr_scale_db / 20)
+    at, ar = ray_array_responses(rays, idx, g.tx_array, g.rx_array, heading)
+    f = (np.arange(g.n_subcarriers) - g.n_subcarriers // 2) * g.spacing_hz
+    kern = np.exp(-2j * np.pi * np.outer((toa - t0) / SPEED_OF_LIGHT, f))
+    Y = ((ar[:, :, None] * at[:, None, :]).reshape(idx.size, -1).T @ (a[:, None] * kern)).reshape(
+        g.rx_array ** 2, g.tx_array ** 2, g.n_subcarriers)
+    if rng is not None:
+        Y = Y + (rng.standard_normal(Y.shape) + 1j * rng.standard_normal(Y.shape)) / math.sqrt(2.0)
+    return Y, t0
+
+
+def estimate_link(Y: np.ndarray, t0_m: float, pm: PilotModel, pfa: float, max_paths: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Estimates of one link: ``z (L, 5)``, covariances ``(L, 5, 5)``, integrated SNR ``|g|^2 N`` (dB)
+    ``(L,)`` and the frequencies ``w (L, 5)``."""
+    w, g = ce.nomp(Y, pm.grid, pfa, max_paths)
+    z = ce.measurement_of_w(w, t0_m, pm.grid)
+    cov = ce.measurement_covariance(z, g, t0_m, pm.grid) if len(g) else np.zeros((0, 5, 5))
+    snr = 10.0 * np.log10(np.abs(g) ** 2 * pm.grid.size) if len(g) else np.zeros(0)
+    return z, cov, snr, w
+
+
+def associate(w_hat: np.ndarray, w_true: np.ndarray, power: np.ndarray, lm_key: np.ndarray, grid: ce.Grid
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluation labels of one link's estimates.
+
+    Args:
+        w_hat: ``(L, 5)`` estimated frequencies; w_true: ``(n, 5)`` those of the traced rays;
+        power: ``(n,)`` ray powers (any monotone scale); lm_key: ``(n,)`` int landmark key per ray.
+        grid: the estimator's grid (cell sizes ``2 pi / L_d``).
+
+    Returns:
+        ``(label (L,), n_lm (L,))``: the strongest ray's key among the rays within one cell in every
+        axis of the estimate (-1: none, a false alarm), and how many distinct landmarks are there
+        (>= 2: merged).
+    """
+    L = w_hat.shape[0]
+    label = np.full(L, -1, np.int64)
+    n_lm = np.zeros(L, np.int64)
+    if L == 0 or w_true.shape[0] == 0:
+        return label, n_lm
+    cell = 2.0 * np.pi / np.asarray(grid.shape, float)
+    d = np.abs(wrap_angle(w_hat[:, None, :] - w_true[None, :, :])) / cell  # (L, n, 5) in cells
+    near = np.all(d <= 1.0, axis=-1)
+    for l in range(L):
+        i = np.flatnonzero(near[l])
+        if i.size:
+            label[l] = lm_key[i[np.argmax(power[i])]]
+            n_lm[l] = np.unique(lm_key[i]).size
+    return label, n_lm
+
+
+def settings_key(scn: Scenario) -> str:
+    """Hash of everything that changes the estimates of a cache (besides the Monte Carlo seed)."""
+    sp = scn.sensor
+    keys = ("tx_array", "rx_array", "est_subcarriers", "est_pfa", "est_max_paths", "bandwidth_hz", "tx_power_dbm",
+            "noise_figure_db", "processing_gain_db")
+    d = {k: getattr(sp, k) for k in keys}
+    d["clock_bias_std"] = sp.vehicle_noise_std[6]
+    d.update(version=ESTIMATOR_VERSION, guard=GUARD, carrier_hz=scn.frequency_hz)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+COUNT_COLUMNS = ("estimates", "detected", "merged", "false", "missed")
+"""Per (step, vehicle) evaluation counts: estimates; estimates labelled with a landmark (one label
+each); of those with two or more landmarks in their cell; estimates without any ray in their cell;
+landmarks of the ``paths`` table no estimate is labelled with."""
+
+
+def estimate_run(scn: Scenario, states: np.ndarray, rays: dict[str, np.ndarray], paths: dict[str, np.ndarray],
+                 rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Estimates of one Monte Carlo run (every step and vehicle of ``states``), as flat arrays.
+
+    Returns a dict: ``true_states (steps, n_veh, 7)`` (with the clock-bias walk, drawn first from
+    ``rng``), ``set (M,)`` (``step * n_veh + vehicle``), ``z (M, 5)``, ``cov (M, 5, 5)``,
+    ``snr_db (M,)``, ``origin_type (M,)`` (-1: false alarm), ``origin_id (M,)`` str, ``origin_pos
+    (M, 3)``, ``merged (M,)`` bool, ``counts (steps, n_veh, 5)`` (:data:`COUNT_COLUMNS`).
+    """
+    sp = scn.sensor
+    pm = PilotModel.from_sensor(sp, scn.frequency_hz)
+    steps, n_veh = states.shape[:2]
+    true = clock_bias_walk(np.asarray(states, float), sp.vehicle_noise_std[6], rng)
+    r_step = np.asarray(rays["step"], np.int64)
+    r_rx = np.asarray(rays["rx"], np.int64)
+    r_type = np.asarray(rays["type"], np.int64)
+    r_id = np.asarray(rays["landmark_id"]).astype(str)
+    r_pow = np.asarray(rays["power_db"], float)
+    p_step, p_rx = np.asarray(paths["step"], np.int64), np.asarray(paths["rx"], np.int64)
+    p_type, p_id = np.asarray(paths["type"], np.int64), np.asarray(paths["landmark_id"]).astype(str)
+    p_pos = np.stack([np.asarray(paths[c], float) for c in ("lm_x", "lm_y", "lm_z")], -1)
+    out: dict[str, list] = {k: [] for k in ("set", "z", "cov", "snr_db", "origin_type", "origin_id", "origin_pos",
+                                            "merged")}
+    counts = np.zeros((steps, n_veh, len(COUNT_COLUMNS)), np.int64)
+    order = np.lexsort((r_rx, r_step))
+    bounds = np.searchsorted(r_step[order] * n_veh + r_rx[order], np.arange(steps * n_veh + 1))
+    for k in range(steps):
+        for v in range(n_veh):
+            idx = order[bounds[k * n_veh + v]:bounds[k * n_veh + v + 1]]
+            Y, t0 = received_pilots(rays, idx, float(true[k, v, 3]), float(true[k, v, 6]), pm, rng)
+            z, cov, snr, w = estimate_link(Y, t0, pm, sp.est_pfa, sp.est_max_paths)
+            z[:, 3] = wrap_angle(z[:, 3])
+            # evaluation only: the true rays' frequencies and landmark keys
+            zt = np.stack([np.asarray(rays["delay_s"], float)[idx] * SPEED_OF_LIGHT + true[k, v, 6],
+                           np.asarray(rays["aod_az"], float)[idx], np.asarray(rays["aod_el"], float)[idx],
+                           np.asarray(rays["aoa_az"], float)[idx] - true[k, v, 3],
+                           np.asarray(rays["aoa_el"], float)[idx]], -1)
+            keys = np.array([f"{t}|{i}" for t, i in zip(r_type[idx], r_id[idx])])
+            uniq, key = np.unique(keys, return_inverse=True)
+            label, n_lm = associate(w, ce.w_of_measurement(zt, t0, pm.grid), r_pow[idx], key, pm.grid)
+            sel_p = np.flatnonzero((p_step == k) & (p_rx == v))
+            lm_of_path = {f"{p_type[i]}|{p_id[i]}": i for i in sel_p}
+            otype = np.full(len(label), -1, np.int64)
+            oid = np.full(len(label), "", object)
+            opos = np.full((len(label), 3), np.nan)
+            for l, lab in enumerate(label):
+                if lab >= 0:
+                    t_s, i_s = uniq[lab].split("|", 1)
+                    otype[l], oid[l] = int(t_s), i_s
+                    if uniq[lab] in lm_of_path and int(t_s) != OTHER:
+                        opos[l] = p_pos[lm_of_path[uniq[lab]]]
+            found = {uniq[lab] for lab in label if lab >= 0}
+            counts[k, v] = (len(label), int((label >= 0).sum()), int((n_lm >= 2).sum()), int((label < 0).sum()),
+                            sum(1 for key_ in lm_of_path if key_ not in found))
+            out["set"].append(np.full(len(label), k * n_veh + v, np.int64))
+            for name, val in (("z", z), ("cov", cov), ("snr_db", snr), ("origin_type", otype), ("origin_id", oid),
+                              ("origin_pos", opos), ("merged", n_lm >= 2)):
+                out[name].append(val)
+    res = {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+    res["z"] = res["z"].reshape(-1, MEAS_DIM)
+    res["cov"] = res["cov"].reshape(-1, MEAS_DIM, MEAS_DIM)
+    res["origin_pos"] = res["origin_pos"].reshape(-1, 3)
+    res["true_states"] = true
+    res["counts"] = counts
+    return res
+
+
+def _npz_bytes(d: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **{k: (v.astype(str) if v.dtype == object else v) for k, v in d.items()})
+    return buf.getvalue()
+
+
+def estimated_run(scn: Scenario, states: np.ndarray, rays: dict[str, np.ndarray], paths: dict[str, np.ndarray],
+                  rng: np.random.Generator, cache_dir: str | Path | None = None, seed: int | None = None
+                  ) -> dict[str, np.ndarray]:
+    """:func:`estimate_run`, cached under ``cache_dir/estimates/<settings_key>/seed-<seed>-steps-<n>.npz``
+    when ``cache_dir`` and ``seed`` are given (read back if present; written atomically)."""
+    path = None
+    if cache_dir is not None and seed is not None:
+        path = (Path(cache_dir) / "estimates" / settings_key(scn) / f"seed-{int(seed)}-steps-{states.shape[0]}.npz")
+        if path.is_file():
+            with np.load(path, allow_pickle=False) as f:
+                d = {k: f[k] for k in f.files}
+            d["origin_id"] = d["origin_id"].astype(object)
+            return d
+    res = estimate_run(scn, states, rays, paths, rng)
+    if path is not None:
+        from mmslam.outputs import atomic_write_bytes
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, _npz_bytes(res))
+    return res
+
+
+def threshold_covariance(scn: Scenario) -> np.ndarray:
+    """``(5, 5)`` covariance of an estimate at the CFAR threshold SNR, AOD elevation -20 deg, AOA elevation
+    +20 deg, azimuths 0 (the shared ``R`` of :class:`Measurements`)."""
+    pm = PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
+    g = math.sqrt(ce.cfar_threshold(pm.grid, scn.sensor.est_pfa))
+    z = np.array([[50.0, 0.0, -0.35, 0.0, 0.35]])
+    return ce.measurement_covariance(z, np.array([g]), 0.0, pm.grid)[0]
+
+
+def to_measurements(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int) -> Measurements:
+    """Padded :class:`Measurements` of an :func:`estimate_run` result (order: as estimated)."""
+    s = np.asarray(est["set"], np.int64)
+    per = np.bincount(s, minlength=steps * n_veh)
+    J = int(per.max(initial=0))
+    start = np.concatenate([[0], np.cumsum(per)[:-1]])
+    slot = np.arange(s.size) - start[s]
+    ks, vs = np.divmod(s, n_veh)
+    Z = np.zeros((steps, n_veh, J, MEAS_DIM))
+    mask = np.zeros((steps, n_veh, J), bool)
+    otype = np.full((steps, n_veh, J), -1, np.int8)
+    oid = np.full((steps, n_veh, J), "", dtype=object)
+    opos = np.full((steps, n_veh, J, 3), np.nan)
+    rvar = np.zeros((steps, n_veh, J, MEAS_DIM))
+    snr = np.full((steps, n_veh, J), np.nan)
+    Z[ks, vs, slot] = est["z"]
+    mask[ks, vs, slot] = True
+    otype[ks, vs, slot] = est["origin_type"]
+    oid[ks, vs, slot] = est["origin_id"]
+    opos[ks, vs, slot] = est["origin_pos"]
+    rvar[ks, vs, slot] = np.diagonal(est["cov"], axis1=1, axis2=2)
+    snr[ks, vs, slot] = est["snr_db"]
+    return Measurements(Z, mask, otype, oid, opos, np.asarray(est["true_states"], float), clutter_intensity(scn.sensor),
+                        threshold_covariance(scn), rvar, snr)

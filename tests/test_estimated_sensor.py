@@ -1,0 +1,121 @@
+"""Sensor model ``estimated`` (issue 24): pilots from traced rays, estimates against the rays, evaluation
+labels, the estimates' cache (same seed, same estimates; read back), and a filter run on them."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.raytrace.cache import load_cache
+from mmslam.raytrace.trace import trace_scenario
+from mmslam.scenes.scenario import load_preset, with_overrides
+from mmslam.slam.sim import channel_estimator as ce
+from mmslam.slam.sim import estimated_sensor as es
+from mmslam.slam.models.measurement import BS
+
+C = 299_792_458.0
+
+
+@pytest.fixture(scope="module")
+def paper2(tmp_path_factory):
+    scn = with_overrides(load_preset("paper"), ["sensor.model=estimated"])
+    d = trace_scenario(scn, AnalyticSource(scn), tmp_path_factory.mktemp("est") / "c", steps=2, progress=False)
+    return scn, load_cache(d)
+
+
+def test_pilots_of_one_ray_give_its_parameters(paper2):
+    """One traced ray (the LOS at step 0), noise free: one estimate equal to the ray's TOA + bias, AODs and
+    body-frame AOA (the channel module's array conventions and the estimator's atoms agree)."""
+    scn, c = paper2
+    r = c.read_rays()
+    pm = es.PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
+    i = np.flatnonzero((r["step"] == 0) & (r["rx"] == 1) & (r["type"] == BS))
+    assert i.size == 1
+    st = c.states[0, 1]
+    Y, t0 = es.received_pilots(r, i, st[3], 12.0, pm, None)
+    assert t0 < r["delay_s"][i[0]] * C + 12.0 - es.GUARD * C / 400e6 + 1e-9
+    z, cov, snr, _ = es.estimate_link(Y, t0, pm, 0.01, 5)
+    assert z.shape == (1, 5)
+    want = [r["delay_s"][i[0]] * C + 12.0, r["aod_az"][i[0]], r["aod_el"][i[0]], r["aoa_az"][i[0]] - st[3],
+            r["aoa_el"][i[0]]]
+    np.testing.assert_allclose(z[0, 0], want[0], atol=1e-6)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (z[0, 1:] - want[1:]))), 0.0, atol=1e-6)
+    # its SNR: |a|^2 x (P / N0 B) x N, the full array and subcarrier gain
+    a2 = r["a_re"][i[0]] ** 2 + r["a_im"][i[0]] ** 2
+    assert snr[0] == pytest.approx(10 * np.log10(a2 * pm.grid.size) + pm.snr_scale_db, abs=1e-6)
+    assert np.all(np.linalg.eigvalsh(cov[0]) > 0)
+
+
+def test_estimates_labelled_against_the_rays_and_cached(paper2, tmp_path):
+    """The estimates of 2 steps: the LOS of every link found and labelled 'bs' within 5 cm and 0.02 rad of
+    the truth; counts consistent (estimates = detected + false); the same seed gives the same estimates,
+    a cache file is written atomically and read back equal; another seed other noise."""
+    scn, c = paper2
+    rays = c.read_rays()
+    a = es.estimated_run(scn, c.states, rays, c.paths, np.random.default_rng(4), tmp_path, seed=4)
+    files = list((tmp_path / "estimates").rglob("*.npz"))
+    assert len(files) == 1 and not list((tmp_path / "estimates").rglob("*.tmp*"))
+    b = es.estimated_run(scn, c.states, rays, c.paths, np.random.default_rng(99), tmp_path, seed=4)  # cached
+    np.testing.assert_array_equal(a["z"], b["z"])
+    np.testing.assert_array_equal(a["origin_id"], b["origin_id"])
+    fresh = es.estimate_run(scn, c.states, rays, c.paths, np.random.default_rng(4))
+    np.testing.assert_array_equal(a["z"], fresh["z"])
+    other = es.estimate_run(scn, c.states, rays, c.paths, np.random.default_rng(5))
+    assert not np.array_equal(other["z"][:1], a["z"][:1])
+    counts = a["counts"]
+    assert counts.shape == (2, 2, len(es.COUNT_COLUMNS))
+    np.testing.assert_array_equal(counts[..., 0], counts[..., 1] + counts[..., 3])
+    true = a["true_states"]
+    for k in range(2):
+        for v in range(2):
+            s = a["set"] == k * 2 + v
+            los = s & (a["origin_type"] == BS)
+            assert los.sum() >= 1
+            j = np.flatnonzero(los)[np.argmax(a["snr_db"][los])]
+            p = np.flatnonzero((c.paths["step"] == k) & (c.paths["rx"] == v) & (c.paths["type"] == BS))[0]
+            assert a["z"][j, 0] == pytest.approx(c.paths["toa_m"][p] + true[k, v, 6], abs=0.05)
+            assert abs(np.angle(np.exp(1j * (a["z"][j, 3] - (c.paths["aoa_az"][p] - true[k, v, 3]))))) < 0.02
+    # the key changes with the settings that change the estimates, not with filter options
+    assert es.settings_key(scn) != es.settings_key(with_overrides(scn, ["sensor.est_pfa=0.001"]))
+    assert es.settings_key(scn) == es.settings_key(with_overrides(scn, ["filter.r_scale=2"]))
+
+
+def test_association_merges_and_false_alarms_by_hand():
+    grid = ce.Grid(4, 4, 16, 100e6)  # cells: pi / 2 in the spatial, 2 pi / 16 in the delay frequencies
+    cell = 2 * np.pi / np.array(grid.shape)
+    w_true = np.array([[0, 0, 0, 0, 0.0], [0, 0, 0, 0, 0.5 * cell[4]], [2.0, 0, 0, 0, 0]])
+    key = np.array([0, 1, 2])
+    power = np.array([1.0, 2.0, 1.0])
+    w_hat = np.array([[0, 0, 0, 0, 0.2 * cell[4]], [2.0, 0.1, 0, 0, 0], [-2.0, 0, 0, 0, 0]])
+    label, n_lm = es.associate(w_hat, w_true, power, key, grid)
+    np.testing.assert_array_equal(label, [1, 2, -1])  # the stronger of two merged rays; a false alarm
+    np.testing.assert_array_equal(n_lm, [2, 1, 0])
+
+
+def test_filter_runs_on_the_estimates(paper2):
+    """run_slam with sensor.model=estimated: a result with the per-step estimator counts in its meta;
+    measurements reach the filter (the vehicles' maps are not all empty)."""
+    from mmslam.slam.filter.run import run_slam
+
+    _, c = paper2
+    r = run_slam(c.path, "proposed", particles=20, seed=1, overrides=["sensor.model=estimated"])
+    cnt = np.asarray(r.meta["estimator_counts"]["per_step_vehicle"])
+    assert cnt.shape == (2, 2, 5) and cnt[..., 0].min() >= 1
+    assert list((c.path / "estimates").rglob("seed-1-steps-2.npz"))
+
+
+def test_a_cache_with_estimates_is_reused_by_trace(paper2, tmp_path):
+    """The estimates folder inside a cache is the cache's own: tracing the same scenario into the same root
+    reuses the cache (it raised 'exists and is not a cache mmslam wrote' before, so a second ablation on
+    a cache with estimates was refused); a foreign file next to them still is refused."""
+    from mmslam.errors import CacheError
+
+    scn, _ = paper2
+    d = trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False)
+    c = load_cache(d)
+    es.estimated_run(scn, c.states, c.read_rays(), c.paths, np.random.default_rng(0), d, seed=0)
+    assert list((d / "estimates").rglob("*.npz"))
+    assert trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False) == d
+    (d / "estimates" / "mine.txt").write_text("x")
+    with pytest.raises(CacheError, match="not a cache mmslam wrote"):
+        trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=2, progress=False)
