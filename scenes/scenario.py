@@ -141,7 +141,8 @@ class FilterParams:
 
     particles: int = param(300, "particles per vehicle: the default of run_filter / run_slam and of "
                            "--particles (mmslam slam, ablate, demo) when none is given", "", lo=1, hi=MAX_PARTICLES)
-    r_scale: float = param(9.0, "the filter's measurement covariance is r_scale x the true R (tuning)", "",
+    r_scale: float = param(1.0, "the filter's measurement covariance is r_scale x the true R (1: the sensor's "
+                           "own; the paper's filter inflates it, 9; docs/city-slam.md)", "",
                            lo=0.0, lo_open=True, hi=1e6)
     prior_std: tuple[float, ...] = param(
         (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3), "std of the initial vehicle prior around the true state "
@@ -160,7 +161,9 @@ class FilterParams:
     max_gaussians: int = param(50, "at most this many Gaussians per type and particle", "", lo=1, hi=10_000)
     max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this", "m^2",
                              lo=0.0, lo_open=True, hi=1e9)
-    threshold_va: float = param(0.7, "estimate-extraction weight threshold for VAs", "", lo=0.0, hi=10.0)
+    threshold_va: float = param(0.5, "estimate-extraction weight threshold for VAs (the paper's 0.7; 0.5 keeps a "
+                                "wall out of every car's sight in the map longer, docs/city-slam.md)", "", lo=0.0,
+                                hi=10.0)
     threshold_sp: float = param(0.55, "estimate-extraction weight threshold for SPs", "", lo=0.0, hi=10.0)
     threshold_vs: float = param(0.55, "estimate-extraction weight threshold for VSs", "", lo=0.0, hi=10.0)
     resample_ess: float = param(0.5, "resample when the effective sample size falls below this fraction "
@@ -178,15 +181,16 @@ class FilterParams:
         "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
     p_detect_bs: float = param(0.95, "the filter's detection probability of the BS (LOS path): lower it "
                                "where buildings often block the LOS", "", probability=True)
-    p_detect_va: float = param(0.95, "the filter's detection probability of a VA: lower it in cities, where a "
-                               "wall is visible for a few steps at a time, so that a VA outlives missed "
-                               "detections (and, below fusion.gamma_detect, is never judged a false alarm "
-                               "by the fusion's accumulated-FOV rule)", "", probability=True)
+    p_detect_va: float = param(0.1, "the filter's detection probability of a VA (pd_model beta: the mean of a "
+                               "new VA's Beta prior): low, because a wall is visible from a street for a few "
+                               "steps at a time, so that a VA outlives missed detections and, below "
+                               "fusion.gamma_detect, is never judged a false alarm by the fusion's "
+                               "accumulated-FOV rule (the paper's 0.95; docs/city-slam.md)", "", probability=True)
     p_detect_sp: float = param(0.95, "the filter's detection probability of an SP inside the FOV range", "",
                                probability=True)
     p_detect_vs: float = param(0.95, "the filter's detection probability of a VS inside the FOV range", "",
                                probability=True)
-    pd_model: str = param("fixed", "the filter's detection model inside the FOV: fixed (p_detect_<type> for "
+    pd_model: str = param("beta", "the filter's detection model inside the FOV: fixed (p_detect_<type> for "
                           "every Gaussian, the paper's) or beta (each VA / SP Gaussian learns its own p_D "
                           "from its detection history: a Beta(s, t) per Gaussian, E[p_D] = s / (s + t), "
                           "missed -> (s, t + 1), detected -> (s + 1, t); Beta-Gaussian PHD, Mahler, Vo & "
@@ -197,7 +201,7 @@ class FilterParams:
     pd_beta_forget: float = param(1.0, "pd_model beta: each prediction multiplies a Gaussian's Beta (s, t) by "
                                   "this factor (mean kept, old detections fade; 1: a static detection "
                                   "profile)", "", lo=0.0, lo_open=True, hi=1.0)
-    pd_beta_downlink: str = param("keep", "pd_model beta: the Beta of each Gaussian of the fused map a vehicle "
+    pd_beta_downlink: str = param("prior", "pd_model beta: the Beta of each Gaussian of the fused map a vehicle "
                                   "receives: keep (the BS's pooled history) or prior (the birth prior: "
                                   "visibility is learnt per vehicle, from its own detections)",
                                   choices=("keep", "prior"))
@@ -229,13 +233,18 @@ class FusionParams:
                                    "accumulated FOV", "", probability=True)
     average_prune: float = param(0.1, "pruning threshold of the averaged and fused map PHDs", "", lo=0.0,
                                  hi=1.0)
-    average_by_label: bool = param(False, "averaged map (eq. 7): every Gaussian carries an identity label (a "
+    average_by_label: bool = param(True, "averaged map (eq. 7): every Gaussian carries an identity label (a "
                                    "birth's is the same in every particle, a corrected or merged Gaussian "
                                    "keeps its slot's or cluster leader's, the downlink gives every particle "
                                    "the fused map's), and the particles' copies of one labelled landmark "
                                    "(each particle's heaviest Gaussian of the label) are moment-matched into "
                                    "one before the gated merge; off: the gate alone decides "
                                    "(docs/implementation-notes.md, VA 2 and the averaged map)")
+    aa_weights: str = param("visibility", "weights of a matched pair in the AA fusion of static maps (eq. 8): "
+                            "equal (1/2 each, the paper's) or visibility (each member's learnt E[p_D] over "
+                            "the pair's sum, where both carry a Beta detection model, filter.pd_model = beta; "
+                            "equal otherwise): a vehicle's copy of a landmark it could not see does not dilute "
+                            "the copy of one that saw it (docs/city-slam.md)", choices=("equal", "visibility"))
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
                                 "counts as inside a vehicle's accumulated FOV if the filter's detection "
                                 "probability (filter.p_detect_<type>, 0 beyond the FOV range) reached it "
@@ -259,6 +268,9 @@ class EvalParams:
     gospa_p: float = param(2.0, "GOSPA order p", "", lo=1.0, hi=100.0)
     gospa_c: float = param(20.0, "GOSPA cut-off distance c", "m", lo=0.0, lo_open=True, hi=1e6)
     gospa_alpha: float = param(2.0, "GOSPA alpha", "", lo=0.0, lo_open=True, hi=2.0)
+    va_resolution: float = param(1.0, "VA truths (image sources) closer than this count as one landmark: two "
+                                 "parallel facades less than half of it apart, which the sensor cannot tell "
+                                 "apart (docs/city-slam.md)", "m", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)
