@@ -1,4 +1,4 @@
-"""Benchmark: the full ablation from a cached analytic trace (DESIGN.md section 8).
+"""Benchmark: the full ablation from a cached analytic trace (docs/design.md section 8).
 
 3 variants x 10 Monte Carlo runs x 40 steps x 2 vehicles at P = 300 on the ``paper`` preset,
 local process pool over all cores. Target: <= 60 s on 2 cores.

@@ -1,4 +1,4 @@
-"""Benchmark: the CKF update kernel (:func:`mmslam.slam.ckf.ckf_update`) per Gaussian.
+"""Benchmark: the CKF update kernel (:func:`mmslam.slam.phd.ckf.ckf_update`) per Gaussian.
 
 Captures the real inputs of the CKF updates (Gaussians, particle states, measurements, ``R``)
 from steps ``--first..--steps - 1`` of vehicle 1 of a run (``--variant``, default baseline) on the
@@ -26,12 +26,12 @@ import numpy as np  # noqa: E402
 
 def capture(steps: int, particles: int = 300, variant: str = "baseline", first: int = 5) -> list[dict]:
     """The CKF batches (every Gaussian with a CKF update: ``m, P``, its particle's state, ``Z``, ``R``,
-    extent, geometry) of the correction kernels of :mod:`mmslam.slam.gmphd` in vehicle 1's steps
+    extent, geometry) of the correction kernels of :mod:`mmslam.slam.phd.gmphd` in vehicle 1's steps
     ``first..steps-1``."""
     from bench_filter import paper_data
 
-    import mmslam.slam.gmphd as gmphd
-    from mmslam.slam.run import CooperativeRun
+    import mmslam.slam.phd.gmphd as gmphd
+    from mmslam.slam.filter.run import CooperativeRun
 
     scn, states, paths = paper_data(steps)
     run = CooperativeRun(scn, states, paths, variant, particles, 0, steps, evaluate=False)
@@ -65,7 +65,7 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline", first: 
 
 def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]]:
     """Median ns per Gaussian of the compiled batch kernel, per geometry name, and the Gaussian count."""
-    from mmslam.slam.ckf import _CKF_BATCH, MEAS_DIM
+    from mmslam.slam.phd.ckf import _CKF_BATCH, MEAS_DIM
 
     groups = {"direct": lambda c: c["geometry"] == 0, "mirror": lambda c: c["geometry"] == 1,
               "scatter": lambda c: c["geometry"] == 2, "vs": lambda c: c["m"].shape[1] == 7}

@@ -1,7 +1,7 @@
 """Benchmark: one vehicle-step of the MM-PHD-SLAM filter on the analytic ``paper`` data.
 
 Runs the cooperative filter loop (both vehicles, map fusion at the BS: the stages of
-:class:`mmslam.slam.run.CooperativeRun`, as ``run_filter``, without the evaluation) and
+:class:`mmslam.slam.filter.run.CooperativeRun`, as ``run_filter``, without the evaluation) and
 times every :meth:`LocalFilter.step` call (predict + correct + reduce + estimate + resample) of
 vehicle 1 from step ``--warmup`` on, on one core (OMP / OpenBLAS / MKL threads set to 1 before
 NumPy is imported). Reports the median and quartiles per variant and particle count.
@@ -10,7 +10,7 @@ NumPy is imported). Reports the median and quartiles per variant and particle co
     python benchmarks/bench_filter.py --scaling        # also P = 100, 300, 1000, 3000 (first 20 steps)
     python benchmarks/bench_filter.py --cpu            # thread CPU time (busy machine)
 
-DESIGN.md section 8 targets: <= 10 ms median for ``proposed`` at P = 300; cost linear in P.
+docs/design.md section 8 targets: <= 10 ms median for ``proposed`` at P = 300; cost linear in P.
 
 The filter's kernels are compiled by numba on first use and cached on disk (``cache=True``), so
 vehicle 1's first step (which runs every kernel) is reported on its own: the compile time on a
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
 from mmslam.scenes.scenario import load_preset  # noqa: E402
 from mmslam.scenes.trajectory import vehicle_trajectories  # noqa: E402
-from mmslam.slam.run import CooperativeRun  # noqa: E402
+from mmslam.slam.filter.run import CooperativeRun  # noqa: E402
 
 
 def paper_data(steps: int):

@@ -26,7 +26,7 @@ from mmslam.raytrace.cache import load_cache
 from mmslam.raytrace.trace import make_source, trace_scenario
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import run_filter
-from mmslam.slam.sensor import LinkBudget, simulate_measurements
+from mmslam.slam.sim.sensor import LinkBudget, simulate_measurements
 from mmslam.model import TYPE_NAMES
 
 TYPES = {c: n for c, n in TYPE_NAMES.items() if n != "OTHER"}

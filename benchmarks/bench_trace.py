@@ -7,7 +7,7 @@ Per scenario: scene build + load, one warm-up step (step 0: kernel tracing / com
 separately and excluded; then ``--steps`` steps spread over the trajectory (step 0 again
 included) timed one by one. Prints median / max per step, the JIT kernels launched after the
 warm-up and how many were not in the in-memory kernel cache (re-traced: should be 0), and the
-labelled rows per type. Targets (DESIGN.md section 8): ``paper`` 40 steps <= 10 s on 2 CPU cores;
+labelled rows per type. Targets (docs/design.md section 8): ``paper`` 40 steps <= 10 s on 2 CPU cores;
 ``munich`` (5 cars, depth 1, 1e6 rays) <= 0.5 s per step. ``--cpu`` forces the LLVM backend
 (``MMSLAM_FORCE_CPU=1``); otherwise a working CUDA device is used. Timings on a shared machine
 are noisy: the load average is printed with each result.

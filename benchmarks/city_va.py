@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 
@@ -44,7 +45,7 @@ def seeds_of(s: str) -> list[int]:
 
 def nlos_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
     """``(steps, n_veh)`` bool: no line-of-sight (BS) path for that vehicle at that step."""
-    from mmslam.slam.landmarks import BS_SPEC
+    from mmslam.slam.specs.landmarks import BS_SPEC
 
     los = np.zeros((steps, n_veh), bool)
     st, rx, ty = (np.asarray(paths[c]) for c in ("step", "rx", "type"))
@@ -95,7 +96,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     """All runs of one cache; prints per seed and the summary; returns the rows and summary."""
     from mmslam.raytrace.cache import load_cache
     from mmslam.slam.filter import run_slam
-    from mmslam.slam.landmarks import VA_SPEC, landmark_types
+    from mmslam.slam.specs.landmarks import VA_SPEC, landmark_types
 
     c = load_cache(cache)
     steps = c.states.shape[0] if a.steps is None else a.steps
@@ -103,7 +104,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     nlos = nlos_mask(c.paths, c.states.shape[0], n_veh)
     ev = c.scenario.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
-    cmp_sets = [x for x in a.compare.split(",") if x] if a.compare else []
+    cmp_sets = [x for x in re.split(r",(?=\w+\.\w+=)", a.compare) if x] if a.compare else []
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
     for s in seeds_of(a.seeds):

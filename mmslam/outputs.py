@@ -1,11 +1,19 @@
 """Output targets that never clobber what the user made.
 
-Every directory mmslam writes carries a marker file naming what kind of output it is
-(:data:`MARKER`, a small JSON object ``{"kind": ..., "format": ...}``). An existing target is
-replaced only when it is empty or a previous output of the same kind; anything else (a user's
-folder, a file, another kind of mmslam output such as the cache just read) is refused with one
-line naming ``--force``. Checks run before any computation (:func:`check_target`) and again at
-the moment of writing (:func:`replace_dir`), since the target can change in between.
+The one policy of every writing command: **mmslam writes into, replaces or deletes only what it
+wrote itself.** A directory is mmslam's when it carries the marker file :data:`MARKER` (a small
+JSON object ``{"kind": ..., "format": ...}``) naming the kind of output; a file when it carries
+mmslam's tag (:data:`FIGURE_TOKEN` in a figure's metadata, :data:`NPZ_TAG` in an ``.npz``). An
+existing target is used only when it is empty or a previous output of the same kind; anything else
+(a user's folder or file, the folder or file a symbolic link points to, another kind of mmslam
+output such as the cache just read) is refused with one line, **with or without** ``--force``.
+A directory that is replaced as a whole (a SLAM result) must moreover hold nothing but the files
+that kind writes, so a file the user added to it is never deleted. ``--force`` never widens what
+may be touched: it only asks ``mmslam trace`` to rebuild a cache mmslam wrote.
+
+Checks run before any computation (:func:`check_target`) and again at the moment of writing
+(:func:`replace_dir`), since the target can change in between. A symbolic link at the target is
+followed: the link stays, what it points to is checked and (if allowed) written.
 """
 from __future__ import annotations
 
@@ -13,12 +21,14 @@ import contextlib
 import json
 import os
 import shutil
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 
 from mmslam.errors import MmslamError
 
 MARKER = ".mmslam-output.json"
+NEVER = "mmslam never writes into, replaces or deletes what it did not write, even with --force"
+"""The reason given in every refusal of a foreign target."""
 
 
 def output_kind(path: Path) -> str | None:
@@ -30,57 +40,99 @@ def output_kind(path: Path) -> str | None:
 
 
 def write_marker(path: Path, kind: str) -> None:
-    """Mark directory ``path`` as an mmslam output of ``kind``."""
+    """Mark directory ``path`` as an mmslam output of ``kind``.
+
+    Only for a directory mmslam created or found empty (or one already marked ``kind``): a marker
+    makes everything in the directory count as mmslam's.
+    """
     atomic_write_bytes(Path(path) / MARKER, (json.dumps({"kind": kind, "format": 1}) + "\n").encode(), fsync=False)
+
+
+def foreign_entries(path: Path, own_names: Collection[str]) -> list[str]:
+    """Names in directory ``path`` that are neither :data:`MARKER` nor in ``own_names`` (sorted)."""
+    return sorted(e.name for e in Path(path).iterdir() if e.name != MARKER and e.name not in own_names)
+
+
+def resolve_link(path: str | Path, option: str = "--out") -> Path:
+    """``path`` with a symbolic link in its last component followed (a dangling link is refused)."""
+    p = Path(path)
+    if not p.is_symlink():
+        return p
+    target = p.resolve()
+    if not os.path.lexists(target):
+        raise MmslamError(f"{option} {p}: is a symbolic link to {target}, which does not exist; give a real path")
+    return target
 
 
 def check_target(path: str | Path, kind: str, force: bool = False, *, protect: tuple[Path, ...] = (),
                  option: str = "--out", accept: "Callable[[Path], bool] | None" = None,
-                 force_does: str = "replace it") -> Path:
+                 own_names: Collection[str] | None = None, is_dir: bool = True,
+                 recognise: "Callable[[Path], bool] | None" = None) -> Path:
     """Raise a one-line :class:`MmslamError` unless ``path`` may be (re)written as a ``kind`` output.
 
-    Allowed: a missing path, an empty directory, or a directory whose marker says ``kind``.
-    ``force`` also allows any other directory or file, except the paths in ``protect`` (e.g. the
-    input cache) and their ancestors or descendants, which are never replaced. ``accept(path)``
-    may recognise outputs of ``kind`` written before markers existed (e.g. a folder of caches).
+    Directory outputs (``is_dir``): allowed are a missing path, an empty directory, or a directory
+    whose marker says ``kind`` (with ``own_names``: holding nothing else than those names, for an
+    output replaced as a whole). ``accept(path)`` may recognise outputs of ``kind`` written before
+    markers existed (e.g. a folder of caches). File outputs (``not is_dir``): a missing path or a
+    file ``recognise(path)`` says mmslam wrote. A symbolic link is followed (:func:`resolve_link`).
+    The paths in ``protect`` (e.g. the input cache) and their ancestors or descendants are never
+    targets. ``force`` changes nothing here (see the module docstring); it is accepted so that
+    callers pass their option through. Returns the path to write (the link's target for a link).
     """
+    del force
     out = Path(path)
     res = out.resolve()
     for p in protect:
         pr = Path(p).resolve()
         if res == pr or pr in res.parents or res in pr.parents:
             raise MmslamError(f"{option} {out}: overlaps the input {p}; choose another output path")
-    if not os.path.lexists(out):
-        return out
-    if out.is_dir() and not out.is_symlink():
-        if output_kind(out) == kind or not any(out.iterdir()) or (accept is not None and accept(out)):
-            return out
-    if force:
-        return out
-    what = "a file" if not out.is_dir() else (
-        f"an mmslam {output_kind(out)} output" if output_kind(out) else "a directory that is not an mmslam "
-        f"{kind} output")
-    raise MmslamError(f"{option} {out}: exists and is {what}; choose another path, or pass --force to "
-                      f"{force_does}")
+    real = resolve_link(out, option)
+    shown = f"{out} (a link to {real})" if real != out else f"{out}"
+    if not os.path.lexists(real):
+        return real
+    if is_dir:
+        if not real.is_dir():
+            raise MmslamError(f"{option} {shown}: exists and is a file, not a folder; choose another path "
+                              f"({NEVER})")
+        mine = output_kind(real)
+        if mine == kind or (mine is None and accept is not None and accept(real)):
+            extra = foreign_entries(real, own_names) if own_names is not None else []
+            if extra:
+                raise MmslamError(f"{option} {shown}: holds {', '.join(extra[:3])}{' ...' if len(extra) > 3 else ''}, "
+                                  f"which mmslam did not write; move them out or choose another path ({NEVER})")
+            return real
+        if mine is None and not any(real.iterdir()):
+            return real
+        what = f"an mmslam {mine} output, not a {kind} output" if mine else "a folder mmslam did not write"
+        raise MmslamError(f"{option} {shown}: exists and is {what}; choose a new or empty folder ({NEVER})")
+    if real.is_dir():
+        raise MmslamError(f"{option} {shown}: is a folder; give a file name")
+    if recognise is not None and recognise(real):
+        return real
+    raise MmslamError(f"{option} {shown}: exists and is a file mmslam did not write; choose another path "
+                      f"({NEVER})")
 
 
-def replace_dir(tmp: Path, out: Path, kind: str, force: bool = False) -> None:
-    """Move the finished directory ``tmp`` to ``out``, replacing ``out`` only as :func:`check_target` allows."""
-    check_target(out, kind, force)
-    if os.path.lexists(out):
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old)
+def replace_dir(tmp: Path, out: Path, kind: str, force: bool = False, *,
+                own_names: Collection[str] | None = None) -> None:
+    """Move the finished directory ``tmp`` to ``out``, replacing ``out`` only as :func:`check_target` allows.
+
+    ``own_names``: the names an output of ``kind`` holds; an old ``out`` holding anything else is
+    refused (so only files mmslam wrote are deleted). A symbolic link at ``out`` stays and then
+    points to the new directory.
+    """
+    real = check_target(out, kind, force, own_names=own_names)
+    if os.path.lexists(real):
+        old = real.with_name(f".{real.name}.old-{os.getpid()}")
+        os.replace(real, old)
         try:
-            os.replace(tmp, out)
+            os.replace(tmp, real)
         except BaseException:
-            os.replace(old, out)
+            os.replace(old, real)
             raise
-        if old.is_dir() and not old.is_symlink():
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            old.unlink(missing_ok=True)
+        shutil.rmtree(old, ignore_errors=True)
     else:
-        os.replace(tmp, out)
+        os.replace(tmp, real)
 
 
 # ====================================================================== permissions (the user's umask)
@@ -105,10 +157,11 @@ def atomic_write_bytes(path: str | Path, data: bytes, fsync: bool = True) -> Pat
     """Write ``data`` to ``path`` via a temp file in the same directory, fsync, ``os.replace``.
 
     The file gets the user's umask (:func:`apply_umask`). A reader never sees a partial file.
+    A symbolic link at ``path`` is followed (the link stays, its target is replaced).
     """
     import tempfile
 
-    path = Path(path)
+    path = resolve_link(path, "output")  # a link stays a link: its target is written
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -140,12 +193,12 @@ FIGURE_TOKEN = "mmslam-figure"
 """Written into every figure's metadata (PNG text chunk, PDF / SVG creator): recognises our own figures."""
 
 
-def figure_format(path: str | Path, option: str = "--out") -> str:
-    """The figure format named by ``path``'s suffix (png, pdf, svg); one-line error otherwise."""
+def figure_format(path: str | Path, option: str = "--out", formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
+    """The figure format named by ``path``'s suffix (one of ``formats``); one-line error otherwise."""
     suffix = Path(path).suffix.lower().lstrip(".")
-    if suffix not in FIGURE_FORMATS:
+    if suffix not in formats:
         raise MmslamError(f"{option} {path}: unknown figure format '.{suffix}'; use a file name ending in "
-                          f"{', '.join('.' + f for f in FIGURE_FORMATS)}")
+                          f"{', '.join('.' + f for f in formats)}")
     return suffix
 
 
@@ -158,32 +211,75 @@ def is_mmslam_figure(path: str | Path) -> bool:
         return False
 
 
-def check_figure_target(path: str | Path, force: bool = False, option: str = "--out") -> str:
+def check_figure_target(path: str | Path, force: bool = False, option: str = "--out",
+                        formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
     """Check a figure file target before any computation; returns its format.
 
-    Allowed: a missing file, or a figure mmslam wrote before; ``force`` allows any other file.
-    A directory is always refused. The parent directory must exist.
+    Allowed: a missing file, or a figure mmslam wrote before (:func:`is_mmslam_figure`); any other
+    file, a directory, or what a symbolic link points to when it is no mmslam figure is refused,
+    with or without ``force`` (see the module docstring). The parent directory must exist.
     """
     p = Path(path)
-    fmt = figure_format(p, option)
-    if p.is_dir():
-        raise MmslamError(f"{option} {p}: is a directory; give a file name ending in .{fmt}")
-    if not p.parent.is_dir():
+    fmt = figure_format(p, option, formats)
+    if not resolve_link(p, option).parent.is_dir():
         raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
-    if os.path.lexists(p) and not force and not is_mmslam_figure(p):
-        raise MmslamError(f"{option} {p}: exists and is not a figure mmslam wrote; choose another path, or "
-                          "pass --force to replace it")
+    check_target(p, "figure", force, option=option, is_dir=False, recognise=is_mmslam_figure)
     return fmt
 
 
+# ====================================================================== tagged .npz files
+NPZ_TAG = "mmslam_output"
+"""Name of the array (a string: the kind) that marks an ``.npz`` file as written by mmslam."""
+
+
+def npz_kind(path: str | Path) -> str | None:
+    """The kind in ``path``'s :data:`NPZ_TAG` entry (``None`` if it is no mmslam ``.npz``); reads only that entry."""
+    import zipfile
+
+    import numpy as np
+
+    try:
+        with zipfile.ZipFile(path) as z, z.open(f"{NPZ_TAG}.npy") as f:
+            return str(np.lib.format.read_array(f, allow_pickle=False))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return None
+
+
+def check_npz_target(path: str | Path, kind: str, force: bool = False, option: str = "--out",
+                     protect: tuple[Path, ...] = ()) -> Path:
+    """Check an ``.npz`` file target: missing, or an mmslam ``.npz`` of ``kind``; refused otherwise (any ``force``)."""
+    p = Path(path)
+    if p.suffix != ".npz":
+        raise MmslamError(f"{option} {p}: expected a file name ending in .npz")
+    if not resolve_link(p, option).parent.is_dir():
+        raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
+    return check_target(p, kind, force, option=option, protect=protect, is_dir=False,
+                        recognise=lambda q: npz_kind(q) == kind)
+
+
+def npz_bytes(kind: str, compressed: bool = False, **arrays: object) -> bytes:
+    """``numpy.savez`` of ``arrays`` plus the :data:`NPZ_TAG` entry ``kind``, as bytes (for :func:`atomic_write_bytes`)."""
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    (np.savez_compressed if compressed else np.savez)(buf, **arrays, **{NPZ_TAG: np.array(kind)})
+    return buf.getvalue()
+
+
 def save_figure(fig: object, path: str | Path, dpi: int = 120, **kwargs: object) -> Path:
-    """Write matplotlib ``fig`` atomically in the format of ``path``'s suffix, tagged as an mmslam figure."""
+    """Write matplotlib ``fig`` atomically in the format of ``path``'s suffix, tagged as an mmslam figure.
+
+    An existing file is replaced only if it is a figure mmslam wrote (one-line error otherwise)."""
     import io
 
     from mmslam import __version__
 
     p = Path(path)
     fmt = figure_format(p)
+    if os.path.lexists(p) and not is_mmslam_figure(resolve_link(p)):  # the last-moment check (callers check first)
+        raise MmslamError(f"{p}: exists and is not a figure mmslam wrote; choose another path ({NEVER})")
     meta = {"png": {"Software": f"{FIGURE_TOKEN} {__version__}"},
             "pdf": {"Creator": f"{FIGURE_TOKEN} {__version__}"},
             "svg": {"Creator": f"{FIGURE_TOKEN} {__version__}"}}[fmt]

@@ -4,7 +4,7 @@ An ablation lives in one output directory ``DIR``::
 
     DIR/cache/<config>/          the path cache (written by :func:`prepare_cache`)
     DIR/ablation.json            what was asked (cache, variants, seeds, particles, steps, command)
-    DIR/jobs/<variant>-seed<k>/  one finished filter run each (:class:`~mmslam.slam.result.Result`)
+    DIR/jobs/<variant>-seed<k>/  one finished filter run each (:class:`~mmslam.slam.filter.result.Result`)
     DIR/summary.parquet          per-step mean / std / RMS over seeds (see :func:`aggregate`)
     DIR/summary.json             the same table, the headline table and the configuration
 
@@ -42,17 +42,17 @@ import numpy as np
 
 from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError, deferred_sigint, was_interrupted
 from mmslam.limits import MAX_MC, MAX_PARTICLES, MAX_SEED, MAX_STEPS, MAX_WORKERS
-from mmslam.slam.landmarks import mapped_types
-from mmslam.slam.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
-from mmslam.slam.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401
+from mmslam.slam.specs.landmarks import mapped_types
+from mmslam.slam.specs.variants import BUILTIN_VARIANTS, COMPARED_WITH, REFERENCES, variant_names  # noqa: F401
+from mmslam.slam.specs.variants import VARIANTS as FILTER_VARIANTS  # noqa: F401
 
 VARIANTS: tuple[str, ...] = BUILTIN_VARIANTS
 """Everything an ablation runs by default, in the order it is plotted (the built-in variant specs
-of :mod:`mmslam.slam.variants`: the reference ``odometry``, then the filter variants)."""
+of :mod:`mmslam.slam.specs.variants`: the reference ``odometry``, then the filter variants)."""
 
 EXECUTORS: tuple[str, ...] = ("local", "dask")
 TYPES: tuple[str, ...] = tuple(s.name for s in mapped_types())
-"""Map types scored (the built-in mapped landmark types of :mod:`mmslam.slam.landmarks`)."""
+"""Map types scored (the built-in mapped landmark types of :mod:`mmslam.slam.specs.landmarks`)."""
 METRIC_QUANTITIES: tuple[str, ...] = ("gospa", "loc", "missed", "false", "n_est", "n_true", "card", "n_visible")
 STATE_QUANTITIES: tuple[str, ...] = ("pos_err", "heading_err", "bias_err")
 ALL_VEHICLES = "all"
@@ -455,7 +455,7 @@ def particles_for(scenario: dict[str, Any] | Any, sets: Sequence[str], particles
     """``particles``, or the ``filter.particles`` of ``scenario`` (a Scenario or its resolved dict) with
     the ``--set`` overrides applied: the one default of the particle count."""
     from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
-    from mmslam.slam.run import resolve_particles
+    from mmslam.slam.filter.run import resolve_particles
 
     if particles is not None:
         return int(particles)
@@ -545,15 +545,18 @@ ABLATION_KIND = "ablation"
 def start_ablation_dir(out_dir: str | Path, force: bool = False) -> Path:
     """Check ``out_dir`` may hold an ablation (before any work), create it and mark it.
 
-    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``); ``force`` also
-    allows another directory (files are added, none deleted). Raises a one-line error otherwise.
+    Allowed: missing, empty, or a previous ablation (marker or ``ablation.json``). Raises a one-line
+    error otherwise, whatever ``force`` (:mod:`mmslam.outputs`: never into a folder mmslam did not make).
     """
     from mmslam.outputs import check_target, output_kind, write_marker
 
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ConfigError(f"--out {out_dir}: is a file, not a folder; choose a writable path for the ablation")
-    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file(),
-                       force_does="write into it (nothing in it is deleted)")
+    out = check_target(out_dir, ABLATION_KIND, force, accept=lambda p: (p / ABLATION_FILE).is_file())
+    if out.is_dir():
+        from mmslam.pipelines.report import check_ablation_outputs
+
+        check_ablation_outputs(out)  # a user's summary / report / figure of the same name (issue 25)
     out.mkdir(parents=True, exist_ok=True)
     if output_kind(out) != ABLATION_KIND:
         write_marker(out, ABLATION_KIND)
@@ -808,7 +811,7 @@ def spec_arms(spec: dict[str, Any]) -> list[tuple[str, ...]]:
 def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
               seeds: Sequence[int] | None = None) -> dict[Job, Any]:
     """Finished jobs of the ablation in ``out_dir`` (default: its whole grid), loaded."""
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     spec = read_ablation(out_dir)
     variants = list(variants or spec.get("variants", VARIANTS))
@@ -933,7 +936,7 @@ def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> l
 
 
 OTHERS_MAP = "fused_others"
-"""The fused VS map without the vehicles' own uploads (:meth:`mmslam.slam.evaluation.MapScorer.record_others`):
+"""The fused VS map without the vehicles' own uploads (:meth:`mmslam.slam.eval.evaluation.MapScorer.record_others`):
 VS mapping of *other* vehicles, a headline row of its own where the runs have it."""
 
 
@@ -977,7 +980,7 @@ SCORED: tuple[str, ...] = tuple(f"gospa_{t}" for t in TYPES) + ("pos_rmse",)
 
 
 def _reference(label: str, labels: Sequence[str]) -> str | None:
-    """The arm a label is compared with: :data:`~mmslam.slam.variants.COMPARED_WITH` (``baseline``) with the
+    """The arm a label is compared with: :data:`~mmslam.slam.specs.variants.COMPARED_WITH` (``baseline``) with the
     same grid settings, else plain ``baseline``."""
     variant, arm = parse_label(label)
     if variant == COMPARED_WITH:

@@ -13,7 +13,7 @@ import typer
 from mmslam.errors import ConfigError
 from mmslam.limits import (MAX_MC, MAX_PARTICLES, MAX_SAMPLES, MAX_SEED, MAX_STEPS, MAX_WORKERS, check_int, span)
 from mmslam.slam.cli import variant_help
-from mmslam.slam.variants import BUILTIN_VARIANTS
+from mmslam.slam.specs.variants import BUILTIN_VARIANTS
 
 def _check_source(source: str) -> None:
     from mmslam.raytrace.trace import SOURCES
@@ -47,8 +47,8 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory (cache, jobs, report); an "
                                  "existing one must be empty or a previous demo / ablation."),
         workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (default: all cores)." + span(1, MAX_WORKERS)),
-        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
-                                   "previous ablation (nothing in it is deleted)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a folder mmslam did not write is never written into."),
         quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bars."),
     ) -> None:
         """The main job: paper preset, baseline / cm1 / proposed x MC runs, summary and HTML report."""
@@ -85,8 +85,8 @@ def register(app: typer.Typer) -> None:
         max_depth: int = typer.Option(1, "--max-depth", help="Sionna max interactions per path." + span(1, 3)),
         samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source." + span(1, MAX_SAMPLES)),
         report: bool = typer.Option(False, "--report/--no-report", help="Also write figures and the HTML report."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
-                                   "previous ablation (nothing in it is deleted)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a folder mmslam did not write is never written into."),
         quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bars."),
         seed0: int = typer.Option(0, "--seed0", help="First seed: runs use seeds seed0 .. seed0+mc-1." + span(0, MAX_SEED)),
         sets: list[str] = typer.Option([], "--set", help="section.key=value parameter override for every "

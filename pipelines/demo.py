@@ -15,7 +15,7 @@ from mmslam.pipelines.ablate import (VARIANTS, AblationRun, check_run_args, part
                                      run_ablation)
 
 DEMO_SCENARIO = "paper"
-"""The built-in default scenario (DESIGN.md section 5)."""
+"""The built-in default scenario (docs/design.md section 5)."""
 
 
 @dataclass
@@ -48,7 +48,7 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int | None = None,
         out: output directory (cache, jobs, summary, figures, report).
         executor, workers: as in :func:`mmslam.pipelines.ablate.run_ablation`.
         progress: progress bars on stderr.
-        force: write into ``out`` even if it is not a previous ablation (nothing is deleted).
+        force: kept for callers; a folder mmslam did not write is refused whatever it (:mod:`mmslam.outputs`).
     """
     from mmslam.pipelines.report import write_report
 

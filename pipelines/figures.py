@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from mmslam.pipelines.ablate import ALL_VEHICLES, Summary
-from mmslam.slam.landmarks import mapped_types
-from mmslam.slam.variants import get_variant, variant_names
+from mmslam.slam.specs.landmarks import mapped_types
+from mmslam.slam.specs.variants import get_variant, variant_names
 
 OKABE_ITO: dict[str, str] = {
     "black": "#000000", "orange": "#E69F00", "sky_blue": "#56B4E9", "bluish_green": "#009E73",
@@ -38,13 +38,13 @@ VARIANT_STYLE: dict[str, dict[str, Any]] = {
     "proposed": {"color": OKABE_ITO["blue"], "linestyle": "-", "marker": "o"},
 }
 VARIANT_LABEL: dict[str, str] = {v: get_variant(v).label for v in variant_names()}
-"""Legend label of each variant (:attr:`mmslam.slam.variants.VariantSpec.label`)."""
+"""Legend label of each variant (:attr:`mmslam.slam.specs.variants.VariantSpec.label`)."""
 TYPE_COLOR: dict[str, str] = {"VA": OKABE_ITO["orange"], "SP": OKABE_ITO["bluish_green"],
                               "VS": OKABE_ITO["reddish_purple"]}
 VEHICLE_COLORS: tuple[str, ...] = (OKABE_ITO["blue"], OKABE_ITO["vermillion"], OKABE_ITO["sky_blue"],
                                    OKABE_ITO["bluish_green"], OKABE_ITO["orange"])
 TYPE_NAMES = {t.name: t.description for t in mapped_types()}
-"""Title of each map type (:attr:`mmslam.slam.landmarks.LandmarkSpec.description`)."""
+"""Title of each map type (:attr:`mmslam.slam.specs.landmarks.LandmarkSpec.description`)."""
 
 
 def _figure(size: tuple[float, float] = (6.4, 4.0)) -> tuple[Any, Any]:

@@ -24,11 +24,68 @@ import platform
 from pathlib import Path
 from typing import Any
 
+from mmslam.errors import MmslamError
 from mmslam.pipelines.ablate import (SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
                                      plan_jobs, read_ablation, spec_arms)
 
 REPORT_FILE = "report.html"
 FIGURES_DIR = "figures"
+FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "cardinality_vs",
+                "cardinality_va")
+"""The figures :func:`make_figures` always draws (``figures/<name>.png``; plus ``map_<label>.png``)."""
+
+
+def _json_with(path: Path, keys: tuple[str, ...]) -> bool:
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(d, dict) and all(k in d for k in keys)
+
+
+def _is_summary_parquet(path: Path) -> bool:
+    import pyarrow.parquet as pq
+
+    try:
+        names = set(pq.read_schema(path).names)
+    except Exception:  # not a Parquet file at all
+        return False
+    return {"variant", "map", "type", "step"} <= names
+
+
+def _is_report_html(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return b"<title>mmslam ablation:" in f.read(4096)
+    except OSError:
+        return False
+
+
+def check_ablation_outputs(out_dir: str | Path) -> None:
+    """Refuse (one line) if a file an ablation rewrites in ``out_dir`` exists and is not mmslam's.
+
+    An ablation folder is mmslam's (its marker), but one that an older mmslam wrote into with
+    ``--force`` may hold a user's ``summary.json``, ``summary.parquet``, ``report.html``,
+    ``ablation.json`` or a figure of the same name: each is recognised by its content (keys,
+    columns, title, figure tag) before any work, and never overwritten (:mod:`mmslam.outputs`).
+    """
+    from mmslam.outputs import NEVER, is_mmslam_figure
+    from mmslam.pipelines.ablate import ABLATION_FILE, SUMMARY_JSON, SUMMARY_PARQUET
+
+    out = Path(out_dir)
+    checks = [(out / ABLATION_FILE, lambda p: _json_with(p, ("variants", "config_hash"))),
+              (out / SUMMARY_JSON, lambda p: _json_with(p, ("config", "headline", "per_step"))),
+              (out / SUMMARY_PARQUET, _is_summary_parquet), (out / REPORT_FILE, _is_report_html)]
+    fdir = out / FIGURES_DIR
+    if fdir.is_dir():
+        checks += [(p, is_mmslam_figure) for p in sorted(fdir.iterdir())
+                   if p.stem in FIGURE_NAMES or p.name.startswith("map_")]
+    for p, ours in checks:
+        if p.is_symlink() or (p.exists() and (p.is_dir() or not ours(p))):
+            raise MmslamError(f"{p}: exists and is not a file mmslam wrote; move it out of {out} or choose "
+                              f"another folder ({NEVER})")
+
+
 HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("gospa_VA", "GOSPA VA [m]"), ("gospa_SP", "GOSPA SP [m]"), ("gospa_VS", "GOSPA VS [m]"),
     ("pos_rmse", "position RMSE [m]"), ("card_VS", "VS cardinality"), ("wall_time_s", "wall time / run [s]"),
@@ -57,13 +114,13 @@ def make_figures(out_dir: str | Path, summary: Summary) -> dict[str, Path]:
     """
     from mmslam.pipelines import figures as F
     from mmslam.scenes.scenario import scenario_from_resolved
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     out = Path(out_dir)
     fdir = out / FIGURES_DIR
     spec = read_ablation(out)
     made: dict[str, Path] = {}
-    plots = (("fig2a_gospa_vs", lambda: F.fig_gospa(summary, "VS")),
+    plots = (("fig2a_gospa_vs", lambda: F.fig_gospa(summary, "VS")),  # names: FIGURE_NAMES
              ("fig2b_gospa_va", lambda: F.fig_gospa(summary, "VA")),
              ("fig3_position_rmse", lambda: F.fig_position_rmse(summary)),
              ("gospa_sp", lambda: F.fig_gospa(summary, "SP")),
@@ -194,12 +251,13 @@ th{background:#f3f3f3} table.kv th,table.kv td{text-align:left}
 figure{display:inline-block;margin:0.5em;max-width:48%;vertical-align:top}
 figure img{max-width:100%} figcaption{font-size:0.85em}
 pre{background:#f6f6f6;padding:0.6em;overflow-x:auto} .warn{color:#a00}
+.mmslam-viewer svg { max-width: 100%; height: auto; } .mmslam-viewer .legend { font-size: 0.85em; color: #444; }
 """
 
 
 def _variants_html(variants: list[str]) -> str:
     """``<table id="variants">``: each variant's legend label and what it runs (:class:`VariantSpec`)."""
-    from mmslam.slam.variants import variant_names, get_variant
+    from mmslam.slam.specs.variants import variant_names, get_variant
 
     rows = []
     for v in variants:
@@ -214,8 +272,55 @@ def _variants_html(variants: list[str]) -> str:
             + "".join(rows) + "</tbody></table>")
 
 
+def viewers_html(out_dir: str | Path, summary: Summary) -> str:
+    """The step viewers of the report: one per variant (arm), on its lowest finished seed.
+
+    Each is a :func:`mmslam.slam.eval.viewer.viewer_html` fragment; the traced paths come from the
+    ablation's cache when it is still at the recorded ``cache_dir`` with the same config hash (else
+    the viewer says so and shows no paths). The renderer script is embedded once.
+    """
+    from mmslam.slam.eval.viewer import VIEWER_JS, viewer_data, viewer_html
+    from mmslam.scenes.scenario import scenario_from_resolved
+    from mmslam.slam.filter.result import Result
+
+    out = Path(out_dir)
+    spec = read_ablation(out)
+    scn = scenario_from_resolved(spec["scenario"])
+    paths = _cache_paths(spec)
+    parts = []
+    for i, label in enumerate(summary.variants):
+        v, arm = parse_label(label)
+        seeds = sorted(int(s) for s in spec.get("seeds", []) if is_finished(out, Job(v, int(s), arm)))
+        if not seeds:
+            continue
+        res = Result.load(job_dir(out, Job(v, seeds[0], arm)))
+        data = viewer_data(res, scn, paths, title=f"{label}, seed {seeds[0]}")
+        parts.append(f'<details{" open" if i == 0 else ""}><summary>{html.escape(label)} (seed {seeds[0]})</summary>'
+                     f"{viewer_html(data, element_id=f'viewer-{label}', script=False)}</details>")
+    if not parts:
+        return ""
+    return "".join(parts) + f"<script>{VIEWER_JS}</script>"
+
+
+def _cache_paths(spec: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``paths`` table of the ablation's cache, or None if it moved, changed or cannot be read."""
+    from mmslam.errors import MmslamError
+    from mmslam.raytrace.cache import load_cache
+
+    d = spec.get("cache_dir")
+    if not d or not Path(d).is_dir():
+        return None
+    try:
+        c = load_cache(d)
+    except MmslamError:
+        return None
+    if spec.get("config_hash") and c.manifest.get("config_hash") != spec.get("config_hash"):
+        return None
+    return c.paths
+
+
 def render_html(out_dir: str | Path, summary: Summary, figures: dict[str, Path]) -> str:
-    """The report as one HTML string (figures inlined as base64 PNG)."""
+    """The report as one HTML string (figures inlined as base64 PNG, step viewers as inline SVG + script)."""
     out = Path(out_dir)
     spec = read_ablation(out)
     cfg = summary.config
@@ -264,6 +369,11 @@ over runs. A difference whose interval contains 0 is reported as not significant
 {_variants_html(spec.get("variants", []))}
 <h2>Figures</h2>
 {''.join(figs)}
+<h2>Step through a run</h2>
+<p>Per time step: true (dot, solid) and estimated (plus, dashed) vehicle positions and trajectories, the estimated
+landmarks (x) of the chosen map against the truth (hollow), and the traced paths of that step. One run per
+variant (its lowest seed); drag the slider or press play.</p>
+{viewers_html(out, summary)}
 <h2>Reproduce</h2>
 <pre id="command">{html.escape(str(spec.get('command', '')))}</pre>
 <p>Regenerate this report from the stored results: <code>mmslam report {html.escape(str(out))}</code></p>
@@ -292,6 +402,7 @@ def write_report(out_dir: str | Path) -> Path:
     out = Path(out_dir)
     read_ablation(out)  # a one-line error, before the lock file is made next to a wrong path
     with locked(out, "mmslam command"):
+        check_ablation_outputs(out)
         summary = aggregate(out)
         figures = make_figures(out, summary)
         text = render_html(out, summary, figures)

@@ -1,4 +1,4 @@
-"""Closed-form path source: the paper's idealised geometry, no Sionna (DESIGN.md sections 1, 4).
+"""Closed-form path source: the paper's idealised geometry, no Sionna (docs/design.md sections 1, 4).
 
 For every receiving vehicle ``u`` at one step the source emits one noise-free row per visible
 landmark (global frame, metres, radians):

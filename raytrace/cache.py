@@ -1,4 +1,4 @@
-"""The resumable Parquet path cache (DESIGN.md section 7, tables in :mod:`mmslam.raytrace.schema`).
+"""The resumable Parquet path cache (docs/design.md section 7, tables in :mod:`mmslam.raytrace.schema`).
 
 A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
 

@@ -17,7 +17,6 @@ Note that Sionna's baseband phase uses the normalised delay; so does this module
 """
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +26,8 @@ import numpy as np
 from mmslam.errors import ConfigError
 
 KINDS = ("cfr", "cir")
+NPZ_KIND = "channel"
+"""Tag of an ``mmslam export`` file (:data:`mmslam.outputs.NPZ_TAG`): such a file is replaced by a later export."""
 
 
 def subcarrier_frequencies(n_subcarriers: int, spacing_hz: float) -> np.ndarray:
@@ -87,12 +88,13 @@ class ChannelResponse:
     meta: dict = field(default_factory=dict)
 
     def to_npz_bytes(self) -> bytes:
-        """``.npz`` bytes: ``h`` (complex64), ``axis``, ``times_s``, ``steps``, ``rx_names``, ``meta`` (JSON)."""
-        buf = io.BytesIO()
-        np.savez_compressed(buf, h=self.h.astype(np.complex64), axis=self.axis, times_s=self.times_s,
-                            steps=self.steps, rx_names=np.array(self.rx_names),
-                            meta=np.array(json.dumps(self.meta, sort_keys=True)))
-        return buf.getvalue()
+        """``.npz`` bytes: ``h`` (complex64), ``axis``, ``times_s``, ``steps``, ``rx_names``, ``meta`` (JSON),
+        and the tag ``mmslam_output`` = :data:`NPZ_KIND` (:func:`mmslam.outputs.npz_bytes`)."""
+        from mmslam.outputs import npz_bytes
+
+        return npz_bytes(NPZ_KIND, compressed=True, h=self.h.astype(np.complex64), axis=self.axis,
+                         times_s=self.times_s, steps=self.steps, rx_names=np.array(self.rx_names),
+                         meta=np.array(json.dumps(self.meta, sort_keys=True)))
 
 
 def channel_response(rays: dict[str, np.ndarray], *, kind: str, carrier_hz: float, bandwidth_hz: float,

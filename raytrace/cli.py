@@ -70,8 +70,9 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(1_000_000, "--samples", help="Sionna rays per source." + span(1, MAX_SAMPLES)),
         seed: int = typer.Option(0, "--seed", help="Sionna ray-sampling seed." + span(0, MAX_SEED)),
         chunk_steps: int = typer.Option(5, "--chunk-steps", help="Steps per Parquet chunk." + span(1, MAX_CHUNK_STEPS)),
-        force: bool = typer.Option(False, "--force/--no-force", help="Delete an existing cache of this "
-                                   "configuration and trace anew; also allow an --out that is not a cache root."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Delete the existing cache of this "
+                                   "configuration (one mmslam wrote) and trace anew. A folder or file mmslam did "
+                                   "not write is never touched."),
         quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bar."),
         executor: str = typer.Option("local", "--executor", help="local, or dask: chunks of steps traced on a "
                                      "Dask cluster (a LocalCluster of --workers processes, or --scheduler)."),
@@ -116,8 +117,8 @@ def register(app: typer.Typer) -> None:
                                              "traced by this source (sionna or analytic)."),
         plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of TOA vs step to this file; "
                                             "the format follows the suffix (.png, .pdf, .svg)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --plot even if it is not a "
-                                   "figure mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Print the number of paths per type, step and receiver of a path cache."""
         from rich.console import Console
@@ -177,13 +178,15 @@ def register(app: typer.Typer) -> None:
                                        + span(1, MAX_TIME_STEPS)),
         no_normalize_delays: bool = typer.Option(False, "--no-normalize-delays",
                                                  help="Keep absolute delays (default: first ray of a link at 0)."),
-        out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace an existing --out file."),
+        out: Path = typer.Option(..., "--out", help="Output .npz file (h, axis, times_s, steps, rx_names, meta); "
+                                 "an existing one must be an export mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "an .npz mmslam exported is replaced anyway, any other file never."),
     ) -> None:
         """Export the CIR or CFR of every step and receiver of a cache (from its rays table) to an .npz file."""
-        from mmslam.outputs import check_target
+        from mmslam.outputs import check_npz_target
         from mmslam.raytrace.cache import atomic_write_bytes, load_cache
-        from mmslam.raytrace.channel import cache_channel_response
+        from mmslam.raytrace.channel import NPZ_KIND, cache_channel_response
 
         if cir == cfr:
             raise ConfigError("mmslam export: give exactly one of --cir or --cfr")
@@ -192,7 +195,7 @@ def register(app: typer.Typer) -> None:
         check_int("--subcarriers", subcarriers, 1, MAX_SUBCARRIERS)
         check_int("--time-steps", time_steps, 1, MAX_TIME_STEPS)
         c = load_cache(cache_dir)
-        check_target(out, "channel", force, protect=(c.path,))
+        check_npz_target(out, NPZ_KIND, force, protect=(c.path,))
         size = c.steps * len(c.vehicle_names) * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "

@@ -1,4 +1,4 @@
-"""Path-cache schema (DESIGN.md section 7) and the path-source protocol.
+"""Path-cache schema (docs/design.md section 7) and the path-source protocol.
 
 Three tables, all keyed by ``step`` (0-based time index; time ``t = step * dt`` s). Global frame:
 x east, y north, z up, metres; angles in radians, azimuth from +x towards +y, elevation above the

@@ -1,4 +1,4 @@
-"""Trace a scenario into a resumable path cache (DESIGN.md section 7).
+"""Trace a scenario into a resumable path cache (docs/design.md section 7).
 
 :func:`trace_scenario` computes the true vehicle states, then asks a path source for the paths
 of every step not yet in the cache, writing one chunk of ``chunk_steps`` steps at a time (each
@@ -185,15 +185,27 @@ def _holds_only_caches(root: Path) -> bool:
 def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
     """Raise a one-line error unless ``out_root`` may hold caches (missing, empty, or a cache root).
 
-    ``force`` also allows another directory: a cache is only ever added to it as a sub-directory.
+    Any other folder is refused whatever ``force`` (:mod:`mmslam.outputs`: mmslam never writes
+    into a folder it did not make).
     """
     from mmslam.outputs import check_target
 
     p = Path(out_root)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"--out {p}: is a file, not a folder; choose a writable path for the cache root")
-    return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches,
-                        force_does="add the cache to it (nothing in it is deleted)")
+    return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches)
+
+
+def _is_own_cache(cache_dir: Path) -> bool:
+    """``cache_dir`` holds only what a trace writes: the manifest, table folders of chunk files, temp files."""
+    for e in cache_dir.iterdir():
+        if e.name == MANIFEST or (e.name.startswith(".") and e.name.endswith(".tmp") and e.is_file()):
+            continue
+        if e.name in TABLES and e.is_dir() and not e.is_symlink() and all(
+                f.is_file() and not f.is_symlink() and f.name.endswith((".parquet", ".tmp")) for f in e.iterdir()):
+            continue
+        return False
+    return True
 
 
 def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, steps: int | None = None,
@@ -207,9 +219,9 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         out_root: root directory; the cache goes to :func:`cache_dir_for` ``(out_root, scn, source)``.
         steps: number of steps (default ``scn.steps``).
         chunk_steps: steps per Parquet chunk (chunks are aligned to multiples of it).
-        force: delete an existing cache for this config first; also allow an ``out_root`` that is
-            not a cache root (a user's folder: the cache is added as a sub-directory, nothing else
-            is touched). Without it such an ``out_root`` is refused before any work.
+        force: delete an existing cache for this config first (only if it holds nothing but what a
+            trace writes). An ``out_root`` that is not a cache root (a user's folder) is refused
+            before any work, with or without it.
         progress: show a progress bar (steps, rays/s, ETA) on stderr.
         executor: trace the chunks on a Dask cluster (:class:`DaskExecutor`); ``None`` traces them here.
             Either way this process alone writes the cache, chunk by chunk in step order, so the
@@ -235,6 +247,11 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         write_marker(cache_dir.parent, CACHE_ROOT_KIND)
     lock = acquire_lock(cache_dir, "trace", CacheError)
     try:
+        if os.path.lexists(cache_dir) and (cache_dir.is_symlink() or not cache_dir.is_dir()
+                                           or not _is_own_cache(cache_dir)):
+            raise CacheError(f"{cache_dir}: exists and is not a cache mmslam wrote (it holds other files); move it "
+                             "away or choose another --out (mmslam never writes into, replaces or deletes what it "
+                             "did not write, even with --force)")
         if force and cache_dir.exists():
             shutil.rmtree(cache_dir)
         cache_dir.mkdir(parents=True, exist_ok=True)

@@ -37,8 +37,8 @@ def register(app: typer.Typer) -> None:
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         out: Path = typer.Option(..., "--out", help="Output folder for meshes/*.ply and <scenario>.xml; an "
                                  "existing one must be empty or a previous scene build."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Write into --out even if it is not a "
-                                   "previous scene build (files of the same names are replaced)."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a folder mmslam did not write is never written into."),
     ) -> None:
         """Write one PLY per object and a Mitsuba XML that Sionna RT loads (merge_shapes=False)."""
         from mmslam.outputs import check_target, locked, output_kind, write_marker
@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
 
         scn = resolve_scenario(scenario)
         with locked(out, "scene build"):
-            check_target(out, SCENE_KIND, force, force_does="write into it")  # before the meshes are made
+            check_target(out, SCENE_KIND, force)  # before the meshes are made
             xml = build_scene(scn, out)
             if output_kind(out) != SCENE_KIND:
                 write_marker(out, SCENE_KIND)
@@ -59,12 +59,12 @@ def register(app: typer.Typer) -> None:
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         out: Path = typer.Option(Path("plan.png"), "--out", help="Figure file for the top-down plan; the "
                                  "format follows the suffix (.png, .pdf, .svg)."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a figure "
-                                   "mmslam wrote."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "a figure mmslam wrote is replaced anyway, any other file never."),
     ) -> None:
         """Plot a top-down plan: BS, buildings, SPs, VAs, trajectories and FOV circles."""
         from mmslam.outputs import check_figure_target
-        from mmslam.scenes.meshes import plot_plan
+        from mmslam.scenes.plan import plot_plan
         from mmslam.scenes.scenario import resolve_scenario
 
         check_figure_target(out, force)
@@ -76,8 +76,10 @@ def register(app: typer.Typer) -> None:
         scene_spec: str = typer.Argument(..., metavar="SCENE",
                                          help="A scenario with an xml_scene (preset or .toml), or an XML scene "
                                               "(sionna:<name> or a .xml file)."),
-        out: Path = typer.Option(Path("streets.png"), "--out", help="PNG of the street map."),
-        data: Optional[Path] = typer.Option(None, "--data", help="Also save the grids (.npz)."),
+        out: Path = typer.Option(Path("streets.png"), "--out", help="Figure of the street map; the format follows "
+                                 "the suffix (.png, .pdf, .svg). An existing file must be a figure mmslam wrote."),
+        data: Optional[Path] = typer.Option(None, "--data", help="Also save the grids (.npz); an existing file "
+                                            "must be a street map mmslam wrote."),
         res: float = typer.Option(2.0, "--res", help="Grid resolution (m)."),
         clearance: float = typer.Option(3.0, "--clearance", help="Free space: at least this far from kerbs (m)."),
     ) -> None:
@@ -89,15 +91,21 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from mmslam.errors import ConfigError
+        from mmslam.outputs import check_figure_target, check_npz_target, resolve_link
         from mmslam.scenes.geometry import xml_geometry
         from mmslam.scenes.scenario import resolve_scenario
-        from mmslam.scenes.streets import plot_streets, save_street_map, street_map
+        from mmslam.scenes.streets import NPZ_KIND, plot_streets, save_street_map, street_map
         from mmslam.scenes.trajectory import true_trajectories
 
         if not 0.25 <= res <= 20.0:
             raise ConfigError(f"--res {res}: expected 0.25 .. 20 m")
         if not 0.0 <= clearance <= 50.0:
             raise ConfigError(f"--clearance {clearance}: expected 0 .. 50 m")
+        check_figure_target(out)  # both outputs before any work: a file mmslam did not write is never replaced
+        if data is not None:
+            check_npz_target(data, NPZ_KIND, option="--data")
+            if resolve_link(data, "--data").resolve() == resolve_link(out).resolve():
+                raise ConfigError(f"--data {data}: the same file as --out; choose two paths")
         routes, bs = {}, None
         if scene_spec.startswith("sionna:") or scene_spec.endswith(".xml"):
             geom, title = xml_geometry(scene_spec), scene_spec

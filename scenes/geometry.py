@@ -21,11 +21,14 @@ import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mmslam.errors import ConfigError
-from mmslam.scenes.scenario import Scenario
+
+if TYPE_CHECKING:  # pragma: no cover  (types only: the scenario loader sits above this module)
+    from mmslam.scenes.scenario import Scenario
 
 
 # ====================================================================== PLY reading

@@ -1,4 +1,4 @@
-"""Typed scenario model, loaded from TOML and validated (DESIGN.md sections 3 and 5).
+"""Typed scenario model, loaded from TOML and validated (docs/design.md sections 3 and 5).
 
 A scenario is everything needed to build a scene, trace it and run the filter on it:
 geometry (BS, buildings, scatterers, optional ground, vehicles and their motion), time grid,
@@ -119,7 +119,7 @@ class SensorParams:
     emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")
     model: str = param("constant", "detection / noise model: constant (p_detect, toa_std, angle_std for every "
                        "path) or link (p_D and noise std from each path's power via the link budget below: "
-                       "mmslam.slam.sensor.LinkBudget)", choices=("constant", "link"))
+                       "mmslam.slam.sim.sensor.LinkBudget)", choices=("constant", "link"))
     tx_power_dbm: float = param(20.0, "link model: BS transmit power", "dBm", lo=-50.0, hi=80.0)
     tx_gain_dbi: float = param(18.06, "link model: BS array gain (8 x 8 elements: 10 log10 64)", "dBi",
                                lo=-20.0, hi=60.0)

@@ -317,32 +317,33 @@ def scenario_street_context(src: str, data: dict, bs) -> _StreetContext:
     return _CTX[key]
 
 
+NPZ_KIND = "streets"
+"""Tag of a street-map ``.npz`` (:data:`mmslam.outputs.NPZ_TAG`)."""
+
+
 def save_street_map(sm: StreetMap, path: str | Path) -> Path:
     """Write the street map as ``.npz`` (``top, ground, road, free, centre, kerb`` grids and
-    ``x0, y0, res, clearance``; cell (i, j) centred at ``(x0 + (j + 0.5) res, y0 + (i + 0.5) res)``), atomically."""
-    import io
+    ``x0, y0, res, clearance``; cell (i, j) centred at ``(x0 + (j + 0.5) res, y0 + (i + 0.5) res)``), atomically,
+    tagged ``mmslam_output`` = :data:`NPZ_KIND` so that a later run may replace it (:mod:`mmslam.outputs`)."""
+    from mmslam.outputs import atomic_write_bytes, npz_bytes
 
-    from mmslam.scenes.meshes import _atomic_write_bytes
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, top=sm.top, ground=sm.ground, road=sm.road, free=sm.free, centre=sm.centre,
-                        kerb=sm.kerb, x0=sm.x0, y0=sm.y0, res=sm.res, clearance=sm.clearance)
     p = Path(path)
-    _atomic_write_bytes(p, buf.getvalue())
+    atomic_write_bytes(p, npz_bytes(NPZ_KIND, compressed=True, top=sm.top, ground=sm.ground, road=sm.road,
+                                    free=sm.free, centre=sm.centre, kerb=sm.kerb, x0=sm.x0, y0=sm.y0, res=sm.res,
+                                    clearance=sm.clearance))
     return p
 
 
 def plot_streets(sm: StreetMap, out_png: str | Path, title: str, routes: dict[str, np.ndarray] | None = None,
                  bs: np.ndarray | None = None) -> Path:
-    """PNG: top-surface height (grey), drivable free space (green), centrelines (blue), routes, BS."""
-    import io
-
+    """Figure (format by suffix: png, pdf, svg; tagged as mmslam's): top-surface height (grey), drivable free
+    space (green), centrelines (blue), routes, BS. Written atomically (:func:`mmslam.outputs.save_figure`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mmslam.scenes.meshes import _atomic_write_bytes
+    from mmslam.outputs import save_figure
 
     fig, ax = plt.subplots(figsize=(9, 8))
     z = np.ma.masked_invalid(sm.top)
@@ -364,9 +365,7 @@ def plot_streets(sm: StreetMap, out_png: str | Path, title: str, routes: dict[st
     ax.set_title(title)
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    p = Path(out_png)
-    _atomic_write_bytes(p, buf.getvalue())
-    return p
+    try:
+        return save_figure(fig, out_png, dpi=130, bbox_inches="tight")
+    finally:
+        plt.close(fig)

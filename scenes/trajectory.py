@@ -1,4 +1,4 @@
-"""Ground-truth vehicle trajectories (DESIGN.md section 3).
+"""Ground-truth vehicle trajectories (docs/design.md section 3).
 
 ``ct`` vehicles follow the polar coordinated turn exactly (noise-free by default).
 ``waypoints`` vehicles move at constant speed along a polyline; per step the heading, speed and

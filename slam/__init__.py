@@ -1,10 +1,15 @@
 """MM-PHD-SLAM: sensor model, RBPF with GM-PHD maps per landmark type, map fusion, GOSPA.
 
+Sub-packages, one per layer; a module imports only from its own layer's package or the layers
+below (checked by ``tests/test_layers.py``; docs/architecture.md)::
+
+    core  <-  models  <-  phd, fusion, reference  <-  specs  <-  eval  <-  filter  <-  cli
+
 Never imports Sionna, Mitsuba or Dr.Jit.
 
 The kernels are compiled by numba with ``cache=True``; numba re-validates a cached kernel only
 against its own source file, not against the files of the functions it inlines (e.g.
-``measurement.measure_point`` inside ``ckf.ckf_update``). :func:`_invalidate_stale_kernels` keeps
+``models/measurement.measure_point`` inside ``phd/ckf.ckf_update``). :func:`_invalidate_stale_kernels` keeps
 the on-disk cache consistent with the sources: it runs once, on the first import of
 :mod:`mmslam.slam`, before any kernel module is imported.
 """
@@ -16,23 +21,30 @@ from pathlib import Path
 
 import mmslam.model as _model
 
-KERNEL_SOURCES = ("birth.py", "ckf.py", "detection.py", "dynamics.py", "gm.py", "gmphd.py", "jit.py", "linalg.py",
-                  "measurement.py", "reduction.py", "rbpf.py", "sensor.py", "trig.py", "vs.py")
-"""The ``slam/`` modules that define numba kernels (one hash over all of them)."""
+KERNEL_SOURCES = ("core/gm.py", "core/jit.py", "core/linalg.py", "core/trig.py", "models/dynamics.py",
+                  "models/measurement.py", "models/vs.py", "phd/birth.py", "phd/ckf.py",
+                  "phd/detection.py", "phd/merging.py", "phd/reduction.py", "phd/terms.py",
+                  "filter/rbpf.py", "sim/sensor.py")
+"""The ``slam/`` modules that define numba kernels, relative to the package (one hash over all of them)."""
 
 _STAMP = "mmslam-kernels.sha256"
 
 
-def kernel_cache_dirs(pkg: Path = Path(__file__).parent) -> list[Path]:
-    """Where numba may keep the compiled kernels of ``pkg``'s modules (numba's own locator rules).
+def kernel_dirs(pkg: Path = Path(__file__).parent) -> list[Path]:
+    """The folders of ``pkg`` that hold kernel sources (each has its own numba cache)."""
+    return sorted({(pkg / name).parent for name in KERNEL_SOURCES})
 
-    ``pkg/__pycache__`` (the default), ``$NUMBA_CACHE_DIR/<dir>_<sha1 of the directory path>`` when
+
+def kernel_cache_dirs(src_dir: Path) -> list[Path]:
+    """Where numba may keep the compiled kernels of the modules in ``src_dir`` (numba's own locator rules).
+
+    ``src_dir/__pycache__`` (the default), ``$NUMBA_CACHE_DIR/<dir>_<sha1 of the directory path>`` when
     that variable is set, and the user-wide cache ``$XDG_CACHE_HOME/numba/<same>`` (``~/.cache``)
     that numba falls back to when ``__pycache__`` is not writable (a read-only install).
     """
-    src_dir = os.path.dirname(os.path.abspath(pkg / "ckf.py"))
-    sub = f"{os.path.split(src_dir)[-1]}_{hashlib.sha1(src_dir.encode()).hexdigest()}"
-    dirs = [pkg / "__pycache__"]
+    src = os.path.abspath(src_dir)
+    sub = f"{os.path.split(src)[-1]}_{hashlib.sha1(src.encode()).hexdigest()}"
+    dirs = [Path(src_dir) / "__pycache__"]
     if os.environ.get("NUMBA_CACHE_DIR"):
         dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]) / sub)
     dirs.append(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub)
@@ -43,11 +55,13 @@ def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
     """Delete the cached numba kernels of ``pkg`` wherever they are when any kernel source changed.
 
     Compares a SHA-256 of :data:`KERNEL_SOURCES` (plus ``mmslam/model.py``) with the stamp kept in
-    each of :func:`kernel_cache_dirs` that exists or that numba will write this time (``__pycache__``,
-    ``$NUMBA_CACHE_DIR``'s folder when set, the user-wide one when ``__pycache__`` cannot be written:
-    created and stamped now, or the next process would take the kernels this one caches there for
-    stale); on a mismatch removes every ``*.nbi`` / ``*.nbc`` there and writes the new stamp
-    (atomically). A folder that cannot be written is skipped. Returns True if cached kernels were removed.
+    each of :func:`kernel_cache_dirs` of every :func:`kernel_dirs` folder that exists or that numba
+    will write this time (``__pycache__``, ``$NUMBA_CACHE_DIR``'s folder when set, the user-wide one
+    when ``__pycache__`` cannot be written: created and stamped now, or the next process would take
+    the kernels this one caches there for stale); on a mismatch removes every ``*.nbi`` / ``*.nbc``
+    there and writes the new stamp (atomically). One hash over all folders: a kernel inlines callees
+    of other folders (``phd/ckf.py`` inlines ``models/measurement.py``). A folder that cannot be
+    written is skipped. Returns True if cached kernels were removed.
 
     Not covered: a process that imported the old sources and compiles a kernel after the edit.
     """
@@ -59,7 +73,14 @@ def _invalidate_stale_kernels(pkg: Path = Path(__file__).parent) -> bool:
         return False
     digest = h.hexdigest()
     removed = False
-    dirs = kernel_cache_dirs(pkg)
+    for src_dir in kernel_dirs(pkg):
+        removed = _refresh(kernel_cache_dirs(src_dir), digest) or removed
+    return removed
+
+
+def _refresh(dirs: list[Path], digest: str) -> bool:
+    """:func:`_invalidate_stale_kernels` for the cache folders ``dirs`` of one source folder."""
+    removed = False
     user_dir = bool(os.environ.get("NUMBA_CACHE_DIR"))  # numba's first choice when set
     in_tree = False  # __pycache__ written (numba's next choice)
     for i, cache in enumerate(dirs):

@@ -18,7 +18,7 @@ def summarize(res) -> list[tuple[str, str, float]]:
     """
     import numpy as np
 
-    from mmslam.slam.evaluation import evaluated_types
+    from mmslam.slam.eval.evaluation import evaluated_types
 
     type_names = [s.name for s in evaluated_types()]
     m = res.metrics
@@ -36,7 +36,7 @@ def summarize(res) -> list[tuple[str, str, float]]:
 
 def variant_help() -> str:
     """Every registered variant and what it runs (:meth:`VariantSpec.describe`), for ``--help``."""
-    from mmslam.slam.variants import get_variant, variant_names
+    from mmslam.slam.specs.variants import get_variant, variant_names
 
     return " ".join(f"{v}: {get_variant(v).describe()}." for v in variant_names())
 
@@ -52,10 +52,15 @@ def register(app: typer.Typer) -> None:
                                                 "filter.particles)." + span(1, MAX_PARTICLES)),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),
         out: Path = typer.Option(..., "--out", help="Result directory to write (atomically). An existing "
-                                 "directory is replaced only if it is empty or a previous result."),
-        force: bool = typer.Option(False, "--force/--no-force", help="Replace --out even if it is not a previous "
-                                   "result (never the input cache)."),
+                                 "directory is replaced only if it is empty or a previous result holding only "
+                                 "a result's files."),
+        force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
+                                   "--out is replaced only if it is a previous result, and a folder or file mmslam "
+                                   "did not write is never touched."),
         steps: Optional[int] = typer.Option(None, help="Run only the first N steps of the cache." + span(1, MAX_STEPS)),
+        animate: Optional[Path] = typer.Option(None, "--animate", help="Also draw the run step by step (vehicles, "
+                                               "the fused map's estimates vs truth, the traced paths) into this "
+                                               ".gif (or .mp4, needs ffmpeg) file."),
     ) -> None:
         """Run cooperative MM-PHD-SLAM on a path cache and write the Result (vehicles, metrics, landmarks)."""
         import numpy as np
@@ -63,20 +68,22 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         from mmslam.slam.filter import run_slam
-        from mmslam.slam.variants import variant_names
+        from mmslam.slam.specs.variants import variant_names
 
         if variant not in variant_names():
             raise MmslamError(f"--variant {variant!r}: expected one of {', '.join(variant_names())}")
         check_int("--particles", particles, 1, MAX_PARTICLES, "a number of particles")
         check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
-        from mmslam.outputs import check_target
-        from mmslam.slam.result import RESULT_KIND
+        from mmslam.outputs import check_target, locked
+        from mmslam.slam.filter.result import RESULT_FILES, RESULT_KIND
 
-        from mmslam.outputs import locked
+        if animate is not None:
+            from mmslam.slam.eval.viewer import check_animation_target
 
+            check_animation_target(animate, force)  # before the computation
         with locked(out, "slam"):
-            check_target(out, RESULT_KIND, force, protect=(cache,))  # before the computation
+            check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps)
             except BaseException as e:
@@ -102,3 +109,11 @@ def register(app: typer.Typer) -> None:
             name = names[int(i)] if int(i) < len(names) else str(int(i))
             con.print(f"position RMSE {name}: {rmse:.3f} m")
         con.print(f"wall time: {res.meta['wall_time_s']:.1f} s; written to {path}")
+        if animate is not None:
+            from mmslam.slam.eval.viewer import animate as draw_animation
+            from mmslam.slam.eval.viewer import viewer_data
+            from mmslam.raytrace.cache import load_cache
+
+            c = load_cache(cache)
+            draw_animation(viewer_data(res, c.scenario, c.paths), animate)
+            con.print(f"animation: {animate}")

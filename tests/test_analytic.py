@@ -1,4 +1,4 @@
-"""AnalyticSource: closed-form rows checked against hand-computed geometry (DESIGN.md section 4)."""
+"""AnalyticSource: closed-form rows checked against hand-computed geometry (docs/design.md section 4)."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,9 @@ from mmslam.raytrace.analytic import AnalyticSource, free_space_power_db, fresne
 from mmslam.raytrace.schema import PATH_COLUMNS
 from mmslam.scenes.scenario import load_preset, scenario_from_dict
 from mmslam.scenes.trajectory import vehicle_trajectories
-from mmslam.slam.measurement import BS, SP, VA, VS, channel_params
+from mmslam.slam.models.measurement import BS, SP, VA, VS, channel_params
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import geometry_of
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +73,7 @@ def test_va_ids_positions_and_incidence_on_wall(paper):
             # specular: the incidence point splits the unfolded path exactly
             assert np.linalg.norm(p - b) + np.linalg.norm(u - p) == pytest.approx(c["toa_m"][i], abs=1e-9)
             # cross-check with the measurement model's closed form
-            g = channel_params(u, lm, VA, b)
+            g = channel_params(u, lm, Bounce.MIRROR, b)
             got = [c["toa_m"][i], c["aod_az"][i], c["aod_el"][i], c["aoa_az"][i], c["aoa_el"][i]]
             np.testing.assert_allclose(got, g, atol=1e-9)
 
@@ -100,7 +102,7 @@ def test_sp_vs_only_within_fov_range(paper):
             s = np.array([c["lm_x"][i], c["lm_y"][i], c["lm_z"][i]])
             assert np.linalg.norm(s - u) <= r
             np.testing.assert_allclose([c["bounce_x"][i], c["bounce_y"][i], c["bounce_z"][i]], s)
-            g = channel_params(u, s, int(c["type"][i]), scn.bs_array)
+            g = channel_params(u, s, geometry_of(int(c["type"][i])), scn.bs_array)
             np.testing.assert_allclose([c["toa_m"][i], c["aod_az"][i], c["aod_el"][i], c["aoa_az"][i],
                                         c["aoa_el"][i]], g, atol=1e-9)
             assert c["diffuse"][i] == (c["type"][i] == SP)

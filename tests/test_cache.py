@@ -1,4 +1,4 @@
-"""Path cache: layout, resume after interruption, extension, validation errors (DESIGN.md section 7)."""
+"""Path cache: layout, resume after interruption, extension, validation errors (docs/design.md section 7)."""
 from __future__ import annotations
 
 import dataclasses
@@ -24,7 +24,7 @@ from mmslam.raytrace.schema import PATH_COLUMNS, SCHEMA_VERSION, VEHICLE_COLUMNS
 from mmslam.raytrace.trace import make_source, trace_scenario
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories, vehicle_trajectories
-from mmslam.slam.measurement import BS, VA
+from mmslam.slam.models.measurement import BS, VA
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from mmslam.raytrace.channel import channel_response, subcarrier_frequencies
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import vehicle_trajectories
-from mmslam.slam.measurement import BS
+from mmslam.slam.models.measurement import BS
 
 C = 299_792_458.0
 STEPS = (0, 11, 25)

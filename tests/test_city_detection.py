@@ -9,9 +9,9 @@ from scipy import stats
 
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import FusionCenter, LocalFilter
-from mmslam.slam.gm import GM, empty
-from mmslam.slam.landmarks import landmark_type, merge_gate
-from mmslam.slam.measurement import SP, VA, VS
+from mmslam.slam.core.gm import GM, empty
+from mmslam.slam.specs.landmarks import landmark_type, merge_gate
+from mmslam.slam.models.measurement import SP, VA, VS
 
 # Two VAs 1.53 m apart in y (canyon's image sources of the facades y = 9.57 and y = 10.34), each with
 # position covariance 0.25 I m^2: squared Mahalanobis distance 1.53^2 / 0.25 = 9.36 (between 4 and 49).

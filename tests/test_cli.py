@@ -57,7 +57,7 @@ def test_slam_out_never_deletes_a_user_folder_or_the_cache(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(args + ["--out", str(run)]) == 0
     assert main(args + ["--seed", "1", "--out", str(run)]) == 0  # a previous result is replaced
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
     assert Result.load(run).meta["seed"] == 1
 
 

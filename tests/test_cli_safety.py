@@ -78,9 +78,11 @@ def test_figure_writers_refuse_a_user_file_and_replace_their_own(tmp_path, capsy
     first = fresh.read_bytes()
     assert first.startswith(b"\x89PNG")
     assert main(argv + [str(fresh)]) == 0  # a figure mmslam wrote is replaced
-    assert main(["--force" if a == "{force}" else a for a in argv[:-1]] + ["--force", argv[-1], str(mine)]) == 0
-    # (--force alone, a flag, replaces the user's file)
-    assert mine.read_bytes().startswith(b"\x89PNG") and len(mine.read_bytes()) > 1000
+    # issue 25: --force never replaces a file mmslam did not write (it used to)
+    capsys.readouterr()
+    assert main(argv[:-1] + ["--force", argv[-1], str(mine)]) == 2
+    _one_error_line(capsys, str(mine), "did not write")
+    assert mine.read_bytes() == b"\x89PNG my own figure"
 
 
 def test_rewriting_previous_outputs_of_the_same_kind_works(tmp_path):

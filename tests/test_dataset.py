@@ -155,12 +155,18 @@ def test_export_cfr_and_cir_hand_computed(tmp_path, capsys):
                                     sampling_frequency_hz=1e4)
     lam = C / fc
     np.testing.assert_allclose(h_t[0, 0, :, 0], a[0] * np.exp(2j * np.pi * (10 / lam) * t))
-    # output safety: an existing file is refused without --force; both/neither flag refused
-    capsys.readouterr()
-    assert main(["export", str(d), "--cir", "--out", str(out)]) == 2
-    assert "--force" in capsys.readouterr().err
-    assert main(["export", str(d), "--cir", "--out", str(out), "--force"]) == 0
+    # output safety (issue 25): an earlier export is replaced; a user's file never, even with --force;
+    # both/neither flag refused
+    assert main(["export", str(d), "--cir", "--out", str(out)]) == 0
     assert np.load(out)["h"].shape == (2, 1, 1, 1024)
+    user = tmp_path / "user.npz"
+    np.savez(user, h=np.zeros(3))
+    before = user.read_bytes()
+    for force in ([], ["--force"]):
+        capsys.readouterr()
+        assert main(["export", str(d), "--cir", "--out", str(user), *force]) == 2
+        assert "did not write" in capsys.readouterr().err
+        assert user.read_bytes() == before
     assert main(["export", str(d), "--cir", "--cfr", "--out", str(tmp_path / "x.npz")]) == 2
     assert main(["export", str(d), "--out", str(tmp_path / "x.npz")]) == 2
     assert main(["export", str(d), "--cfr", "--bandwidth", "-1", "--out", str(tmp_path / "x.npz")]) == 2

@@ -7,8 +7,8 @@ import numpy as np
 
 from mmslam.model import VA, VS
 from mmslam.scenes.scenario import load_preset
-from mmslam.slam.gm import GM
-from mmslam.slam.local_filter import LocalFilter
+from mmslam.slam.core.gm import GM
+from mmslam.slam.filter.local_filter import LocalFilter
 
 
 def test_empty_measurement_set_applies_the_missed_detection_term():

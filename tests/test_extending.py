@@ -1,17 +1,29 @@
-"""docs/extending.md: the worked example (a new landmark type) runs as written and plumbs through."""
+"""docs/extending.md: the worked example (a new landmark type) is one spec module, runs as written
+and plumbs through without any edit of slam/."""
 from __future__ import annotations
 
+import hashlib
+import importlib
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mmslam.slam import landmarks as L
-from mmslam.slam import variants as V
+from mmslam.slam.specs import landmarks as L
+from mmslam.slam.specs import variants as V
 from mmslam.slam.filter import run_filter
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
+SLAM = Path(__file__).resolve().parents[1] / "slam"
+
+
+def _slam_digest() -> str:
+    h = hashlib.sha256()
+    for p in sorted(SLAM.rglob("*.py")):
+        h.update(str(p.relative_to(SLAM)).encode() + p.read_bytes())
+    return h.hexdigest()
 
 
 def _python_blocks() -> list[str]:
@@ -19,24 +31,52 @@ def _python_blocks() -> list[str]:
 
 
 @pytest.fixture
-def example():
-    """Namespace after running the doc's two Python blocks; the toy type and variant are removed after."""
+def example(tmp_path, monkeypatch):
+    """The doc's first block written as the module ``lamp_posts.py`` and imported (the whole extension),
+    then its second block run; the namespace of the run. The toy type and variant are removed after."""
     blocks = _python_blocks()
     assert len(blocks) == 2
+    before = _slam_digest()
+    (tmp_path / "lamp_posts.py").write_text(blocks[0])
+    monkeypatch.syspath_prepend(str(tmp_path))
     ns: dict = {}
     try:
-        for b in blocks:
-            exec(compile(b, str(DOC), "exec"), ns)  # noqa: S102 (our own documentation)
+        mod = importlib.import_module("lamp_posts")
+        exec(compile(blocks[1], str(DOC), "exec"), ns)  # noqa: S102 (our own documentation)
+        ns["module"] = mod
         yield ns
     finally:
+        sys.modules.pop("lamp_posts", None)
         V.unregister_variant("cm1_lp")
         L.unregister_landmark_type("LP")
+    assert _slam_digest() == before  # nothing in slam/ was written
+
+
+def test_the_extension_is_one_module_and_edits_no_slam_file(example):
+    mod = example["module"]
+    assert mod.LP is L.landmark_type("LP") is L.landmark_type(5) and mod.CM1_LP is V.get_variant("cm1_lp")
+    assert not any(re.search(r"\bLP\b|lamp", p.read_text()) for p in SLAM.rglob("*.py"))
+
+
+def test_errors_name_the_new_type_by_its_name(example):
+    """The building blocks are handed the spec, so a bad map of the new type is reported as 'LP' (the
+    old code read the fixed enum of mmslam/model.py and said '5')."""
+    from mmslam.slam.core.gm import empty
+    from mmslam.slam.phd.gmphd import check_phd_mass, type_terms
+
+    lp = L.landmark_type("LP")
+    g = empty((2,), 1, 3)
+    with pytest.raises(ValueError, match=r"^LP correction: shapes"):
+        type_terms(g, lp, np.zeros((3, 7)), np.zeros((1, 5)), np.eye(5), np.zeros(3), lambda u, x, t: np.ones(x.shape[:-1]))
+    bad = empty((1,), 1, 3)
+    bad.w[:], bad.mask[:] = 5.0, True
+    with pytest.raises(FloatingPointError, match="in the LP correction at step 3"):
+        check_phd_mass(empty((1,), 1, 3), bad, 1, lp.name, 3)
 
 
 def test_the_documented_new_type_runs_and_behaves_as_the_type_it_copies(example):
     """The LP map (SP's functions, code 5, the relabelled SP paths) gives what cm1's SP map gives on
-    the original labels: the same estimates counts, GOSPA and vehicle errors (to 1e-5; the only
-    difference is the birth kernel's FOV gate, keyed on the SP/VS codes)."""
+    the original labels: the same estimates counts, GOSPA and vehicle errors (to 1e-5)."""
     res, scn, states, paths = example["res"], example["scn"], example["states"], example["paths"]
     m = res.metrics
     types = np.asarray(m["type"]).astype(str)

@@ -1,4 +1,4 @@
-"""The cooperative MM-PHD-SLAM filter (slam/filter.py, slam/rbpf.py, slam/cli.py)."""
+"""The cooperative MM-PHD-SLAM filter (slam/filter.py, slam/filter/rbpf.py, slam/cli.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,8 +9,8 @@ from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories, vehicle_trajectories
 from mmslam.slam.filter import ego_gaussian, run_filter, run_slam
-from mmslam.slam.gospa import gospa
-from mmslam.slam.rbpf import systematic_resample
+from mmslam.slam.eval.gospa import gospa
+from mmslam.slam.filter.rbpf import systematic_resample
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +124,7 @@ def test_filter_beats_dead_reckoning_and_maps_the_vas(paper):
 def test_cli_writes_result_and_prints_summary(paper, tmp_path, capsys):
     from mmslam.cli import main
     from mmslam.raytrace.trace import trace_scenario
-    from mmslam.slam.result import Result
+    from mmslam.slam.filter.result import Result
 
     scn = paper[0]
     cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "cache", steps=7, progress=False)
@@ -241,7 +241,7 @@ def test_sp_truth_only_counts_scatterers_inside_the_fov():
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.scenes.scenario import load_preset
     from mmslam.scenes.trajectory import vehicle_trajectories
-    from mmslam.slam.evaluation import first_seen as _first_seen
+    from mmslam.slam.eval.evaluation import first_seen as _first_seen
 
     scn = load_preset("paper")
     states = vehicle_trajectories(scn, 12)
@@ -270,7 +270,7 @@ def paths_pos(paths, lid):
 
 def test_estimate_extraction_threshold_and_vo_ma():
     from mmslam.slam.filter import cardinality, estimates_of
-    from mmslam.slam.gm import GM
+    from mmslam.slam.core.gm import GM
 
     w = np.array([2.2, 0.6, 0.4, 1.4, 0.0])
     m = np.arange(15, dtype=float).reshape(5, 3)
@@ -290,10 +290,10 @@ def test_vs_dithering_scope(paper, scope):
     """newborn: a tracked VS Gaussian is predicted with J P J^T + Q only; all: + T_d as well."""
     import dataclasses
 
-    from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
+    from mmslam.slam.models.dynamics import vs_ct, vs_ct_jacobian
     from mmslam.slam.filter import LocalFilter
-    from mmslam.slam.gm import GM
-    from mmslam.slam.measurement import VS
+    from mmslam.slam.core.gm import GM
+    from mmslam.slam.models.measurement import VS
 
     scn = paper[0]
     scn = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_dither_scope=scope))
@@ -321,8 +321,8 @@ def test_accumulated_fov_uses_the_filters_detection_probability_and_gamma(p_va, 
     import dataclasses
 
     from mmslam.slam.filter import FusionCenter
-    from mmslam.slam.gm import GM, empty
-    from mmslam.slam.measurement import VA
+    from mmslam.slam.core.gm import GM, empty
+    from mmslam.slam.models.measurement import VA
 
     scn = load_preset("paper")
     scn = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, p_detect_va=p_va))
@@ -364,8 +364,8 @@ def test_visible_counts_separate_forgetting_from_never_seeing(paper):
 def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
     """Two wall segments of different buildings on the plane y = 10 mirror the BS to the same
     image source: one VA for the evaluation (the filter cannot tell them apart, nor should it)."""
-    from mmslam.slam.evaluation import first_seen as _first_seen, truth_keys
-    from mmslam.slam.measurement import VA
+    from mmslam.slam.eval.evaluation import first_seen as _first_seen, truth_keys
+    from mmslam.slam.models.measurement import VA
 
     scn = load_preset("paper")
     img = (0.0, 20.0, 40.0)  # BS (0, 0, 40) mirrored in y = 10
@@ -384,8 +384,8 @@ def test_va_truths_closer_than_the_resolution_are_one():
     """evaluation.va_resolution (1 m): the images of two parallel facades 0.4 m apart (0.8 m apart) are one
     VA for the truth, those of facades 0.765 m apart (canyon's, images 1.53 m apart) stay two; a chain
     of images each within the resolution of the next is one; the keys of one cluster are the first's."""
-    from mmslam.slam.evaluation import first_seen as _first_seen, resolve_points, truth_keys
-    from mmslam.slam.measurement import VA
+    from mmslam.slam.eval.evaluation import first_seen as _first_seen, resolve_points, truth_keys
+    from mmslam.slam.models.measurement import VA
 
     y = [20.0, 20.8, 22.33, 40.0, 40.9, 41.8]  # 20 / 20.8 one; 22.33 apart; 40 - 40.9 - 41.8 a chain
     n = len(y)
@@ -426,7 +426,7 @@ def test_power_aware_sensor_gives_the_filter_each_measurements_covariance(paper,
 def test_weighted_state_cov_rejects_weights_of_another_length():
     """The compiled sum reads ``w[p]`` for every state without bounds checks: a shorter ``w`` read
     past it (the einsum raised); now a ValueError naming the shapes."""
-    from mmslam.slam.rbpf import weighted_state_cov
+    from mmslam.slam.filter.rbpf import weighted_state_cov
 
     s = np.arange(70.0).reshape(10, 7)
     with pytest.raises(ValueError, match="weighted_state_cov"):
@@ -437,8 +437,8 @@ def test_weighted_state_cov_rejects_weights_of_another_length():
 
 def test_weighted_state_cov_equals_the_einsum_bit_for_bit():
     """The compiled weighted outer-product sum gives the same bits as the NumPy form it replaced."""
-    from mmslam.slam.dynamics import wrap_angle
-    from mmslam.slam.rbpf import weighted_state_cov, weighted_state_mean
+    from mmslam.slam.models.dynamics import wrap_angle
+    from mmslam.slam.filter.rbpf import weighted_state_cov, weighted_state_mean
 
     rng = np.random.default_rng(12)
     for P_ in (1, 7, 300, 3000):
@@ -454,8 +454,8 @@ def test_weighted_state_cov_equals_the_einsum_bit_for_bit():
 def test_propagate_equals_the_numpy_form_bit_for_bit():
     """The compiled noise step of ``propagate`` gives the same bits (same draws, same order) as the
     NumPy form it replaced: CT transition, ``+ N(0, 1) * std``, known speed / turn rate, heading wrapped."""
-    from mmslam.slam.dynamics import vehicle_ct, wrap_angle
-    from mmslam.slam.rbpf import propagate
+    from mmslam.slam.models.dynamics import vehicle_ct, wrap_angle
+    from mmslam.slam.filter.rbpf import propagate
 
     rng = np.random.default_rng(3)
     std = np.array([0.2, 0.2, 0.0, 0.001, 0.5, 0.1, 0.2])
@@ -475,7 +475,7 @@ def test_propagate_equals_the_numpy_form_bit_for_bit():
 def test_propagate_rejects_a_noise_std_of_another_length():
     """The compiled noise step reads ``std[i]`` for the 7 state components unchecked: a shorter
     ``noise_std`` raises a one-line ValueError naming the shapes first."""
-    from mmslam.slam.rbpf import propagate
+    from mmslam.slam.filter.rbpf import propagate
 
     s = np.zeros((4, 7))
     with pytest.raises(ValueError, match="noise_std"):
@@ -490,10 +490,10 @@ def test_run_pd_fn_is_the_filters_type_probability_inside_the_sensors_fov(paper,
     (its definition), bit for bit, for every type and a sensor that never detects."""
     import dataclasses
 
-    from mmslam.slam.fusion_center import filter_detect_probs
-    from mmslam.slam.measurement import BS, SP, VA, VS
-    from mmslam.slam.run import CooperativeRun
-    from mmslam.slam.sensor import fov_detect_prob
+    from mmslam.slam.filter.fusion_center import filter_detect_probs
+    from mmslam.slam.models.measurement import BS, SP, VA, VS
+    from mmslam.slam.filter.run import CooperativeRun
+    from mmslam.slam.sim.sensor import fov_detect_prob
 
     scn, states, paths = paper
     scn = dataclasses.replace(scn, sensor=dataclasses.replace(scn.sensor, p_detect=p_detect),

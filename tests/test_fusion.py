@@ -1,13 +1,13 @@
-"""Tests of slam/fusion.py: MSM distance, accumulated FOV, F_AA and F'_AA with hand-built maps."""
+"""Tests of slam/fusion/operators.py: MSM distance, accumulated FOV, F_AA and F'_AA with hand-built maps."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mmslam.slam.fusion import (ego_vs_average, fuse_aa, fuse_vs, in_accumulated_fov, msm_distance,
+from mmslam.slam.fusion.operators import (ego_vs_average, fuse_aa, fuse_vs, in_accumulated_fov, msm_distance,
                                 predict_bs_vs)
-from mmslam.slam.gm import GM, empty
-from mmslam.slam.vs import predict_vs
+from mmslam.slam.core.gm import GM, empty
+from mmslam.slam.models.vs import predict_vs
 
 Q_STD = np.array([1, 1, 0.1, 3, 3, 0.1, 0.05])
 
@@ -188,7 +188,7 @@ def test_fuse_vs_with_pairs_names_the_union_slots_of_each_matched_pair():
 
 
 def test_merge_pairs_is_the_moment_match_of_each_pair_and_leaves_the_rest():
-    from mmslam.slam.reduction import merge_pairs, prune_merge
+    from mmslam.slam.phd.reduction import merge_pairs, prune_merge
 
     m = np.array([[0.0, 0, 0], [2.0, 0, 0], [10.0, 0, 0], [11.0, 0, 0]])
     P = _iso(m, 1.0)

@@ -108,7 +108,7 @@ def test_trace_cli_refuses_a_colliding_route_with_exit_2(tmp_path, capsys):
 def test_scene_show_draws_munich_heights(tmp_path, capsys):
     """The height raster under `scene show`: the Neues Rathaus roof (26 m) under the BS, the street (0 m)
     under car_a's start; the CLI writes the PNG."""
-    from mmslam.scenes.meshes import height_raster
+    from mmslam.scenes.plan import height_raster
 
     scn = load_preset("munich")
     z, (x0, x1, y0, y1) = height_raster(scn, true_trajectories(scn))

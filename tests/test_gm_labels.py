@@ -12,12 +12,17 @@ import pytest
 
 from mmslam.model import VA, VS
 from mmslam.scenes.scenario import load_preset, with_overrides
-from mmslam.slam import fusion
-from mmslam.slam.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, ego_label, empty, with_labels
-from mmslam.slam.gmphd import correct, corrected_gm, type_terms
-from mmslam.slam.local_filter import LABEL_BITS, LocalFilter
-from mmslam.slam.measurement import measure
-from mmslam.slam.reduction import average_map, merge_pairs, prune_merge
+from mmslam.slam.fusion import operators as fusion
+from mmslam.slam.core.gm import GM, NO_LABEL, compact, concat, drop_dead_slots, ego_label, empty, with_labels
+from mmslam.slam.phd.gmphd import correct, corrected_gm, type_terms
+from mmslam.slam.filter.local_filter import LABEL_BITS, LocalFilter
+from mmslam.slam.models.measurement import measure
+from mmslam.slam.phd.reduction import average_map, merge_pairs, prune_merge
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import landmark_type
+
+KINDS = {t.code: t for t in (landmark_type("VA"), landmark_type("SP"), landmark_type("VS"))}
+"""Type code -> spec: what gmphd.correct is handed about each map's type."""
 
 BS = np.array([0.0, 0.0, 10.0])
 STATE = np.array([5.0, -20.0, 1.5, 0.3, 10.0, 0.0, 2.0])
@@ -70,13 +75,13 @@ def test_corrected_components_inherit_their_predicted_slots_label():
     With pruning (compacted) each kept component still has the label of the slot it came from."""
     x0, x1 = np.array([-30.0, 25.0, 3.0]), np.array([40.0, 35.0, 6.0])
     g = _gm([[0.8, 0.6]], [[x0, x1]], var=0.25, label=[[7, 9]])
-    Z = np.stack([measure(STATE, x0, VA, BS), measure(STATE, x1, VA, BS)])
-    tc = type_terms(g, VA, STATE[None], Z, R, BS, _pd(0.9))
+    Z = np.stack([measure(STATE, x0, Bounce.MIRROR, BS), measure(STATE, x1, Bounce.MIRROR, BS)])
+    tc = type_terms(g, landmark_type(VA), STATE[None], Z, R, BS, _pd(0.9))
     tc.g.label = g.label
     lpsi = np.zeros((1, 2))
     dense = corrected_gm(tc, Z, lpsi)
     np.testing.assert_array_equal(dense.label, [[7, 9, 7, 7, 9, 9]])
-    maps, _ = correct({VA: g}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1), LOG_CLUTTER, 1e-3, {}, 0)
+    maps, _ = correct({VA: g}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1), LOG_CLUTTER, 1e-3, {}, 0, KINDS)
     c = maps[VA]
     live = c.mask[0]
     near0 = np.linalg.norm(c.m[0, :, :3] - x0, axis=-1) < np.linalg.norm(c.m[0, :, :3] - x1, axis=-1)
@@ -84,15 +89,15 @@ def test_corrected_components_inherit_their_predicted_slots_label():
     np.testing.assert_array_equal(c.label[0, live], np.where(near0[live], 7, 9))
     np.testing.assert_array_equal(c.label[0, ~live], NO_LABEL)
     unlabelled, _ = correct({VA: GM(g.w, g.m, g.P, g.mask)}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1),
-                            LOG_CLUTTER, 1e-3, {}, 0)
+                            LOG_CLUTTER, 1e-3, {}, 0, KINDS)
     assert unlabelled[VA].label is None
     np.testing.assert_array_equal(unlabelled[VA].w, c.w)
 
 
 def test_a_label_array_of_the_wrong_shape_is_refused_before_the_kernel():
     g = _gm([[0.8, 0.6]], [[[-30.0, 25.0, 3.0], [40.0, 35.0, 6.0]]], label=[[7, 9]])
-    Z = measure(STATE, g.m[0, 0], VA, BS)[None]
-    tc = type_terms(g, VA, STATE[None], Z, R, BS, _pd(0.9))
+    Z = measure(STATE, g.m[0, 0], Bounce.MIRROR, BS)[None]
+    tc = type_terms(g, landmark_type(VA), STATE[None], Z, R, BS, _pd(0.9))
     tc.g.label = np.array([[7]])
     with pytest.raises(ValueError, match=r"label has shape \(1, 1\); expected the map's \(1, 2\)"):
         corrected_gm(tc, Z, np.zeros((1, 1)))
@@ -154,7 +159,7 @@ def test_local_filter_births_are_labelled_per_vehicle_and_only_with_the_option()
     x = np.array([-30.0, 25.0, 3.0])
     for on in (True, False):
         f = _filter(on=on)
-        f.step(measure(f.s[0], x, VA, BS)[None])
+        f.step(measure(f.s[0], x, Bounce.MIRROR, BS)[None])
         f.predict(10.0, 0.0)  # the births of the first step's measurement (weight birth_weight, 1.5e-5)
         g = f.maps[VA]
         if not on:
@@ -235,7 +240,7 @@ def test_a_cooperative_run_with_labels_keeps_them_in_every_map():
     first birth on (the VS map's ego Gaussians: NO_LABEL), and live labels are those of some vehicle."""
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.scenes.trajectory import true_trajectories
-    from mmslam.slam.run import CooperativeRun
+    from mmslam.slam.filter.run import CooperativeRun
 
     scn = with_overrides(load_preset("paper"), ["fusion.average_by_label=true"])
     states = true_trajectories(scn)[:8]
@@ -280,11 +285,11 @@ def test_type_terms_carries_the_labels_to_corrected_gm():
     is refused by type_terms with the other shapes."""
     x0, x1 = np.array([-30.0, 25.0, 3.0]), np.array([40.0, 35.0, 6.0])
     g = _gm([[0.8, 0.6]], [[x0, x1]], var=0.25, label=[[7, 9]])
-    Z = np.stack([measure(STATE, x0, VA, BS), measure(STATE, x1, VA, BS)])
-    tc = type_terms(g, VA, STATE[None], Z, R, BS, _pd(0.9))
+    Z = np.stack([measure(STATE, x0, Bounce.MIRROR, BS), measure(STATE, x1, Bounce.MIRROR, BS)])
+    tc = type_terms(g, landmark_type(VA), STATE[None], Z, R, BS, _pd(0.9))
     np.testing.assert_array_equal(corrected_gm(tc, Z, np.zeros((1, 2))).label, [[7, 9, 7, 7, 9, 9]])
     with pytest.raises(ValueError, match=r"VA correction: shapes .* label \(1, 1\); expected .*None or \(P, Q\)"):
-        type_terms(GM(g.w, g.m, g.P, g.mask, label=np.array([[7]])), VA, STATE[None], Z, R, BS, _pd(0.9))
+        type_terms(GM(g.w, g.m, g.P, g.mask, label=np.array([[7]])), landmark_type(VA), STATE[None], Z, R, BS, _pd(0.9))
 
 
 def test_a_vehicle_index_outside_the_label_range_is_refused():
@@ -323,7 +328,7 @@ def test_an_ego_gaussian_keeps_its_vehicles_label_into_the_other_vehicles_averag
     vehicle's VS map was unlabelled (copies never pooled)."""
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.scenes.trajectory import true_trajectories
-    from mmslam.slam.run import CooperativeRun
+    from mmslam.slam.filter.run import CooperativeRun
 
     assert ego_label(0) == (1 << LABEL_BITS) - 1 and ego_label(3) == (4 << LABEL_BITS) - 1
     vs = GM(np.array([0.9]), np.zeros((1, 7)) + [[20, 0, 0, 1, 0, 0, 0]], np.eye(7)[None], np.ones(1, bool),
@@ -367,9 +372,9 @@ def test_fused_others_scores_the_vs_map_without_the_ego_uploads():
     eq. 11) are left out, the rest scored against the cars some other car can see (within fov_range).
     Cars 0 and 1 are 10 m apart, car 2 is 500 m away: truth {car 0, car 1}; estimates: car 1 found by a
     measurement (label 7) and the three ego Gaussians; only car 1 is an estimate, car 0 is missed."""
-    from mmslam.slam.evaluation import MapScorer
-    from mmslam.slam.gm import GM, ego_label
-    from mmslam.slam.landmarks import VS_SPEC
+    from mmslam.slam.eval.evaluation import MapScorer
+    from mmslam.slam.core.gm import GM, ego_label
+    from mmslam.slam.specs.landmarks import VS_SPEC
 
     scn = load_preset("paper")
     true = np.zeros((1, 3, 7))

@@ -1,14 +1,20 @@
-"""CKF machinery and GM-PHD correction (slam/gmphd.py); Jacobians used by the filter."""
+"""CKF machinery and GM-PHD correction (slam/phd/gmphd.py); Jacobians used by the filter."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
-from mmslam.slam.gm import GM
-from mmslam.slam.ckf import cubature_points, innovate, kalman_update
-from mmslam.slam.gmphd import bs_logterm, corrected_gm, log_psi, type_terms
-from mmslam.slam.measurement import SP, VA, VS, geometry_of, measure
+from mmslam.slam.models.dynamics import vs_ct, vs_ct_jacobian
+from mmslam.slam.core.gm import GM
+from mmslam.slam.phd.ckf import cubature_points, innovate, kalman_update
+from mmslam.slam.phd.gmphd import bs_logterm, corrected_gm, log_psi, type_terms
+from mmslam.slam.models.measurement import SP, VA, VS, measure
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import geometry_of
+from mmslam.slam.specs.landmarks import landmark_type
+
+KINDS = {t.code: t for t in (landmark_type("VA"), landmark_type("SP"), landmark_type("VS"))}
+"""Type code -> spec: what gmphd.correct is handed about each map's type."""
 
 BS_POS = np.array([0.0, 0.0, 40.0])
 R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
@@ -40,7 +46,7 @@ def test_ckf_handles_azimuth_wrap_at_pi():
     s = np.array([50.0, 0.0, 0.0, 0.0, 20.0, 0.3, 0.0])
     lm = np.array([30.0, 0.0, 5.0])
     P = np.eye(3) * 0.5
-    ztrue = measure(s, lm, SP, BS_POS)
+    ztrue = measure(s, lm, Bounce.SCATTER, BS_POS)
     assert abs(abs(ztrue[3]) - np.pi) < 0.1
     m_post, P_post, ll = kalman_update(lm, P, ztrue, R, s, geometry_of(SP), BS_POS)
     # a naive mean over +-pi would give zhat ~ 0, a residual ~ pi and a log-likelihood ~ -pi^2 / (2 0.03^2)
@@ -73,9 +79,9 @@ def test_phd_correction_weights_partition_each_measurement():
     sp = np.array([[60.0, 40.0, 5.0], [60.0, 20.0, 5.0], [-55.0, 55, 10.0]])
     g = GM(np.tile([0.9, 0.5, 0.7], (P_, 1)), np.tile(sp, (P_, 1, 1)) + rng.standard_normal((P_, Q, 3)),
            np.tile(np.eye(3), (P_, Q, 1, 1)), np.ones((P_, Q), bool))
-    Z = np.stack([measure(s[0], sp[1], SP, BS_POS), measure(s[0], BS_POS, 0, BS_POS),
+    Z = np.stack([measure(s[0], sp[1], Bounce.SCATTER, BS_POS), measure(s[0], BS_POS, Bounce.DIRECT, BS_POS),
                   np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
-    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    tc = type_terms(g, landmark_type(SP), s, Z, R, BS_POS, _pd)
     bt = bs_logterm(s, Z, R, BS_POS, np.full(P_, 0.95))
     lc = np.log(1.2832e-5)
     lp = log_psi([tc], bt, lc, (P_, 3))
@@ -100,8 +106,8 @@ def test_vs_correction_moves_velocity_only_through_correlation():
     P = np.diag([4.0, 4.0, 1.0, 9.0, 9.0, 0.1, 0.2])
     P[0, 3] = P[3, 0] = 3.0  # x correlated with vx
     g = GM(np.array([[1.0]]), m, P[None, None], np.ones((1, 1), bool))
-    Z = measure(s[0], t_true, VS, BS_POS)[None]
-    tc = type_terms(g, VS, s, Z, R, BS_POS, _pd)
+    Z = measure(s[0], t_true, Bounce.SCATTER, BS_POS)[None]
+    tc = type_terms(g, landmark_type(VS), s, Z, R, BS_POS, _pd)
     lp = log_psi([tc], None, np.log(1.2832e-5), (1, 1))
     out = corrected_gm(tc, Z, lp)
     upd = out.m[0, 1]
@@ -115,7 +121,7 @@ def test_nan_in_a_map_raises_floating_point_error():
     s = np.array([[70.73, 0, 0, np.pi / 2, 22.22, np.pi / 10, 300.0]])
     g = GM(np.array([[1.0]]), np.array([[[np.nan, 0.0, 0.0]]]), np.eye(3)[None, None], np.ones((1, 1), bool))
     with pytest.raises(FloatingPointError):
-        type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, _pd)
+        type_terms(g, landmark_type(SP), s, np.zeros((1, 5)), R, BS_POS, _pd)
 
 
 def test_a_non_finite_mean_anywhere_in_a_map_raises():
@@ -129,13 +135,13 @@ def test_a_non_finite_mean_anywhere_in_a_map_raises():
         mb[0, slot, 1] = bad
         g = GM(np.ones((1, 3)), mb, np.broadcast_to(np.eye(3), (1, 3, 3, 3)).copy(), np.array([[True, False, True]]))
         with pytest.raises(FloatingPointError, match="non-finite mean or covariance in SP correction"):
-            type_terms(g, SP, s, np.zeros((1, 5)), R, BS_POS, lambda u, x, t: np.where(np.abs(x[..., 0]) < 100, 0.9, 0.0))
+            type_terms(g, landmark_type(SP), s, np.zeros((1, 5)), R, BS_POS, lambda u, x, t: np.where(np.abs(x[..., 0]) < 100, 0.9, 0.0))
 
 
 def test_cholesky_and_triangular_solves_match_lapack():
     from scipy.linalg import solve_triangular
 
-    from mmslam.slam.linalg import back_solve, forward_solve, safe_cholesky
+    from mmslam.slam.core.linalg import back_solve, forward_solve, safe_cholesky
 
     rng = np.random.default_rng(9)
     for d in (3, 5, 7):
@@ -159,8 +165,8 @@ def test_pruned_correction_equals_dense_correction_after_pruning():
     s[:, 0:2] += rng.standard_normal((P_, 2)) * 0.3
     m = np.array([60.0, 20.0, 5.0]) + rng.standard_normal((P_, Q, 3)) * 2
     g = GM(rng.uniform(0.01, 1, (P_, Q)), m, np.tile(np.eye(3) * 2, (P_, Q, 1, 1)), rng.random((P_, Q)) < 0.8)
-    Z = np.stack([measure(s[0], np.array([60.0, 20.0, 5.0]), SP, BS_POS), measure(s[0], np.array([61.0, 22.0, 4.0]), SP, BS_POS)])
-    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    Z = np.stack([measure(s[0], np.array([60.0, 20.0, 5.0]), Bounce.SCATTER, BS_POS), measure(s[0], np.array([61.0, 22.0, 4.0]), Bounce.SCATTER, BS_POS)])
+    tc = type_terms(g, landmark_type(SP), s, Z, R, BS_POS, _pd)
     lp = log_psi([tc], None, np.log(1.2832e-5), (P_, 2))
     dense = corrected_gm(tc, Z, lp)
     pruned = corrected_gm(tc, Z, lp, prune=0.05)
@@ -176,8 +182,8 @@ def test_pruned_correction_equals_dense_correction_after_pruning():
 
 @pytest.mark.parametrize("lm_type", [VA, SP, VS])
 def test_measure_equals_channel_params_in_the_body_frame(lm_type):
-    from mmslam.slam.dynamics import wrap_angle
-    from mmslam.slam.measurement import channel_params, to_body
+    from mmslam.slam.models.dynamics import wrap_angle
+    from mmslam.slam.models.measurement import channel_params, to_body
 
     rng = np.random.default_rng(lm_type)
     s = np.column_stack([rng.uniform(-80, 80, (6, 2)), rng.uniform(0, 2, 6), rng.uniform(-4, 4, 6),
@@ -187,16 +193,16 @@ def test_measure_equals_channel_params_in_the_body_frame(lm_type):
         pts = pts + rng.standard_normal(pts.shape)
     else:
         pts = np.concatenate([rng.uniform(-90, 90, (6, 4, 5, 2)), rng.uniform(0, 40, (6, 4, 5, 1))], -1)
-    got = measure(s[:, None, None, :], pts, lm_type, BS_POS)
+    got = measure(s[:, None, None, :], pts, geometry_of(lm_type), BS_POS)
     u = np.broadcast_to(s[:, None, None, :3], pts.shape)
-    ref = to_body(channel_params(u, pts, lm_type, BS_POS), s[:, None, None, 3], s[:, None, None, 6])
+    ref = to_body(channel_params(u, pts, geometry_of(lm_type), BS_POS), s[:, None, None, 3], s[:, None, None, 6])
     d = got - ref
     d[..., 3] = wrap_angle(d[..., 3])
     assert np.abs(d).max() < 1e-9
 
 
 def test_cholesky_without_retry_rejects_indefinite_and_singular():
-    from mmslam.slam.linalg import cholesky
+    from mmslam.slam.core.linalg import cholesky
 
     L = np.empty((3, 3))
     assert not cholesky(np.diag([1.0, -1.0, 1.0]), L, False)
@@ -219,7 +225,7 @@ def test_innovate_on_a_padded_batch_equals_kalman_update_per_gaussian(lm_type):
     if d == 7:
         m[..., 3:] = rng.standard_normal((P_, Q, 4))
     Pm = np.stack([_spd(rng, d, 0.3) for _ in range(P_ * Q)]).reshape(P_, Q, d, d)
-    Z = np.stack([measure(s[0], base + rng.standard_normal(3), lm_type, BS_POS) for _ in range(3)])
+    Z = np.stack([measure(s[0], base + rng.standard_normal(3), geometry_of(lm_type), BS_POS) for _ in range(3)])
     inn = innovate(m.reshape(-1, d), Pm.reshape(-1, d, d), np.repeat(s, Q, 0), geometry_of(lm_type), BS_POS, Z, R, "test")
     for n in range(P_ * Q):
         for j in range(3):
@@ -240,8 +246,8 @@ def test_correction_skips_undetectable_gaussians_exactly():
     m = np.where(np.arange(Q)[None, :, None] % 2 == 0, near, np.array([-60.0, -40.0, 5.0]))
     m = m + rng.standard_normal((P_, Q, 3))
     g = GM(np.full((P_, Q), 0.8), m, np.tile(np.eye(3), (P_, Q, 1, 1)), np.ones((P_, Q), bool))
-    Z = measure(s[0], near, SP, BS_POS)[None]
-    tc = type_terms(g, SP, s, Z, R, BS_POS, _pd)
+    Z = measure(s[0], near, Bounce.SCATTER, BS_POS)[None]
+    tc = type_terms(g, landmark_type(SP), s, Z, R, BS_POS, _pd)
     assert np.all(tc.det_index[:, 1::2] == -1) and np.all(tc.det_index[:, 0::2] >= 0)
     assert np.all(np.isneginf(tc.logq[:, 1::2]))
     lp = log_psi([tc], None, np.log(1.2832e-5), (P_, 1))
@@ -254,7 +260,7 @@ def test_correction_skips_undetectable_gaussians_exactly():
 @pytest.mark.parametrize("Q,J", [(1, 1), (5, 1), (12, 1), (3, 2), (11, 3), (18, 7), (40, 9)])
 def test_logsumexp_slots_equals_direct_form(Q, J):
     """_logsumexp_slots == the direct max / exp / sum over axis 1, bit for bit (-inf rows kept)."""
-    from mmslam.slam.gmphd import _logsumexp_slots
+    from mmslam.slam.phd.gmphd import _logsumexp_slots
 
     rng = np.random.default_rng(Q * 10 + J)
     lq = rng.normal(size=(50, Q, J)) * 20.0
@@ -272,7 +278,7 @@ def test_logsumexp_slots_equals_direct_form_on_long_slot_axes(Q, J):
     """Bit for bit NumPy's max / exp / sum also where its sum splits the slots into halves
     (J = 1, more than 128 terms), with terms ~800 below the maximum whose exp underflows to 0
     (the kernel skips them) and with rows of one finite slot."""
-    from mmslam.slam.gmphd import _logsumexp_slots
+    from mmslam.slam.phd.gmphd import _logsumexp_slots
 
     rng = np.random.default_rng(Q + J)
     lq = rng.normal(size=(6, Q, J)) * 30.0
@@ -294,7 +300,7 @@ def test_logsumexp_slots_equals_reference_and_leaves_its_input_alone(shape):
     the in-place exp rewrote it (corrected_gm reads it afterwards: weights of ~1/clutter)."""
     from scipy.special import logsumexp
 
-    from mmslam.slam.gmphd import _logsumexp_slots
+    from mmslam.slam.phd.gmphd import _logsumexp_slots
 
     rng = np.random.default_rng(sum(shape))
     logq = rng.normal(-20.0, 5.0, size=shape)
@@ -333,7 +339,7 @@ def test_extent_is_the_scatter_point_model_z_equals_h_of_x_plus_e():
                                rtol=1e-9, atol=1e-12)
     x = rng.multivariate_normal(m[0], P[0], size=400_000)
     e = rng.multivariate_normal(np.zeros(3), E, size=400_000)
-    z = measure(np.broadcast_to(st[0], (len(x), 7)), x[:, :3] + e, VS, bs)
+    z = measure(np.broadcast_to(st[0], (len(x), 7)), x[:, :3] + e, Bounce.SCATTER, bs)
     mc = (x - x.mean(0)).T @ (z - z.mean(0)) / len(x)  # (7, 5)
     S_mc = np.cov(z.T, bias=True) + Rm
     red_mc = mc @ np.linalg.solve(S_mc, mc.T)
@@ -379,7 +385,7 @@ def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_inno
     layout and pruned (the dense components of weight >= prune, in order)."""
     from scipy.special import logsumexp
 
-    from mmslam.slam.gmphd import correct
+    from mmslam.slam.phd.gmphd import correct
 
     rng = np.random.default_rng(11)
     P_, J = 3, 3
@@ -401,8 +407,8 @@ def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_inno
         beta = np.where(mask[..., None], rng.uniform(1.0, 5.0, (P_, Q, 2)), 1.0)
         maps[t] = GM(w, m, P, mask, beta)
         truth[t] = lm[0, 1]
-    Z = np.stack([measure(s[0], truth[VA], VA, BS_POS), measure(s[0], truth[VS], VS, BS_POS),
-                  measure(s[0], np.array([45.0, 20.0, 1.0]), VA, BS_POS)])
+    Z = np.stack([measure(s[0], truth[VA], Bounce.MIRROR, BS_POS), measure(s[0], truth[VS], Bounce.SCATTER, BS_POS),
+                  measure(s[0], np.array([45.0, 20.0, 1.0]), Bounce.MIRROR, BS_POS)])
     Rz = np.stack([R, 2.0 * R, 0.5 * R])
     ext = {VS: np.diag([1.0, 0.5, 0.09]), VA: None}
     lc = np.log(1e-5)
@@ -411,7 +417,7 @@ def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_inno
     def pd_fn(u, x, t):
         return np.where(np.linalg.norm(x - u, axis=-1) < 200.0, 0.8, 0.0)
 
-    out, lpsi = correct(maps, s, Z, Rz, BS_POS, pd_fn, p_bs, lc, prune, ext, 3)
+    out, lpsi = correct(maps, s, Z, Rz, BS_POS, pd_fn, p_bs, lc, prune, ext, 3, KINDS)
     # reference: every live Gaussian with p_D > 0 on its own through ckf.innovate
     ref = {}
     for t, g in maps.items():
@@ -476,7 +482,7 @@ def test_skipped_work_changes_no_corrected_component(lm_type):
     """With clutter and pruning, type_terms skips negligible terms and the means of pruned ones
     (gmphd._skip_floors); correct() must equal the computation without skipping to 1e-12, and the
     skipping must actually happen (terms set to -inf that were finite without it)."""
-    from mmslam.slam.gmphd import _skip_floors, correct
+    from mmslam.slam.phd.gmphd import _skip_floors, correct
 
     rng = np.random.default_rng(11)
     P_, Q, d = 5, 6, 3 if lm_type != VS else 7
@@ -490,19 +496,19 @@ def test_skipped_work_changes_no_corrected_component(lm_type):
         m[..., 3:6] = rng.standard_normal((P_, Q, 3))
     Pc = np.stack([[_spd(rng, d, 0.05 if (p + q) % 2 else 1.0) for q in range(Q)] for p in range(P_)])
     g = GM(rng.uniform(0.01, 1.0, (P_, Q)), m, Pc, rng.random((P_, Q)) < 0.9)
-    Z = np.stack([measure(s[0], lm[j], lm_type if lm_type != VS else SP, BS_POS) for j in range(4)]
+    Z = np.stack([measure(s[0], lm[j], geometry_of(lm_type if lm_type != VS else SP), BS_POS) for j in range(4)]
                  + [np.array([150.0, 1.0, 0.1, -2.0, 0.2])])
     lc, prune = np.log(1.2832e-5), 1e-5
     fq, fp = _skip_floors(lc, prune)
     assert fq == lc - 40.0 and np.isclose(fp, lc + np.log(prune)) and _skip_floors(lc, None) == (-np.inf, -np.inf)
-    skipped = type_terms(g, lm_type, s, Z, R, BS_POS, _pd, None, lc, prune)
-    full = type_terms(g, lm_type, s, Z, R, BS_POS, _pd)
+    skipped = type_terms(g, landmark_type(lm_type), s, Z, R, BS_POS, _pd, None, lc, prune)
+    full = type_terms(g, landmark_type(lm_type), s, Z, R, BS_POS, _pd)
     gated = np.isneginf(skipped.logq) & np.isfinite(full.logq)
     assert gated.any() and (full.logq[gated] < fq).all()  # only negligible terms are dropped
     keep = np.isfinite(skipped.logq)
     assert np.array_equal(skipped.logq[keep], full.logq[keep])
     p_bs = np.full(P_, 0.95)
-    out, lpsi = correct({lm_type: g}, s, Z, R, BS_POS, _pd, p_bs, lc, prune, {}, 0)
+    out, lpsi = correct({lm_type: g}, s, Z, R, BS_POS, _pd, p_bs, lc, prune, {}, 0, KINDS)
     lpsi_ref = log_psi([full], bs_logterm(s, Z, R, BS_POS, p_bs), lc, (P_, Z.shape[0]))
     ref = corrected_gm(full, Z, lpsi_ref, prune=prune)
     np.testing.assert_allclose(lpsi, lpsi_ref, rtol=1e-12)

@@ -1,4 +1,4 @@
-"""Tests of slam/gospa.py: hand cases and a brute-force cross-check."""
+"""Tests of slam/eval/gospa.py: hand cases and a brute-force cross-check."""
 from __future__ import annotations
 
 import itertools
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mmslam.slam.gospa import gospa
+from mmslam.slam.eval.gospa import gospa
 
 
 def test_both_empty_is_zero():

@@ -1,4 +1,4 @@
-"""The runtime-free batch kernels (:mod:`mmslam.slam.jit`): no reference counting, same results."""
+"""The runtime-free batch kernels (:mod:`mmslam.slam.core.jit`): no reference counting, same results."""
 from __future__ import annotations
 
 import re
@@ -7,10 +7,17 @@ import numba as nb
 import numpy as np
 import pytest
 
-from mmslam.slam import birth, ckf, gmphd, jit, reduction, vs
-from mmslam.slam.gm import GM
-from mmslam.slam.jit import RUNTIME_FREE, batch_kernel
-from mmslam.slam.measurement import SP, VA, VS
+from mmslam.slam.phd import birth
+from mmslam.slam.phd import ckf
+from mmslam.slam.phd import gmphd
+from mmslam.slam.core import jit
+from mmslam.slam.phd import reduction
+from mmslam.slam.models import vs
+from mmslam.slam.core.gm import GM
+from mmslam.slam.core.jit import RUNTIME_FREE, batch_kernel
+from mmslam.slam.models.measurement import SP, VA, VS
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import landmark_type
 
 
 @nb.njit
@@ -114,9 +121,9 @@ _OVERFLOW = GM(np.array([1e308, 1e308]), np.zeros((2, 3)), np.stack([np.eye(3)] 
 
 # (call, the whole message): each an error code of a runtime-free kernel turned into its Python error
 _KERNEL_ERRORS = {
-    "type_terms position": (lambda: gmphd.type_terms(_one([10.0, 0, 0], _INDEFINITE), SP, _S, np.zeros((1, 5)), _R,
+    "type_terms position": (lambda: gmphd.type_terms(_one([10.0, 0, 0], _INDEFINITE), landmark_type(SP), _S, np.zeros((1, 5)), _R,
                                                      _BS, _pd), "covariance not positive definite in SP correction"),
-    "type_terms innovation": (lambda: gmphd.type_terms(_one([10.0, 0, 0], np.eye(3)), VA, _S, np.zeros((1, 5)),
+    "type_terms innovation": (lambda: gmphd.type_terms(_one([10.0, 0, 0], np.eye(3)), landmark_type(VA), _S, np.zeros((1, 5)),
                                                        -np.eye(5), _BS, _pd),
                               "covariance not positive definite in VA correction (innovation covariance)"),
     "innovate position": (lambda: ckf.innovate(np.array([[10.0, 0, 0]]), _INDEFINITE[None], _S, 1, _BS,
@@ -179,15 +186,15 @@ def test_runtime_free_kernels_reach_no_allocation(monkeypatch) -> None:
     g = GM(np.ones((2, 2)), np.full((2, 2, 7), 20.0), np.broadcast_to(np.eye(7), (2, 2, 7, 7)).copy(),
            np.ones((2, 2), bool), np.ones((2, 2, 2)), np.arange(4).reshape(2, 2))
     s = np.repeat(_S, 2, 0)
-    t = gmphd.type_terms(g, VS, s, Z, _R, _BS, _pd)  # the scatter CKF kernel
+    t = gmphd.type_terms(g, landmark_type(VS), s, Z, _R, _BS, _pd)  # the scatter CKF kernel
     lp = gmphd.log_psi([t], gmphd.bs_logterm(s, Z, _R, _BS, np.full(2, 0.9)), -10.0, (2, 2))
     out = gmphd.corrected_gm(t, Z, lp)
     reduction.prune_merge(out, 1e-5, 4.0, 3)
     reduction.average_map(out, np.full(2, 0.5), 1e-5, 4.0, 5, by_label=True)
     reduction.merge_pairs(GM(g.w[0], g.m[0], g.P[0], g.mask[0], g.pd_beta[0]), np.array([[0, 1]]))
     vs.predict_vs(g, 0.1, 0.9, np.full(7, 0.1), None)
-    m, c, ok = birth.birth_moments(s, Z, _R, SP, _BS)
-    birth.birth_from_moments(s, m, c, ok, VS, 0.01, _pd)
+    m, c, ok = birth.birth_moments(s, Z, _R, Bounce.SCATTER, _BS)
+    birth.birth_from_moments(s, m, c, ok, landmark_type(VS), 0.01, _pd)
     # _write_corrected is called from compiled code (_corrected_components): its types by hand, P = 0
     f8, b1, i8 = np.float64, np.bool_, np.int64
     wc = _fresh(gmphd._write_corrected)

@@ -6,11 +6,13 @@ intricate; a slip in one of them (e.g. ``_logsumexp_slots`` writing into the ``l
 given when ``P == 1`` or ``Q == 1``) changes the filter's results silently. Each test here draws
 random inputs with hypothesis, *including the degenerate shapes* (``P = 1``, ``Q = 0`` and ``1``,
 ``J = 0``, ``1`` and ``2``, an empty landmark type, an empty batch, SPD matrices with condition
-numbers up to ``1e6``), and compares the kernel with a reference written for the test: a few
-lines of per-matrix / per-Gaussian loops over textbook NumPy / SciPy (``np.linalg.cholesky``,
+numbers up to ``1e6``), and compares the kernel with a plain reference: a few lines of
+per-matrix / per-Gaussian loops over textbook NumPy / SciPy (the measurement model, its inversion,
+the CKF, the PHD correction and the reduction live in :mod:`mmslam.slam.reference`, named beside
+the fast functions in docs/equations.md; the small linear-algebra ones stay here) (``np.linalg.cholesky``,
 ``np.linalg.inv``, ``scipy.linalg.solve_triangular``, ``scipy.special.logsumexp``, the CKF of
 Arasaratnam & Haykin 2009 one Gaussian at a time, the greedy Vo & Ma 2006 merge one component at
-a time, :func:`mmslam.slam.measurement.measure` for the geometry).
+a time, :func:`mmslam.slam.models.measurement.measure` for the geometry).
 
 Tolerance: ``1e-9`` relative, normwise per compared object: ``|a - r| <= 1e-9 * max|r|`` over
 each matrix / vector of the batch (``max(|r|, 1)`` for log-likelihoods and log-sums, ``|r|``
@@ -31,13 +33,24 @@ from hypothesis import strategies as st
 from scipy.linalg import solve_triangular
 from scipy.special import logsumexp
 
-from mmslam.slam import birth as birth_mod
-from mmslam.slam import ckf
-from mmslam.slam import gm as gm_mod
-from mmslam.slam import gmphd, linalg
-from mmslam.slam import reduction as red
-from mmslam.slam.gm import GM
-from mmslam.slam.measurement import BS, SP, VA, VS, channel_params, geometry_of, measure, measure_point
+from mmslam.slam.phd import birth as birth_mod
+from mmslam.slam.phd import ckf
+from mmslam.slam.core import gm as gm_mod
+from mmslam.slam.phd import gmphd
+from mmslam.slam.core import linalg
+from mmslam.slam.phd import reduction as red
+from mmslam.slam.core.gm import GM
+from mmslam.slam.models.measurement import BS, SP, VA, VS, channel_params, measure, measure_point
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import geometry_of
+from mmslam.slam.specs.landmarks import landmark_type
+from mmslam.slam.reference import ckf as ref_ckf_mod
+from mmslam.slam.reference import models as ref_models
+from mmslam.slam.reference import phd as ref_phd
+from mmslam.slam.reference import reduction as ref_red
+
+KINDS = {t.code: t for t in (landmark_type("VA"), landmark_type("SP"), landmark_type("VS"))}
+"""Type code -> spec: what gmphd.correct is handed about each map's type."""
 
 RTOL = 1e-9
 TINY = 1e-300  # absolute floor: below it, values are round-off of underflowed terms
@@ -181,7 +194,7 @@ def rand_Z(rng, states: np.ndarray, J: int) -> np.ndarray:
         return np.zeros((0, 5))
     s0 = states[0]
     lm = rand_landmarks(rng, np.broadcast_to(s0[:3], (J, 3)), SP)
-    Z = measure(s0, lm, SP, BS_POS) + rng.normal(0, 1, (J, 5)) * [1.0, 0.05, 0.05, 0.05, 0.05]
+    Z = measure(s0, lm, Bounce.SCATTER, BS_POS) + rng.normal(0, 1, (J, 5)) * [1.0, 0.05, 0.05, 0.05, 0.05]
     Z[:, AZ] = _wrap(Z[:, AZ])
     return Z
 
@@ -192,73 +205,35 @@ def pd_fn(u, x, t):
     return np.where(np.linalg.norm(x - u, axis=-1) <= FOV, P_DETECT, 0.0)
 
 
-# ---------------------------------------------------------------- reference model and CKF (one Gaussian)
+# ---------------------------------------------------------------- the textbook references (mmslam.slam.reference)
 def ref_measure(state, x, lm_type):
-    """Textbook measurement of one landmark point (DESIGN.md section 4): vectors, norms, angles."""
-    u, b = state[:3], BS_POS
-
-    def angles(v):
-        return np.arctan2(v[1], v[0]), np.arcsin(v[2] / np.linalg.norm(v))
-
-    if lm_type == BS:
-        dep, arr, toa = u - b, b - u, np.linalg.norm(u - b)
-    elif lm_type == VA:  # x = image source v; the wall is the perpendicular bisector of b and v
-        nrm = (x - b) / np.linalg.norm(x - b)
-        dep = (u - x) - 2.0 * ((u - x) @ nrm) * nrm
-        arr, toa = x - u, np.linalg.norm(u - x)
-    else:
-        dep, arr, toa = x - b, x - u, np.linalg.norm(x - b) + np.linalg.norm(x - u)
-    (a1, e1), (a2, e2) = angles(dep), angles(arr)
-    return np.array([toa + state[6], a1, e1, _wrap(a2 - state[3]), e2])
+    """Textbook measurement of one landmark point (docs/design.md section 4): :func:`reference.models.measure`."""
+    return ref_models.measure(state, x, geometry_of(lm_type), BS_POS)
 
 
 def ref_h(state, lm_type):
     """The measurement model of one vehicle state as a function of a landmark point (position first)."""
-    return lambda x: ref_measure(state, x[:3], lm_type)
+    return ref_models.measurement_function(state, geometry_of(lm_type), BS_POS)
 
 
-def ref_ckf(m, P, h, E=None, wrap=AZ):
-    """Third-degree cubature rule on the position of ``N(m (d,), P (d, d))``, point by point.
-
-    ``h`` maps one position ``(3,)`` to ``(5,)``; ``E``: scatter-point covariance (the points are
-    drawn from ``N(m_pos, P_pos + E)``). Azimuth components are averaged as deviations from the
-    first point's value (wrapped), the textbook way for angles with a small spread. Returns
-    ``zhat, Pzz, Pxz`` with ``Pxz = P[:, :3] (P_pos + E)^-1 Cov(x + e, z)``.
-    """
-    Pp = P[:3, :3] + (0.0 if E is None else E)
-    Lc = np.linalg.cholesky(Pp)
-    xs = [m[:3] + np.sqrt(3) * Lc[:, i] for i in range(3)] + [m[:3] - np.sqrt(3) * Lc[:, i] for i in range(3)]
-    zs = np.array([h(x) for x in xs])
-    dev = zs - zs[0]
-    for c in wrap:
-        dev[:, c] = _wrap(dev[:, c])
-    zhat = zs[0] + dev.mean(0)
-    for c in wrap:
-        zhat[c] = _wrap(zhat[c])
-    D = dev - dev.mean(0)  # z_i - zhat, unwrapped
-    n = len(xs)
-    Pzz = sum(np.outer(Di, Di) for Di in D) / n
-    Pxz_o = sum(np.outer(x - m[:3], Di) for x, Di in zip(xs, D)) / n
-    Pxz = P[:, :3] @ np.linalg.solve(Pp, Pxz_o)
-    return zhat, Pzz, Pxz
+ref_ckf = ref_ckf_mod.cubature_moments
+ref_update = ref_ckf_mod.kalman_update
+_ref_greedy = ref_red.greedy_merge
+_ref_reduce = ref_red.reduce
+_ref_corrected_components = ref_phd.corrected_components
 
 
-def ref_update(m, P, h, Z, R, E=None):
-    """Textbook Kalman update of one Gaussian by each row of ``Z``; returns a dict of per-j results."""
-    zhat, Pzz, Pxz = ref_ckf(m, P, h, E)
-    S = Pzz + R
-    K = np.linalg.solve(S, Pxz.T).T
-    _, logdet = np.linalg.slogdet(2 * np.pi * S)
-    out = {"zhat": zhat, "S": S, "K": K, "P_post": P - K @ S @ K.T, "loglik": [], "m_post": []}
-    for z in Z:
-        r = z - zhat
-        for c in AZ:
-            r[c] = _wrap(r[c])
-        out["loglik"].append(-0.5 * (r @ np.linalg.solve(S, r) + logdet))
-        out["m_post"].append(m + K @ r)
-    out["loglik"] = np.array(out["loglik"]).reshape(len(Z))
-    out["m_post"] = np.array(out["m_post"]).reshape(len(Z), m.shape[0])
-    return out
+def _ref_correction(maps: dict[int, GM], s, Z, R, bs_term, log_clutter):
+    """Per-particle, per-Gaussian reference of type_terms + log_psi: ``logq``, ``missed``, updates."""
+    return ref_phd.correction(maps, {t: geometry_of(t) for t in maps}, s, Z, R, BS_POS, pd_fn, bs_term, log_clutter)
+
+
+def _ref_birth(states, Z, R, lm_type):
+    """Cubature points of ``N(z_j, R)`` inverted one by one (:func:`reference.models.birth_moments`)."""
+    return ref_models.birth_moments(states, Z, R, geometry_of(lm_type), BS_POS)
+
+
+# ---------------------------------------------------------------- reference model and CKF (one Gaussian)
 
 
 def test_reference_ckf_is_the_kalman_filter_for_a_linear_measurement():
@@ -396,14 +371,14 @@ def test_measurement_kernels_equal_the_textbook_geometry(seed, P_, Q, K, lm_type
     snap = _snapshot(s, pts)
     ref = np.array([[[ref_measure(s[p], pts[p, q, k], lm_type) for k in range(K)] for q in range(Q)]
                     for p in range(P_)]).reshape(P_, Q, K, 5)
-    got = measure(np.broadcast_to(s[:, None, None, :], (P_, Q, K, 7)), pts, lm_type, BS_POS)  # BS: pts unused
+    got = measure(np.broadcast_to(s[:, None, None, :], (P_, Q, K, 7)), pts, geometry_of(lm_type), BS_POS)  # BS: pts unused
     _close_angles(got, ref, 1, "measure")
     geo = geometry_of(lm_type)
     for p in range(P_):
         for q in range(Q):
             for k in range(K):
                 _close_angles(np.array(measure_point(geo, s[p], pts[p, q, k], BS_POS)), ref[p, q, k], 1, "measure_point")
-    glob = channel_params(np.broadcast_to(s[:, None, None, :3], pts.shape), pts, lm_type, BS_POS)
+    glob = channel_params(np.broadcast_to(s[:, None, None, :3], pts.shape), pts, geometry_of(lm_type), BS_POS)
     body = glob.copy()
     body[..., 0] += s[:, None, None, 6]
     body[..., 3] = _wrap(body[..., 3] - s[:, None, None, 3])
@@ -490,7 +465,7 @@ def test_bs_logterm_equals_the_gaussian_log_density(seed, P_, J, with_bs):
     rng = np.random.default_rng(seed)
     s = rand_states(rng, P_)
     R = rand_R(rng)
-    Z = measure(s[:1], BS_POS, BS, BS_POS) + rng.normal(0, 1, (J, 5)) * np.sqrt(np.diag(R)) * 3
+    Z = measure(s[:1], BS_POS, Bounce.DIRECT, BS_POS) + rng.normal(0, 1, (J, 5)) * np.sqrt(np.diag(R)) * 3
     p_d = np.where(rng.random(P_) < 0.3, 0.0, rng.uniform(0.1, 1.0, P_))
     snap = _snapshot(s, Z, R, p_d)
     got = gmphd.bs_logterm(s, Z, R, BS_POS, p_d)
@@ -504,51 +479,6 @@ def test_bs_logterm_equals_the_gaussian_log_density(seed, P_, J, with_bs):
             if p_d[p] > 0:
                 ref[p, j] = np.log(p_d[p]) - 0.5 * (r @ np.linalg.solve(R, r) + logdet)
     _close_scalar(got, ref, "bs_logterm")
-
-
-def _ref_correction(maps: dict[int, GM], s, Z, R, bs_term, log_clutter):
-    """Per-particle, per-Gaussian reference of type_terms + log_psi: ``logq``, ``missed``, updates."""
-    P_, J = s.shape[0], Z.shape[0]
-    out = {}
-    for t, g in maps.items():
-        Q = g.capacity
-        logq = np.full((P_, Q, J), -np.inf)
-        missed = np.zeros((P_, Q))
-        upd = {}
-        for p in range(P_):
-            for q in range(Q):
-                if not g.mask[p, q]:
-                    continue
-                pd = float(pd_fn(s[p, :3], g.m[p, q, :3], t))
-                missed[p, q] = (1.0 - pd) * g.w[p, q]
-                if pd > 0:
-                    r = ref_update(g.m[p, q], g.P[p, q], ref_h(s[p], t), Z, R)
-                    logq[p, q] = np.log(pd * g.w[p, q]) + r["loglik"]
-                    upd[p, q] = r
-        out[t] = (logq, missed, upd)
-    lpsi = np.empty((P_, J))
-    for p in range(P_):
-        for j in range(J):
-            parts = [log_clutter] + ([bs_term[p, j]] if bs_term is not None else [])
-            parts += [out[t][0][p, q, j] for t in maps for q in range(maps[t].capacity)]
-            lpsi[p, j] = logsumexp(parts)
-    return out, lpsi
-
-
-def _ref_corrected_components(g: GM, logq, missed, upd, lpsi, p, J):
-    """Dense slot list of particle ``p``: ``(slot, w, m, P)`` for every live slot of corrected_gm's layout."""
-    Q = g.capacity
-    comps = [(q, missed[p, q], g.m[p, q], g.P[p, q]) for q in range(Q) if g.mask[p, q]]
-    for q in range(Q):
-        if not g.mask[p, q]:
-            continue
-        for j in range(J):
-            if (p, q) in upd:
-                r = upd[p, q]
-                comps.append((Q + q * J + j, np.exp(logq[p, q, j] - lpsi[p, j]), r["m_post"][j], r["P_post"]))
-            else:
-                comps.append((Q + q * J + j, 0.0, g.m[p, q], g.P[p, q]))
-    return sorted(comps, key=lambda c: c[0])
 
 
 @given(seed=seeds, P_=st.integers(1, 3), types=st.sampled_from([(VA,), (SP,), (VS,), (VA, SP), (VA, SP, VS)]),
@@ -570,7 +500,7 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
     if with_bs:
         bs_term = gmphd.bs_logterm(s, Z, R, BS_POS, np.full(P_, P_DETECT))
     snaps = [_gm_snapshot(g) for g in maps.values()] + [_snapshot(s, Z, R)]
-    terms = [gmphd.type_terms(maps[t], t, s, Z, R, BS_POS, pd_fn) for t in types]
+    terms = [gmphd.type_terms(maps[t], landmark_type(t), s, Z, R, BS_POS, pd_fn) for t in types]
     for sn in snaps:
         _unchanged(sn, "type_terms")
     lpsi = gmphd.log_psi(terms, bs_term, log_clutter, (P_, J))
@@ -623,7 +553,7 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
     # the whole correction in one call (gmphd.correct) gives the same maps and log psi
     with np.errstate(divide="ignore"):
         maps_c, lpsi_c = gmphd.correct(maps, s, Z, R, BS_POS, pd_fn, np.full(P_, P_DETECT if with_bs else 0.0),
-                                       log_clutter, prune, {}, 0)
+                                       log_clutter, prune, {}, 0, KINDS)
     for sn in snaps:
         _unchanged(sn, "correct")
     _close_scalar(lpsi_c, ref_lpsi, "correct log psi")
@@ -646,30 +576,6 @@ def test_log_psi_raises_when_nothing_explains_a_measurement():
 
 
 # ====================================================================== reduction
-def _ref_greedy(w, m, P, idx, merge):
-    """Vo & Ma 2006 Table II step 2 over the components ``idx`` of one mixture, one at a time.
-
-    Returns the clusters in creation order as ``(members, W, mean, cov)`` and every squared
-    Mahalanobis distance evaluated (to reject examples sitting on the threshold).
-    """
-    idx = list(idx)
-    clusters, dists = [], []
-    while idx:
-        j = max(idx, key=lambda i: w[i])  # first of the largest weights in slot order
-        members = []
-        for i in idx:
-            dm = m[i] - m[j]
-            dist = dm @ np.linalg.inv(P[i]) @ dm
-            if i != j:
-                dists.append(dist)
-            if i == j or dist <= merge:
-                members.append(i)
-        W = sum(w[i] for i in members)
-        mean = sum(w[i] * m[i] for i in members) / W
-        cov = sum(w[i] * (P[i] + np.outer(mean - m[i], mean - m[i])) for i in members) / W
-        clusters.append((members, W, mean, cov))
-        idx = [i for i in idx if i not in members]
-    return clusters, dists
 
 
 def _clustered_mixtures(rng, n, Q, d, cond, merge=4.0):
@@ -714,17 +620,6 @@ def test_merge_flat_equals_the_greedy_vo_ma_merge(seed, n, Q, d, cond, merge):
             _close(om[k, :nc], np.array([c[2] for c in clusters]), 1, "_merge_flat means")
             _close(oP[k, :nc], np.array([c[3] for c in clusters]), 2, "_merge_flat covariances")
         assert np.all(ow[k, nc:] == 0.0)
-
-
-def _ref_reduce(w, m, P, mask, prune, merge, cap, max_trace, pos_dims, final_prune=None):
-    """prune (weight, trace) -> greedy merge -> [final prune] -> ``cap`` largest, sorted by weight."""
-    idx = [i for i in range(len(w)) if mask[i] and w[i] >= prune
-           and (max_trace is None or np.trace(P[i][:pos_dims, :pos_dims]) <= max_trace)]
-    clusters, dists = _ref_greedy(w, m, P, idx, merge)
-    if final_prune is not None:
-        clusters = [c for c in clusters if c[1] >= final_prune]
-    clusters = sorted(clusters, key=lambda c: -c[1])[:cap]  # stable: creation order on ties
-    return clusters, dists
 
 
 def _assert_reduced(out_w, out_m, out_P, out_mask, clusters, what):
@@ -864,38 +759,6 @@ def test_compact_and_concat_equal_per_mixture_reference(seed, batch, Q, d, cap, 
 
 
 # ====================================================================== birth
-def _ref_invert(state, z, lm_type):
-    """Textbook inversion of one measurement: the AOA ray from the antenna, at range ``TOA - B``
-    (VA) or where it meets the ellipsoid with foci BS and antenna (SP); returns ``(x, valid)``."""
-    u, L = state[:3], z[0] - state[6]
-    az, el = z[3] + state[3], z[4]
-    d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    if lm_type == VA:
-        return u + L * d, L > 0
-    bu = BS_POS - u
-    if not (L > np.linalg.norm(bu) and L - d @ bu > 0):
-        return u, False
-    r = (L * L - bu @ bu) / (2.0 * (L - d @ bu))
-    return u + r * d, r > 0
-
-
-def _ref_birth(states, Z, R, lm_type):
-    """Cubature points of ``N(z_j, R)`` one by one, inverted with :func:`_ref_invert`,
-    equal-weight mean and ``np.cov(bias=True)``; ok = every image valid, finite, ``det(cov) > 0``."""
-    Lr = np.linalg.cholesky(R)
-    P_, J = states.shape[0], Z.shape[0]
-    mean, cov, ok = np.zeros((P_, J, 3)), np.zeros((P_, J, 3, 3)), np.zeros((P_, J), bool)
-    pos_all, valid_all = np.zeros((10, J, P_, 3)), np.zeros((10, J, P_), bool)
-    for j in range(J):
-        pts = [Z[j] + np.sqrt(5) * Lr[:, i] for i in range(5)] + [Z[j] - np.sqrt(5) * Lr[:, i] for i in range(5)]
-        for p in range(P_):
-            imgs, valid = zip(*(_ref_invert(states[p], z, lm_type) for z in pts))
-            imgs, valid = np.array(imgs), np.array(valid)
-            pos_all[:, j, p], valid_all[:, j, p] = imgs, valid
-            mean[p, j] = imgs.mean(0)
-            cov[p, j] = np.cov(imgs.T, bias=True)
-            ok[p, j] = valid.all() and np.isfinite(mean[p, j]).all() and np.linalg.det(cov[p, j]) > 0
-    return mean, cov, ok, pos_all, valid_all
 
 
 @given(seed=seeds, P_=st.integers(1, 3), J=st.integers(0, 3), lm_type=st.sampled_from([VA, SP]))
@@ -907,11 +770,11 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
     R = rand_R(rng)
     # TOA - B from 0.3 to 3 times the BS distance: some SP inversions are invalid (L <= |b - u|)
     lm = rand_landmarks(rng, np.broadcast_to(s[0, :3], (J, 3)), lm_type)
-    Z = measure(s[0], lm, SP, BS_POS)
+    Z = measure(s[0], lm, Bounce.SCATTER, BS_POS)
     Z[:, 0] = s[0, 6] + np.linalg.norm(BS_POS - s[0, :3]) * rng.uniform(0.3, 3.0, J)
     snap = _snapshot(s, Z, R)
     ref_mean, ref_cov, ref_ok, ref_pos, ref_valid = _ref_birth(s, Z, R, lm_type)
-    mean, cov, ok = birth_mod.birth_moments(s, Z, R, lm_type, BS_POS)
+    mean, cov, ok = birth_mod.birth_moments(s, Z, R, geometry_of(lm_type), BS_POS)
     both = birth_mod.birth_moments_by_kind(s, Z, R, (geometry_of(VA), geometry_of(SP)), BS_POS)  # keyed by geometry
     _unchanged(snap, "birth_moments")
     assert np.array_equal(ok, ref_ok)
@@ -931,7 +794,7 @@ def test_birth_kernels_equal_the_per_point_inversion(seed, P_, J, lm_type):
 @given(seed=seeds, shape=st.sampled_from([(0,), (1,), (4,), (2, 3)]), lm_type=st.sampled_from([BS, VA, SP, VS]))
 def test_fov_detect_prob_equals_the_norm_rule(seed, shape, lm_type):
     from mmslam.scenes.scenario import load_preset
-    from mmslam.slam.sensor import fov_detect_prob
+    from mmslam.slam.sim.sensor import fov_detect_prob
 
     sp = load_preset("paper").sensor
     rng = np.random.default_rng(seed)
@@ -948,8 +811,8 @@ def test_fov_detect_prob_equals_the_norm_rule(seed, shape, lm_type):
 @given(seed=seeds, batch=st.sampled_from([(), (1,), (3,)]), Q=st.integers(0, 4), dither=st.booleans(),
        cond=st.sampled_from([0.0, 2.0, 4.0]))
 def test_predict_vs_equals_the_per_component_ekf_prediction(seed, batch, Q, dither, cond):
-    from mmslam.slam.dynamics import vs_ct, vs_ct_jacobian
-    from mmslam.slam.vs import predict_vs
+    from mmslam.slam.models.dynamics import vs_ct, vs_ct_jacobian
+    from mmslam.slam.models.vs import predict_vs
 
     rng = np.random.default_rng(seed)
     n = int(np.prod(batch, dtype=int))
@@ -977,8 +840,8 @@ def test_predict_vs_equals_the_per_component_ekf_prediction(seed, batch, Q, dith
 
 @given(seed=seeds, P_=st.integers(1, 6), spread=st.sampled_from([0.0, 1.0, 50.0, 800.0]))
 def test_particle_weight_kernels_equal_their_textbook_forms(seed, P_, spread):
-    from mmslam.slam.dynamics import wrap_angle
-    from mmslam.slam.rbpf import (normalise_log_weights, systematic_resample, weighted_state_cov,
+    from mmslam.slam.models.dynamics import wrap_angle
+    from mmslam.slam.filter.rbpf import (normalise_log_weights, systematic_resample, weighted_state_cov,
                                   weighted_state_mean)
 
     rng = np.random.default_rng(seed)

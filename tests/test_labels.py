@@ -7,7 +7,7 @@ import pytest
 from mmslam.raytrace.labels import DIFFUSE, SPECULAR, SceneIndex, label_paths
 from mmslam.raytrace.schema import PATH_COLUMNS
 from mmslam.scenes.scenario import scenario_from_dict
-from mmslam.slam.measurement import BS, OTHER, SP, VA, VS
+from mmslam.slam.models.measurement import BS, OTHER, SP, VA, VS
 
 BS_POS = np.array([0.0, 0.0, 10.0])
 

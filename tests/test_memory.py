@@ -1,4 +1,4 @@
-"""slam/memory.py: glibc keeps freed memory for reuse (no page faults per step for the maps' arrays)."""
+"""slam/core/memory.py: glibc keeps freed memory for reuse (no page faults per step for the maps' arrays)."""
 from __future__ import annotations
 
 import platform
@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from mmslam.slam import memory
+from mmslam.slam.core import memory
 
 
 def _glibc() -> bool:

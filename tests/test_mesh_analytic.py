@@ -10,7 +10,7 @@ from mmslam.raytrace.trace import make_source
 from mmslam.scenes.meshes import build_scene
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories
-from mmslam.slam.measurement import BS, VA
+from mmslam.slam.models.measurement import BS, VA
 
 
 def _floor_wall():

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from mmslam.errors import ConfigError
-from mmslam.scenes.meshes import build_scene, car_mesh, plot_plan, resolve_xml_scene
+from mmslam.scenes.meshes import build_scene, car_mesh, resolve_xml_scene
+from mmslam.scenes.plan import plot_plan
 from mmslam.scenes.scenario import load_preset
 
 

@@ -6,8 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from mmslam.slam.dynamics import vehicle_ct, vs_ct, vs_ct_jacobian, wrap_angle
-from mmslam.slam.measurement import BS, SP, VA, channel_params, measure, mirror_point, residual
+from mmslam.slam.models.dynamics import vehicle_ct, vs_ct, vs_ct_jacobian, wrap_angle
+from mmslam.slam.models.measurement import BS, SP, VA, channel_params, measure, mirror_point, residual
+from mmslam.model import Bounce
 
 
 def test_vehicle_ct_straight_and_turn():
@@ -57,7 +58,7 @@ def test_wrap_angle_range():
 def test_channel_params_los_hand_computed():
     b = np.array([0.0, 0.0, 40.0])
     u = np.array([30.0, 40.0, 0.0])
-    g = channel_params(u, None, BS, b)
+    g = channel_params(u, None, Bounce.DIRECT, b)
     d = math.sqrt(30**2 + 40**2 + 40**2)
     assert g[0] == pytest.approx(d)
     assert g[1] == pytest.approx(math.atan2(40, 30)) and g[2] == pytest.approx(-math.asin(40 / d))
@@ -69,7 +70,7 @@ def test_channel_params_va_incidence_point_on_wall():
     v = mirror_point(b, np.array([100.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]))
     assert np.allclose(v, [200, 0, 40])
     u = np.array([60.0, 20.0, 0.0])
-    g = channel_params(u, v, VA, b)
+    g = channel_params(u, v, Bounce.MIRROR, b)
     assert g[0] == pytest.approx(np.linalg.norm(v - u))
     # the incidence point p is where segment v->u crosses x = 100; AOD points b -> p
     lam = (100 - v[0]) / (u[0] - v[0])
@@ -85,7 +86,7 @@ def test_measure_scatter_body_frame():
     b = np.array([0.0, 0.0, 40.0])
     s = np.array([55.0, 55.0, 10.0])
     st = np.array([40.0, 50.0, 0.0, 1.0, 0, 0, 300.0])
-    z = measure(st, s, SP, b)
+    z = measure(st, s, Bounce.SCATTER, b)
     assert z[0] == pytest.approx(np.linalg.norm(s - b) + np.linalg.norm(s - st[:3]) + 300.0)
     assert z[3] == pytest.approx(wrap_angle(math.atan2(5, 15) - 1.0))
 

@@ -1,4 +1,4 @@
-"""filter.pd_model = "beta": a Beta(s, t) of each Gaussian's own detection probability (slam/detection.py).
+"""filter.pd_model = "beta": a Beta(s, t) of each Gaussian's own detection probability (slam/phd/detection.py).
 
 Hand-computed Beta updates of one Gaussian (missed, detected, outside the FOV), the merge rule,
 its carriage through the reduction / fusion, and the model off = the fixed model.
@@ -11,13 +11,18 @@ import pytest
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.scenes.trajectory import true_trajectories
-from mmslam.slam import fusion
-from mmslam.slam.detection import beta_pool, expected_pd, predict_beta, prior_beta
+from mmslam.slam.fusion import operators as fusion
+from mmslam.slam.phd.detection import beta_pool, expected_pd, predict_beta, prior_beta
 from mmslam.slam.filter import run_filter
-from mmslam.slam.gm import GM, concat, empty
-from mmslam.slam.gmphd import correct
-from mmslam.slam.measurement import SP, VA, measure
-from mmslam.slam.reduction import average_map, merge_pairs, prune_merge
+from mmslam.slam.core.gm import GM, concat, empty
+from mmslam.slam.phd.gmphd import correct
+from mmslam.slam.models.measurement import SP, VA, measure
+from mmslam.slam.phd.reduction import average_map, merge_pairs, prune_merge
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import landmark_type
+
+KINDS = {t.code: t for t in (landmark_type("VA"), landmark_type("SP"), landmark_type("VS"))}
+"""Type code -> spec: what gmphd.correct is handed about each map's type."""
 
 BS = np.array([0.0, 0.0, 10.0])
 STATE = np.array([5.0, -20.0, 1.5, 0.3, 10.0, 0.0, 2.0])  # x, y, z, heading, speed, turn, clock bias
@@ -39,7 +44,7 @@ def _pd_const(p, fov=np.inf):
 
 
 def _correct(g: GM, lm_type: int, pd_fn, Z: np.ndarray):
-    maps, _ = correct({lm_type: g}, STATE[None], Z, R, BS, pd_fn, np.zeros(1), LOG_CLUTTER, None, {}, 0)
+    maps, _ = correct({lm_type: g}, STATE[None], Z, R, BS, pd_fn, np.zeros(1), LOG_CLUTTER, None, {}, 0, KINDS)
     return maps[lm_type]
 
 
@@ -47,7 +52,7 @@ def test_detected_and_missed_beta_of_one_gaussian_by_hand():
     """Beta(2, 3): E[p_D] = 0.4. Missed slot: (1 - 0.4) w = 0.3, Beta(2, 4); detected slot:
     Beta(3, 2); every weight and moment equals the fixed model's with p_D = 0.4."""
     x = np.array([-30.0, 25.0, 3.0])
-    Z = measure(STATE, x, VA, BS)[None]
+    Z = measure(STATE, x, Bounce.MIRROR, BS)[None]
     out = _correct(_one(x), VA, _pd_const(0.95), Z)  # with a Beta only the gate (> 0) of pd_fn counts
     fixed = _correct(_one(x, ab=None), VA, _pd_const(0.4), Z)
     assert out.w[0, 0] == pytest.approx(0.3, rel=1e-12)
@@ -63,7 +68,7 @@ def test_detected_and_missed_beta_of_one_gaussian_by_hand():
 def test_outside_the_fov_the_beta_and_weight_are_unchanged():
     """An SP beyond the range gate: p_D = 0, weight w, Beta (2, 3) kept; no detection slot has weight."""
     x = np.array([-30.0, 25.0, 3.0])  # ~56 m from the vehicle
-    Z = measure(STATE, np.array([10.0, -18.0, 1.0]), SP, BS)[None]
+    Z = measure(STATE, np.array([10.0, -18.0, 1.0]), Bounce.SCATTER, BS)[None]
     out = _correct(_one(x), SP, _pd_const(0.95, fov=20.0), Z)
     assert out.w[0, 0] == 0.5
     np.testing.assert_array_equal(out.pd_beta[0, 0], [2.0, 3.0])

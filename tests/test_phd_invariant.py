@@ -1,7 +1,7 @@
 """The PHD-mass invariant the filter checks at every correction (issue 10).
 
 Per particle, type and step: ``sum_q w_q(corrected) <= sum_q w_q(predicted) + J``. The check
-(:func:`mmslam.slam.gmphd.check_phd_mass`, called by :func:`mmslam.slam.gmphd.correct`) must stay silent on
+(:func:`mmslam.slam.phd.gmphd.check_phd_mass`, called by :func:`mmslam.slam.phd.gmphd.correct`) must stay silent on
 normal runs and fail loudly on the weight corruption of the old ``_logsumexp_slots``.
 """
 from __future__ import annotations
@@ -12,10 +12,10 @@ import pytest
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import true_trajectories
-from mmslam.slam import gmphd
+from mmslam.slam.phd import gmphd
 from mmslam.slam.filter import run_filter
-from mmslam.slam.gm import GM
-from mmslam.slam.measurement import VA, VS
+from mmslam.slam.core.gm import GM
+from mmslam.slam.models.measurement import VA, VS
 
 STEPS = 8
 _LOGSUMEXP_SLOTS = gmphd._logsumexp_slots  # the fixed kernel (before any monkeypatch)
@@ -56,26 +56,26 @@ def _gm(w, mask=None) -> GM:
 def test_check_phd_mass_bound_by_hand():
     pred = _gm([[0.5, 1.0, 7.0], [0.2, 0.0, 0.0]], mask=[[True, True, False], [True, False, False]])  # 1.5, 0.2
     ok = _gm([[1.5, 2.0, 0.0, 9.0], [2.2, 0.0, 0.0, 0.0]], mask=[[True, True, True, False], [True, True, True, True]])
-    gmphd.check_phd_mass(pred, ok, 2, VA, 4)  # 3.5 <= 1.5 + 2 and 2.2 <= 0.2 + 2: equality is allowed
+    gmphd.check_phd_mass(pred, ok, 2, "VA", 4)  # 3.5 <= 1.5 + 2 and 2.2 <= 0.2 + 2: equality is allowed
     bad = _gm([[1.5, 2.1, 0.0], [0.1, 0.0, 0.0]])  # 3.6 > 1.5 + 2
     with pytest.raises(FloatingPointError, match=r"VS correction at step 4, particle 0: corrected mass 3\.6 > "
                                                  r"predicted mass 1\.5 \+ 2 measurements"):
-        gmphd.check_phd_mass(pred, bad, 2, VS, 4)
+        gmphd.check_phd_mass(pred, bad, 2, "VS", 4)
     nan = _gm([[np.nan], [0.0]])
     with pytest.raises(FloatingPointError, match="particle 0: corrected mass nan"):
-        gmphd.check_phd_mass(pred, nan, 2, VA, 0)
+        gmphd.check_phd_mass(pred, nan, 2, "VA", 0)
     # no measurement: the correction cannot add mass
     with pytest.raises(FloatingPointError, match="particle 1"):
-        gmphd.check_phd_mass(pred, _gm([[1.0], [0.3]]), 0, VA, 0)
+        gmphd.check_phd_mass(pred, _gm([[1.0], [0.3]]), 0, "VA", 0)
     # masses summed by the correction's kernels are used instead of the maps' weights
-    gmphd.check_phd_mass(pred, bad, 2, VS, 4, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.2])))
+    gmphd.check_phd_mass(pred, bad, 2, "VS", 4, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.2])))
     with pytest.raises(FloatingPointError, match=r"VA correction at step 3, particle 1: corrected mass 2\.3 > "
                                                  r"predicted mass 0\.2 \+ 2 measurements \(1 of 2 particles\)"):
-        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.3])))
+        gmphd.check_phd_mass(pred, ok, 2, "VA", 3, masses=(np.array([1.5, 0.2]), np.array([3.5, 2.3])))
     with pytest.raises(FloatingPointError, match="particle 1: corrected mass nan"):
-        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([1.5, 0.2]), np.array([3.5, np.nan])))
+        gmphd.check_phd_mass(pred, ok, 2, "VA", 3, masses=(np.array([1.5, 0.2]), np.array([3.5, np.nan])))
     with pytest.raises(FloatingPointError, match="particle 0: corrected mass 3.5 > predicted mass nan"):
-        gmphd.check_phd_mass(pred, ok, 2, VA, 3, masses=(np.array([np.nan, 0.2]), np.array([3.5, 2.2])))
+        gmphd.check_phd_mass(pred, ok, 2, "VA", 3, masses=(np.array([np.nan, 0.2]), np.array([3.5, 2.2])))
 
 
 @pytest.mark.parametrize("particles", [20, 1])
@@ -149,9 +149,9 @@ def test_check_phd_mass_rejects_masses_of_another_shape():
     """``masses`` from the kernels must match the maps' batch: a short corrected-mass array was read past
     its end by the compiled test (and passed); now a one-line ValueError."""
     g = _gm([[0.5, 1.0], [0.2, 0.0], [0.1, 0.1]])  # P = 3
-    gmphd.check_phd_mass(g, g, 0, VA, 0, masses=(np.ones(3), np.ones(3)))  # equal masses: the bound holds
+    gmphd.check_phd_mass(g, g, 0, "VA", 0, masses=(np.ones(3), np.ones(3)))  # equal masses: the bound holds
     for bad in ((np.ones(3), np.ones(2)), (np.ones(2), np.ones(2)), (np.ones(3), np.ones((3, 1)))):
         with pytest.raises(ValueError, match="check_phd_mass: masses of shapes"):
-            gmphd.check_phd_mass(g, g, 0, VA, 0, masses=bad)
+            gmphd.check_phd_mass(g, g, 0, "VA", 0, masses=bad)
     with pytest.raises(FloatingPointError, match="particle 2"):
-        gmphd.check_phd_mass(g, g, 1, VA, 0, masses=(np.ones(3), np.array([1.0, 2.0, 2.5])))  # 2.5 > 1 + 1
+        gmphd.check_phd_mass(g, g, 1, "VA", 0, masses=(np.ones(3), np.array([1.0, 2.0, 2.5])))  # 2.5 > 1 + 1

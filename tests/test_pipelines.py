@@ -18,7 +18,7 @@ import pytest
 from mmslam.cli import main
 from mmslam.pipelines import ablate as A
 from mmslam.pipelines import figures as F
-from mmslam.slam.result import Result
+from mmslam.slam.filter.result import Result
 
 STEPS, PARTICLES, MC = 8, 50, 2
 SMALL = ["--source", "analytic", "--steps", str(STEPS), "--particles", str(PARTICLES), "--mc", str(MC),
@@ -552,3 +552,27 @@ def test_e2e_grid_and_set_through_the_cli(tmp_path: Path, capsys: pytest.Capture
                              "--steps", "8", "--particles", "20", "--mc", "2", "--seed0", "5", "--quiet",
                              "--grid", "fusion.vs_reduction=matched,gate", "--out", str(out)], capsys)
     _assert_one_line_error(code, err, "--set")
+
+
+@pytest.mark.slow
+def test_e2e_report_has_a_step_viewer_per_variant(e2e: dict) -> None:
+    """One viewer per variant (its lowest seed), with the cache's paths, the renderer embedded once."""
+    import json
+    import re
+
+    from mmslam.raytrace.cache import load_cache
+
+    d, jobs = e2e["dir"], e2e["jobs"]
+    text = (d / "report.html").read_text()
+    assert text.count('<div class="mmslam-viewer"') == len(A.VARIANTS)
+    assert text.count("function mmslamFrameSVG") == 1
+    blobs = [json.loads(b) for b in re.findall(r'class="viewer-data">(.*?)</script>', text, re.S)]
+    cache = load_cache(json.loads((d / "ablation.json").read_text())["cache_dir"])
+    for v, data in zip(A.VARIANTS, blobs):
+        res = jobs[next(j for j in jobs if j.variant == v and j.seed == 0)]
+        assert data["steps"] == list(range(STEPS)) and data["title"].startswith(f"{v}, seed 0")
+        for k in range(STEPS):  # every traced path of the step, to its receiver
+            assert len(data["paths"][k]) == int(np.sum(np.asarray(cache.paths["step"]) == k))
+        ex = np.asarray(res.vehicles["x"])[(np.asarray(res.vehicles["step"]) == STEPS - 1)
+                                             & (np.asarray(res.vehicles["vehicle"]) == 0)][0]
+        assert data["vehicles"][0]["est"][-1][0] == pytest.approx(ex, abs=0.005)

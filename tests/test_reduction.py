@@ -1,11 +1,12 @@
-"""Tests of slam/reduction.py: hand-computed merges, the exact merge criterion, batching."""
+"""Tests of slam/phd/reduction.py: hand-computed merges, the exact merge criterion, batching."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mmslam.slam.gm import GM, empty, select
-from mmslam.slam.reduction import average_map, prune_merge
+from mmslam.slam.core.gm import GM, empty, select
+from mmslam.slam.phd.reduction import average_map, prune_merge
+from mmslam.slam.reference.reduction import greedy_merge
 
 
 def _gm(w, m, P=None):
@@ -151,18 +152,9 @@ def test_average_map_identical_particles_equal_prune_merge():
 
 
 def _ref_greedy(w, m, P, merge):
-    """Plain greedy Vo & Ma merge of one mixture (LAPACK inverse per component, lower index heads ties)."""
-    left = list(np.argsort(-w, kind="stable"))
-    out = []
-    while left:
-        j = left[0]
-        cl = [i for i in left if i == j or (m[i] - m[j]) @ np.linalg.inv(P[i]) @ (m[i] - m[j]) <= merge]
-        W = w[cl].sum()
-        mu = (w[cl, None] * m[cl]).sum(0) / W
-        C = sum(w[i] * (P[i] + np.outer(m[i] - mu, m[i] - mu)) for i in cl) / W
-        out.append((W, mu, C))
-        left = [i for i in left if i not in cl]
-    return out
+    """Plain greedy Vo & Ma merge of one mixture (:func:`mmslam.slam.reference.reduction.greedy_merge`:
+    LAPACK inverse per component, lower index heads ties): ``(W, mean, cov)`` per cluster."""
+    return [(W, mu, C) for _, W, mu, C in greedy_merge(w, m, P, range(len(w)), merge)[0]]
 
 
 def test_batched_prune_merge_equals_each_mixture_alone():
@@ -209,7 +201,7 @@ def test_single_mixture_merge_equals_the_plain_greedy_reference():
 
 
 def test_spd_inverse_matches_lapack_inverse():
-    from mmslam.slam.linalg import spd_inv
+    from mmslam.slam.core.linalg import spd_inv
 
     rng = np.random.default_rng(17)
     for d in (2, 3, 4, 5, 7):
@@ -226,7 +218,7 @@ def test_spd_inverse_matches_lapack_inverse():
 
 def test_merge_flat_moments_equal_the_plain_reference():
     """Every mixture of a flat batch (random keep masks) equals the plain greedy reference."""
-    import mmslam.slam.reduction as red
+    import mmslam.slam.phd.reduction as red
 
     rng = np.random.default_rng(18)
     n, q, d = 40, 6, 7
@@ -249,7 +241,7 @@ def test_merge_flat_moments_equal_the_plain_reference():
 
 @pytest.mark.parametrize("presorted", [False, True])
 def test_compact_equals_stable_argsort_gather(presorted):
-    from mmslam.slam.gm import compact
+    from mmslam.slam.core.gm import compact
 
     rng = np.random.default_rng(19)
     B, q, d = (3, 4), 6, 3
@@ -271,7 +263,7 @@ def test_compact_equals_stable_argsort_gather(presorted):
 
 
 def test_moment_match_equals_the_textbook_formula():
-    from mmslam.slam.reduction import moment_match
+    from mmslam.slam.phd.reduction import moment_match
 
     rng = np.random.default_rng(2)
     Q, d = 5, 7
@@ -333,7 +325,7 @@ def test_fixed_capacity_pads_with_dead_slots():
 
 
 def test_drop_dead_slots_keeps_the_live_columns_in_order():
-    from mmslam.slam.gm import drop_dead_slots
+    from mmslam.slam.core.gm import drop_dead_slots
 
     rng = np.random.default_rng(3)
     mask = np.array([[True, False, False, True], [False, False, False, True]])
@@ -355,7 +347,7 @@ def test_drop_dead_slots_keeps_the_live_columns_in_order():
 def test_drop_dead_slots_rejects_a_mask_of_another_shape():
     """The compiled live-slot search reads ``mask (N, Q)`` with ``Q`` from the weights: a mask of another
     shape raises a one-line ValueError first."""
-    from mmslam.slam.gm import GM, drop_dead_slots
+    from mmslam.slam.core.gm import GM, drop_dead_slots
 
     g = GM(np.zeros((2, 3)), np.zeros((2, 3, 3)), np.broadcast_to(np.eye(3), (2, 3, 3, 3)).copy(),
            np.zeros((2, 2), bool))

@@ -70,7 +70,7 @@ def test_street_preset_shape():
     # car_a drives east, car_b north at first: not parallel
     assert abs(math.cos(s[0, 0, 3] - s[0, 1, 3])) < 1e-9
     # waypoint motion: the CT model with the stored inputs reproduces the next position exactly
-    from mmslam.slam.dynamics import vehicle_ct
+    from mmslam.slam.models.dynamics import vehicle_ct
 
     pred = vehicle_ct(s[:-1], scn.dt)
     assert np.allclose(pred[..., :2], s[1:, :, :2], atol=1e-9)
@@ -241,7 +241,7 @@ def test_every_declared_parameter_is_read_by_the_code():
 
     from mmslam.scenes.params import iter_params
     from mmslam.scenes.scenario import PARAM_SECTIONS
-    from mmslam.slam.landmarks import landmark_types
+    from mmslam.slam.specs.landmarks import landmark_types
 
     root = Path(__file__).resolve().parents[1]
     skip = {root / "scenes" / "scenario.py", root / "scenes" / "params.py"}

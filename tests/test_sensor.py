@@ -1,4 +1,4 @@
-"""Tests of slam/sensor.py: statistics of detections, clutter and noise; FOV; clock bias; errors."""
+"""Tests of slam/sim/sensor.py: statistics of detections, clutter and noise; FOV; clock bias; errors."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,8 +12,9 @@ from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.schema import PATH_COLUMNS
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import vehicle_trajectories
-from mmslam.slam.measurement import BS, OTHER, SP, VA, VS, measure
-from mmslam.slam.sensor import clutter_intensity, fov_detect_prob, simulate_measurements
+from mmslam.slam.models.measurement import BS, OTHER, SP, VA, VS, measure
+from mmslam.slam.sim.sensor import clutter_intensity, fov_detect_prob, simulate_measurements
+from mmslam.model import Bounce
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +83,7 @@ def test_determinism_and_shapes(paper):
     np.testing.assert_allclose(a.R, np.diag([0.01, 1e-4, 1e-4, 1e-4, 1e-4]))
     # a detected BS measurement is near the geometric model at the true state
     k, v, j = np.argwhere(a.origin_type == BS)[0]
-    zhat = measure(a.true_states[k, v], a.origin_pos[k, v, j], BS, paper.bs_array)
+    zhat = measure(a.true_states[k, v], a.origin_pos[k, v, j], Bounce.DIRECT, paper.bs_array)
     assert np.all(np.abs(a.z[k, v, j] - zhat) < 6 * np.sqrt(np.diag(a.R)))
     # input order of path rows does not matter
     perm = np.random.default_rng(0).permutation(len(paths["rx"]))
@@ -258,7 +259,7 @@ def test_fov_detect_prob_broadcasts_strided_views_and_takes_p_inside(paper):
 
 # ---------------------------------------------------------------- power-aware model (issue 11)
 def test_link_budget_crb_scaling_and_hand_values():
-    from mmslam.slam.sensor import LinkBudget
+    from mmslam.slam.sim.sensor import LinkBudget
 
     lb = LinkBudget()
     snr = np.array([-5.0, 10.0, 20.0, 35.0])
@@ -281,7 +282,7 @@ def test_link_budget_detection_probability_is_marcum_q_and_falls_with_snr():
     from scipy.integrate import quad
     from scipy.special import i0e
 
-    from mmslam.slam.sensor import LinkBudget
+    from mmslam.slam.sim.sensor import LinkBudget
 
     lb = LinkBudget(pfa=1e-3)
     b = math.sqrt(-2 * math.log(1e-3))
@@ -302,7 +303,7 @@ def test_link_budget_detection_probability_is_marcum_q_and_falls_with_snr():
 
 
 def test_power_aware_measurements_noise_detection_and_r_per_measurement(paper):
-    from mmslam.slam.sensor import LinkBudget
+    from mmslam.slam.sim.sensor import LinkBudget
 
     lb = LinkBudget()
     scn = _sensor(paper, clutter_mean=0.5, vehicle_noise_std=(0, 0, 0, 0, 0, 0, 0.0))
@@ -349,7 +350,7 @@ def test_constant_model_unchanged_and_r_meas_is_diag_r(paper):
 
 
 def test_power_aware_model_needs_power(paper):
-    from mmslam.slam.sensor import LinkBudget
+    from mmslam.slam.sim.sensor import LinkBudget
 
     states, paths = _repeat_static(3, rows_per_step=[dict(BS_ROW, power_db=np.nan)])
     with pytest.raises(MmslamError, match=r"'power_db' is nan at step 0"):
@@ -359,7 +360,7 @@ def test_power_aware_model_needs_power(paper):
 def test_sensor_model_link_is_a_scenario_option(paper):
     """`sensor.model = "link"` (e.g. `--set sensor.model=link`) uses the scenario's link budget."""
     from mmslam.scenes.scenario import with_overrides
-    from mmslam.slam.sensor import LinkBudget
+    from mmslam.slam.sim.sensor import LinkBudget
 
     assert paper.sensor.model == "constant"  # the paper's constant model stays the default
     scn = with_overrides(paper, ["sensor.model=link", "sensor.tx_power_dbm=25"])

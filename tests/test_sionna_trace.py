@@ -15,7 +15,9 @@ from mmslam.scenes.landmarks import reflecting_faces, va_truth
 from mmslam.scenes.meshes import car_mesh, scatterer_mesh
 from mmslam.scenes.scenario import load_preset
 from mmslam.scenes.trajectory import vehicle_trajectories
-from mmslam.slam.measurement import BS, OTHER, SP, VA, VS, channel_params
+from mmslam.slam.models.measurement import BS, OTHER, SP, VA, VS, channel_params
+from mmslam.model import Bounce
+from mmslam.slam.specs.landmarks import geometry_of
 
 STEPS = (0, 9, 17, 26, 33)
 
@@ -78,7 +80,7 @@ def test_bs_and_va_paths_match_channel_params(traced):
                     np.testing.assert_allclose(lm, vas[lab["landmark_id"][i]], atol=1e-9)
                     n_va += 1
                     assert lab["n_paths"][i] == 1 and not lab["diffuse"][i]
-                g = channel_params(u, lm, typ, b)
+                g = channel_params(u, lm, geometry_of(typ), b)
                 got = np.array([lab[c][i] for c in ("toa_m", "aod_az", "aod_el", "aoa_az", "aoa_el")])
                 assert abs(got[0] - g[0]) < 1e-2, (k, lab["landmark_id"][i], got[0], g[0])
                 d = np.angle(np.exp(1j * (got[1:] - g[1:])))
@@ -162,7 +164,7 @@ def test_sp_and_vs_paths_within_object_size(traced):
                 u = states[k, lab["rx"][i], :3]
                 lm = np.array([lab["lm_x"][i], lab["lm_y"][i], lab["lm_z"][i]])
                 r = rad_k[name]
-                g = channel_params(u, lm, typ, b)
+                g = channel_params(u, lm, geometry_of(typ), b)
                 assert abs(lab["toa_m"][i] - g[0]) <= 2 * r, (k, name)
                 # angular error bounded by the angle the object subtends around its reference point
                 dep = np.arccos(np.clip(_unit(lab["aod_az"][i], lab["aod_el"][i]) @ _unit(g[1], g[2]), -1, 1))
@@ -235,7 +237,7 @@ def test_external_xml_scene_va_by_plane(tmp_path):
     j = ids[va[0]]
     lm = np.array([lab["lm_x"][j], lab["lm_y"][j], lab["lm_z"][j]])
     np.testing.assert_allclose(lm, [-1.5, 0.0, 2.0], atol=1e-3)
-    g = channel_params(st[0, :3], lm, VA, np.array(scn.bs))
+    g = channel_params(st[0, :3], lm, Bounce.MIRROR, np.array(scn.bs))
     assert abs(lab["toa_m"][j] - g[0]) < 1e-2
     assert np.all(np.abs(np.angle(np.exp(1j * (np.array([lab[c][j] for c in ("aod_az", "aod_el", "aoa_az", "aoa_el")]) - g[1:])))) < 1e-3)
 

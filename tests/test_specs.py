@@ -11,11 +11,12 @@ from mmslam.model import Bounce, LandmarkType
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.scenes.scenario import FilterParams, load_preset, with_overrides
 from mmslam.scenes.trajectory import vehicle_trajectories
-from mmslam.slam import landmarks as L
-from mmslam.slam import variants as V
-from mmslam.slam.measurement import measure
-from mmslam.slam.run import CooperativeRun, run_filter
-from mmslam.slam.sensor import fov_detect_prob
+from mmslam.slam.specs import landmarks as L
+from mmslam.slam.specs import variants as V
+from mmslam.slam.models.measurement import measure
+from mmslam.slam.filter.run import CooperativeRun, run_filter
+from mmslam.slam.sim.sensor import fov_detect_prob
+from mmslam.slam.specs.landmarks import geometry_of
 
 BS_POS = np.array([0.0, 0.0, 40.0])
 
@@ -59,8 +60,9 @@ def test_each_types_geometry_is_its_measurement_model(name):
     d = x - u
     assert z[3] == pytest.approx(np.arctan2(d[1], d[0]) - s[3], abs=1e-12)
     assert z[4] == pytest.approx(np.arcsin(d[2] / np.linalg.norm(d)), abs=1e-12)
-    # the filter's type code and its geometry code give the same measurement
-    np.testing.assert_allclose(measure(s, x, spec.code, BS_POS), z, rtol=1e-12)
+    # the type's code leads to the same geometry through the registry (the one owner of code -> geometry)
+    np.testing.assert_allclose(measure(s, x, geometry_of(spec.code), BS_POS), z, rtol=1e-12)
+    assert geometry_of(spec.code) == geometry_of(spec.name) == int(spec.geometry)
 
 
 def test_fov_rule_follows_the_specs():

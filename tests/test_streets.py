@@ -75,7 +75,7 @@ def test_ten_random_cars_in_munich_stay_on_streets_and_see_the_bs_or_a_va(tmp_pa
     """Acceptance: n_vehicles = 10 on sionna:munich gives 10 cars that never intersect a building over
     40 steps, each seeing the BS or a VA (mesh ray casting) in most steps; same seed, same routes."""
     from mmslam.raytrace.mesh_analytic import MeshAnalyticSource
-    from mmslam.slam.measurement import BS, VA
+    from mmslam.slam.models.measurement import BS, VA
 
     toml = tmp_path / "m.toml"
     toml.write_text('name = "munich10"\nseed = 1\nxml_scene = "sionna:munich"\nbs = [8.5, 21.0, 30.0]\n'

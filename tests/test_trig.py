@@ -1,4 +1,4 @@
-"""The branch-free ``atan2`` of :mod:`mmslam.slam.trig` against libm, and its polynomial's derivation."""
+"""The branch-free ``atan2`` of :mod:`mmslam.slam.core.trig` against libm, and its polynomial's derivation."""
 from __future__ import annotations
 
 import math
@@ -7,8 +7,8 @@ import numba as nb
 import numpy as np
 import pytest
 
-from mmslam.slam import trig
-from mmslam.slam.measurement import measure_point, wrap
+from mmslam.slam.core import trig
+from mmslam.slam.models.measurement import measure_point, wrap
 
 
 @nb.njit(error_model="numpy")
@@ -41,12 +41,20 @@ def _inputs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return y, x
 
 
+def _libm_atan2(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """libm's ``atan2`` element by element through :func:`math.atan2` (scalar, so no SIMD path).
+
+    Not ``np.arctan2``: NumPy dispatches it to SIMD code chosen at run time (on an AVX-512 CPU it
+    differs from libm by 1 ulp on ~7% of these inputs), so it is no fixed reference."""
+    return np.frompyfunc(math.atan2, 2, 1)(y, x).astype(float)
+
+
 def test_atan2_is_within_2_ulp_of_libm_with_libm_signs_on_2e6_inputs():
+    """Against glibc's ``atan2`` (correctly rounded in practice) the error is at most 2 ulp
+    (measured: 2 ulp on 0.03% of the inputs, 1 ulp on 12%, exact on the rest)."""
     y, x = _inputs(2_000_000, 1)
     got = _atan2(y, x)
-    ref = np.arctan2(y, x)  # libm atan2 (the same as math.atan2, checked on a sample below)
-    sample = np.arange(0, y.size, 997)
-    assert all(math.atan2(y[i], x[i]) == ref[i] for i in sample)
+    ref = _libm_atan2(y, x)
     ulp = np.abs(got - ref) / np.spacing(np.abs(ref))
     assert ulp.max() <= 2.0, f"max error {ulp.max()} ulp"
     assert np.array_equal(np.signbit(got), np.signbit(ref))  # signed zeros and +-pi

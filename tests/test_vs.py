@@ -1,4 +1,4 @@
-"""Tests of slam/vs.py: CT prediction of VS Gaussians, birth mean / covariance."""
+"""Tests of slam/models/vs.py: CT prediction of VS Gaussians, birth mean / covariance."""
 from __future__ import annotations
 
 import math
@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from mmslam.slam.dynamics import vs_ct
-from mmslam.slam.gm import GM, empty
-from mmslam.slam.vs import predict_vs, vs_birth_covariance, vs_birth_mean
+from mmslam.slam.models.dynamics import vs_ct
+from mmslam.slam.core.gm import GM, empty
+from mmslam.slam.models.vs import predict_vs, vs_birth_covariance, vs_birth_mean
 
 Q_STD = np.array([1, 1, 0.1, 3, 3, 0.1, 0.05])
 DITHER = np.array([9, 9, 0.09, 5, 5, 0.09, 0.18])
@@ -111,8 +111,8 @@ def test_vs_map_prediction_equals_the_concatenated_predictions(scope, n_old):
     concatenation of the two predictions (old Gaussians dithered only with scope 'all')."""
     from types import SimpleNamespace
 
-    from mmslam.slam.gm import concat
-    from mmslam.slam.landmarks import predict_vs_map
+    from mmslam.slam.core.gm import concat
+    from mmslam.slam.specs.landmarks import predict_vs_map
 
     rng = np.random.default_rng(9)
 
@@ -140,7 +140,7 @@ def test_predict_vs_into_rejects_an_out_it_would_overrun_or_copy():
     """The compiled loop does not check bounds: an ``out`` too small for ``off + Q`` slots, of another
     batch shape or not contiguous (its reshape a copy: the prediction lost) is a ValueError, and
     nothing is written past it."""
-    from mmslam.slam.vs import predict_vs_into, process_noise
+    from mmslam.slam.models.vs import predict_vs_into, process_noise
 
     g = empty((2,), 3, 7)
     g.mask[:] = True

@@ -1,0 +1,248 @@
+"""The local filter of one vehicle: an RBPF with one GM-PHD map per landmark type (docs/design.md section 6).
+
+One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
+
+1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
+   states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``);
+   particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
+   and process noise ``sensor.vehicle_noise_std``; each map through its type's ``predict``
+   (static: times ``p_S``, eq. 4; VS: coordinated turn with process noise and dithering, eq. 9);
+2. correction with ``Z_k`` (eqs. 5 / 10, CKF per Gaussian, filter noise ``R = r_scale R_true``);
+   particle log-weights ``+= sum_z log psi(z)`` (product form, as the authors' code; the paper's
+   eq. 6 writes a sum). Corrected components below the prune threshold are never materialised;
+3. reduction per type (``prune_merge``: prune, merge, cap, max_trace);
+4. estimates with the corrected weights: weighted-mean state, averaged maps (eq. 7,
+   ``average_map`` with ``fusion.average_prune``; with ``fusion.average_by_label`` the particles'
+   copies of one labelled landmark pooled first);
+5. systematic resampling when ``ESS < resample_ess P`` (no roughening: the process noise added
+   at every prediction keeps the particles diverse).
+
+Which maps a filter keeps, and whether it corrects at all, is its variant's
+(:class:`~mmslam.slam.specs.variants.VariantSpec`); what each map does, its type's
+(:class:`~mmslam.slam.specs.landmarks.LandmarkSpec`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from mmslam.errors import MmslamError
+from mmslam.scenes.scenario import Scenario
+
+from ..phd.birth import birth_moments_by_kind
+from ..models.dynamics import wrap_angle
+from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, with_labels
+from ..phd.gmphd import correct
+from ..specs.landmarks import LandmarkSpec
+from ..models.measurement import BS
+from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
+                   weighted_state_cov, weighted_state_mean)
+from ..phd.reduction import average_map, prune_merge
+from ..specs.variants import VariantSpec, get_variant
+
+
+def _broadcast_gm(g: GM, n: int) -> GM:
+    """A single mixture (batch ``()``) copied to every one of ``n`` particles (batch ``(n,)``)."""
+    return g.take((None,)).take(np.zeros(n, int))
+
+
+def _take(g: GM, idx: np.ndarray) -> GM:
+    return g.take(idx)
+
+
+@dataclass
+class StepEstimate:
+    """Estimates of one vehicle after one local step (before resampling).
+
+    ``mean (7,)``, ``cov (7, 7)``: weighted particle mean / covariance of the vehicle state;
+    ``avg_maps``: type -> averaged map (GM, batch ``()``); ``ess``: effective sample size
+    before resampling; ``resampled``: whether resampling happened.
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    avg_maps: dict[int, GM]
+    ess: float
+    resampled: bool
+
+
+class LocalFilter:
+    """The RBPF of one vehicle: ``P`` particles, each with one GM-PHD map per landmark type.
+
+    Args:
+        scn: the scenario (sensor, filter and fusion parameters; BS position).
+        variant: a :class:`~mmslam.slam.specs.variants.VariantSpec` or its name (``baseline`` | ``cm1``
+            | ``proposed`` | ...): which maps (``map_types``) and the downlink rule.
+        particles: number of particles ``P``.
+        prior_mean: ``(7,)`` the initial state estimate.
+        R: ``(5, 5)`` the filter's measurement covariance (already scaled by ``r_scale``).
+        clutter_intensity: ``c(z)`` (per unit of measurement-space volume).
+        pd_fn: ``pd_fn(vehicle_pos (..., 3), lm_pos (..., 3), lm_type) -> (...)`` detection
+            probability (typically :func:`mmslam.slam.sim.sensor.fov_detect_prob`).
+        rng: this filter's random generator.
+        measurement_update: False for dead reckoning (no correction, births or map).
+        vehicle: the vehicle's index in ``[0, 2^23)``; with ``fusion.average_by_label`` its births are
+            labelled ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
+    """
+
+    def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
+                 R: np.ndarray, clutter_intensity: float,
+                 pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
+                 rng: np.random.Generator, measurement_update: bool = True, vehicle: int = 0) -> None:
+        spec = get_variant(variant)
+        if particles < 1:
+            raise MmslamError(f"particles={particles}: expected at least 1 particle")
+        if not 0 <= int(vehicle) < 1 << (63 - LABEL_BITS):  # its labels: non-negative int64, none NO_LABEL
+            raise MmslamError(f"vehicle={vehicle}: expected a vehicle index in [0, {1 << (63 - LABEL_BITS)})")
+        self.scn = scn
+        self.fp = scn.filter
+        self.variant = spec
+        self.P = int(particles)
+        self.R = np.asarray(R, float)
+        self.bs = scn.bs_array
+        self._bs_rows = np.broadcast_to(self.bs, (self.P, 3))  # the BS position of every particle (read-only view)
+        self.dt = scn.dt
+        self.pd_fn = pd_fn
+        self.rng = rng
+        self.update = measurement_update
+        with np.errstate(divide="ignore"):
+            self.log_clutter = float(np.log(clutter_intensity)) if clutter_intensity > 0 else -np.inf
+        self.specs: dict[int, LandmarkSpec] = {t.code: t for t in spec.types()}
+        """type code -> spec of every map this filter keeps"""
+        self.types: tuple[int, ...] = tuple(self.specs)
+        self._extent = {t: s.extent(scn) for t, s in self.specs.items()}
+        self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
+        self.s[:, 3] = wrap_angle(self.s[:, 3])
+        self.logw = np.full(self.P, -np.log(self.P))
+        self._labels = bool(scn.fusion.average_by_label)
+        self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim, with_label=self._labels)
+                                    for t, s in self.specs.items()}
+        self._prev_Z: np.ndarray | None = None
+        self._k = -1
+        self._next_label = int(vehicle) << LABEL_BITS
+        self._ego_label = ego_label(vehicle)  # the last of the vehicle's range: not a birth's
+        """the label of the next birth (``fusion.average_by_label``)"""
+
+    # ------------------------------------------------------------------ stages
+    def predict(self, speed: float, turn_rate: float) -> None:
+        """Prediction from step k-1 to k: births from ``Z_{k-1}``, particles, map survival / VS motion."""
+        births: dict[int, GM] = {}
+        if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
+            # one inversion per path geometry (SP and VS share SCATTER), the types' births from it
+            kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}))
+            moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
+            for t, sp in self.specs.items():
+                # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
+                births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn))
+                if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
+                    births[t], self._next_label = with_labels(births[t], self._next_label)
+                    if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice
+                        raise MmslamError(f"vehicle {self._ego_label >> LABEL_BITS} ran out of birth labels")
+        self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
+                           self.rng)
+        if not self.update:
+            return
+        for t, sp in self.specs.items():
+            self.maps[t] = sp.predict(self.maps[t], births.get(t), self.scn)
+
+    def correct(self, Z: np.ndarray, R_z: np.ndarray | None = None) -> None:
+        """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
+
+        ``R_z``: ``(J, 5, 5)`` one filter covariance per measurement (power-aware sensor model),
+        or None for the filter's constant ``R``.
+
+        Raises FloatingPointError if a corrected map breaks the PHD-mass invariant (more than
+        the predicted mass plus ``J`` for some particle; :func:`~mmslam.slam.phd.gmphd.check_phd_mass`).
+        """
+        J = Z.shape[0]
+        if not self.update:
+            return
+        # J = 0 still corrects: every detectable Gaussian was missed, w <- (1 - p_D) w (eq. (5) with
+        # an empty set); the particle weights are unchanged (an empty product)
+        R = self.R if R_z is None or J == 0 else np.asarray(R_z, float).reshape(J, 5, 5)
+        p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
+        corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
+                                  p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs)
+        self.maps.update(corrected)
+        self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
+
+    def reduce(self) -> None:
+        """``prune_merge`` of every map (prune, merge, cap, max position trace)."""
+        fp = self.fp
+        for t in self.types:
+            g = self.maps[t]
+            if g.capacity:  # prune_merge prunes first and trims the slots to the live count
+                g = prune_merge(g, fp.prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians, fp.max_trace,
+                                pos_dims=3)
+            self.maps[t] = g
+
+    def estimate(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, GM]]:
+        """Weighted-mean state, its covariance and the averaged maps for normalised weights ``w``."""
+        fp, fu = self.fp, self.scn.fusion
+        mean = weighted_state_mean(self.s, w)
+        cov = weighted_state_cov(self.s, w, mean)
+        avg = {}
+        for t in self.types:
+            g = self.maps[t]
+            avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
+                                  fp.max_trace, by_label=fu.average_by_label)
+                      if g.capacity else empty((), 0, self.specs[t].state_dim, with_label=self._labels))
+        return mean, cov, avg
+
+    def resample(self, w: np.ndarray) -> tuple[float, bool]:
+        """Systematic resampling if ``ESS < resample_ess P``; returns ``(ESS, resampled)``."""
+        e = ess(w)
+        if e < self.fp.resample_ess * self.P:
+            idx = systematic_resample(w, self.rng)
+            self.s = self.s[idx]
+            self.maps = {t: _take(g, idx) for t, g in self.maps.items()}
+            self.logw = np.full(self.P, -np.log(self.P))
+            return e, True
+        return e, False
+
+    # ------------------------------------------------------------------ one step
+    def step(self, Z: np.ndarray, speed: float | None = None, turn_rate: float | None = None,
+             R_z: np.ndarray | None = None) -> StepEstimate:
+        """One vehicle-step: predict (unless first step), correct with ``Z (J, 5)``, reduce, estimate, resample.
+
+        ``speed`` (m/s) and ``turn_rate`` (rad/s) are the known inputs of the previous step
+        (ignored on the first call). The measurements are kept for the next step's births.
+        ``R_z``: ``(J, 5, 5)`` per-measurement covariances for the correction (births keep ``R``).
+        """
+        Z = np.array(Z, dtype=float).reshape(-1, 5)  # a copy: kept for the next step's births
+        if not np.isfinite(Z).all():
+            raise FloatingPointError("non-finite measurement passed to the filter")
+        self._k += 1
+        if self._k > 0:
+            if speed is None or turn_rate is None:
+                raise ValueError("speed and turn_rate are required after the first step")
+            self.predict(float(speed), float(turn_rate))
+        self.correct(Z, R_z)
+        self.reduce()
+        self.logw, w = normalise_log_weights(self.logw)
+        mean, cov, avg = self.estimate(w)
+        e, res = self.resample(w)
+        self._prev_Z = Z
+        return StepEstimate(mean, cov, avg, e, res)
+
+    def downlink(self, fused: dict[int, GM], ego: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Overwrite every particle's map of each type in ``fused`` by the fused map (paper III-B2).
+
+        ``ego``: this vehicle's posterior as a VS Gaussian (mean ``(7,)``, covariance ``(7, 7)``);
+        for a variant with ``downlink_ego_removal`` (``proposed``, part of its ``F'_AA``
+        countermeasure) the type's ``remove_ego`` (VS, with ``fusion.downlink_ego = "remove"``)
+        drops the components matched to it first. The fused map's labels (``fusion.average_by_label``)
+        go to every particle with it: after a downlink the particles' copies of a landmark share one.
+        """
+        for t, g in fused.items():
+            if t not in self.maps:
+                continue
+            sp = self.specs[t]
+            if sp.remove_ego is not None and ego is not None and self.variant.downlink_ego_removal and g.capacity:
+                g = sp.remove_ego(g, ego, self.scn)
+            if g.pd_beta is not None and self.fp.pd_beta_downlink == "prior":
+                g = g.copy()
+                g.pd_beta[...] = sp.pd_beta_prior(self.scn)
+            self.maps[t] = _broadcast_gm(g, self.P)

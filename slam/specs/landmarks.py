@@ -1,0 +1,437 @@
+"""Landmark types of the filter: one :class:`LandmarkSpec` per type, defined once, in a registry.
+
+Everything the filter, the sensor model, the fusion centre and the evaluation need to know about
+a landmark type lives in its spec (nothing else in ``slam/`` compares type codes):
+
+============  =====  ==========  =====  =============  ==========  ================================
+type          code   geometry    dim    FOV gate       dynamics    fusion operator
+============  =====  ==========  =====  =============  ==========  ================================
+BS (known)    0      DIRECT      3      none           --          -- (a known landmark, no map)
+VA            1      MIRROR      3      none           static      AA fusion ``F_AA`` (eq. 8)
+SP            2      SCATTER     3      fov_range      static      AA fusion ``F_AA`` (eq. 8)
+VS            3      SCATTER     7      fov_range      CT (eq. 2)  ``F_AA`` (cm1), or ego average
+                                                                   (eq. 11), VS fusion (eqs. 16-20)
+============  =====  ==========  =====  =============  ==========  ================================
+
+- **geometry** (:class:`~mmslam.model.Bounce`): how a landmark point maps to a measurement
+  (eq. 3) and how a measurement is inverted to a birth point (the MIRROR / SCATTER inversions of
+  :mod:`mmslam.slam.phd.birth`); the kernels take this geometry code.
+- **FOV gate**: a landmark of a range-gated type is detectable only within ``sensor.fov_range``
+  of the vehicle (the sensor model, the filter's ``p_D`` and the accumulated FOV at fusion use
+  :meth:`LandmarkSpec.fov_radius`); the others are always in the FOV (infinite radius).
+- **dynamics**: the local prediction of the type's map (:data:`predict_static_map`: survival
+  ``p_S``; :func:`predict_vs_map`: coordinated turn with dithering), and optionally a prediction
+  at the BS between uploads (:func:`predict_vs_at_bs`, variant flag ``predict_at_bs``).
+- **parameters**: its detection probability ``filter.<p_detect_param>`` and estimate threshold
+  ``filter.<threshold_param>`` (default ``p_detect_<name>`` / ``threshold_<name>``).
+- **evaluation**: ``moving`` types (VS) are scored against the other vehicles' true positions,
+  static ones against the landmarks first seen so far.
+
+Adding a type (docs/extending.md): make a :class:`LandmarkSpec` with its functions and
+:func:`register_landmark_type` it; a :class:`~mmslam.slam.specs.variants.VariantSpec` naming it in
+``map_types`` runs it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from mmslam.errors import MmslamError
+from mmslam.model import OTHER, Bounce, LandmarkType
+
+from ..phd.birth import birth_from_moments
+from ..core.gm import NO_LABEL, GM, concat, concat_label, concat_pd_beta, ego_label
+from ..phd.gmphd import predict_static
+from ..phd.reduction import merge_pairs, prune_merge
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mmslam.scenes.scenario import Scenario, SensorParams
+
+    from .variants import VariantSpec
+
+PdFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+"""``pd_fn(vehicle_pos (..., 3), lm_pos (..., 3), lm_type code) -> (...)`` detection probability."""
+
+
+def point_extent(scn: "Scenario") -> None:
+    """A point landmark: the measured point is the landmark state's position (no extent)."""
+    return None
+
+
+@dataclass(frozen=True)
+class FusionInput:
+    """What a type's fusion operator gets besides the two maps (one vehicle's upload at the BS).
+
+    ``ego_mean (7,)``, ``ego_cov (7, 7)``: the uploading vehicle's state posterior; ``vehicle``: its
+    index (the label of its ego Gaussian, :func:`mmslam.slam.core.gm.ego_label`), or None (no label).
+    """
+
+    scn: "Scenario"
+    variant: "VariantSpec"
+    ego_mean: np.ndarray
+    ego_cov: np.ndarray
+    vehicle: int | None = None
+
+
+@dataclass(frozen=True)
+class LandmarkSpec:
+    """One landmark type of the filter (see the module docstring for the built-in ones).
+
+    Attributes:
+        name: short name (``"VA"``); result tables and parameter names use it.
+        code: integer code in path caches (``paths.type``) and measurement origins.
+        geometry: path geometry (:class:`~mmslam.model.Bounce`) of ``h(s, x)`` and of the birth
+            inversion.
+        state_dim: dimension of the map state (position first: ``[x, y, z, ...]``).
+        description: one line for figures and reports.
+        range_gated: detectable only within ``sensor.fov_range`` (m) of the vehicle.
+        mapped: the filter keeps a map of it (False: a known landmark, the BS).
+        moving: scored against the vehicles' true positions (else: static first-seen truth).
+        p_detect_param, threshold_param: ``filter.*`` parameter names of its detection
+            probability inside the FOV and of its estimate threshold ('' = ``p_detect_<name>``,
+            ``threshold_<name>`` in lower case).
+        merge_param: ``filter.*`` parameter name of its merge gate ``U`` (squared Mahalanobis
+            distance) in the local reduction and the averaged map (default ``merge``; VA:
+            ``merge_va``).
+        learns_pd: with ``filter.pd_model = "beta"`` its Gaussians carry a Beta of their own
+            detection probability (:mod:`mmslam.slam.phd.detection`; VA and SP, not the moving VS).
+        predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
+            (births are added to the predicted map).
+        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn) -> GM`` with ``moments`` =
+            ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
+        extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
+            landmark state's position (None: a point).
+        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``.
+        reduce_fused: ``reduce_fused(fused, pairs, scn) -> GM``, the reduction after fusion.
+        predict_at_bs: ``predict_at_bs(fused map, scn) -> map`` between uploads (only for variants
+            with ``predict_at_bs``), or None.
+        remove_ego: ``remove_ego(fused map, (mean (7,), cov (7, 7)), scn) -> map`` on the downlink
+            (variants with ``downlink_ego_removal``), or None.
+    """
+
+    name: str
+    code: int
+    geometry: Bounce
+    state_dim: int
+    description: str
+    range_gated: bool
+    mapped: bool = True
+    moving: bool = False
+    p_detect_param: str = ""
+    threshold_param: str = ""
+    merge_param: str = "merge"
+    learns_pd: bool = False
+    predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
+    birth: Callable[..., GM] | None = None
+    extent: Callable[["Scenario"], np.ndarray | None] = point_extent
+    fuse: Callable[[GM, GM, np.ndarray, FusionInput], tuple[GM, np.ndarray | None]] | None = None
+    reduce_fused: Callable[[GM, np.ndarray | None, "Scenario"], GM] | None = None
+    predict_at_bs: Callable[[GM, "Scenario"], GM] | None = None
+    remove_ego: Callable[[GM, tuple[np.ndarray, np.ndarray], "Scenario"], GM] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.p_detect_param:
+            object.__setattr__(self, "p_detect_param", f"p_detect_{self.name.lower()}")
+        if not self.threshold_param and self.mapped:
+            object.__setattr__(self, "threshold_param", f"threshold_{self.name.lower()}")
+
+    def fov_radius(self, sensor: "SensorParams") -> float:
+        """Radius (m) of the FOV about the vehicle: ``sensor.fov_range`` if range-gated, else infinite."""
+        return float(sensor.fov_range) if self.range_gated else float("inf")
+
+    def p_detect(self, scn: "Scenario") -> float:
+        """The filter's detection probability inside the FOV (``filter.<p_detect_param>``)."""
+        return float(getattr(scn.filter, self.p_detect_param))
+
+    def pd_beta_prior(self, scn: "Scenario") -> tuple[float, float] | None:
+        """Birth Beta ``(s0, t0)`` of this type's detection probability (mean ``filter.<p_detect_param>``,
+        pseudo-count ``filter.pd_beta_count``), or None where the type's ``p_D`` is fixed
+        (``filter.pd_model = "fixed"``, or a type that does not ``learns_pd``)."""
+        if scn.filter.pd_model != "beta" or not self.learns_pd:
+            return None
+        from ..phd.detection import prior_beta
+
+        return prior_beta(self.p_detect(scn), float(scn.filter.pd_beta_count))
+
+    def merge_gate(self, scn: "Scenario") -> float:
+        """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
+        (``filter.<merge_param>``; a negative value means ``filter.merge``)."""
+        return merge_gate(scn, self.merge_param)
+
+    def threshold(self, scn: "Scenario") -> float:
+        """Estimate threshold on a component's weight (``filter.<threshold_param>``)."""
+        if not self.threshold_param:
+            raise MmslamError(f"landmark type {self.name!r} is not mapped and has no estimate threshold")
+        return float(getattr(scn.filter, self.threshold_param))
+
+
+# ====================================================================== the types' functions
+def predict_static_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
+    """Static landmarks: weights times ``p_S`` (eq. 4; a Beta detection history fades by
+    ``filter.pd_beta_forget``, :func:`mmslam.slam.phd.detection.predict_beta`), then the births appended."""
+    g = predict_static(g, scn.filter.p_survival)
+    if g.pd_beta is not None:
+        from ..phd.detection import predict_beta
+
+        g.pd_beta = predict_beta(g.pd_beta, float(scn.filter.pd_beta_forget))
+    return g if born is None else concat(g, born)
+
+
+def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
+    """VS map: coordinated turn (eq. 2 / 9) with process noise ``filter.vs_process_std``; dithering
+    ``filter.vs_dither`` on every Gaussian (scope ``all``) or on the births only (``newborn``). The
+    predicted map and its predicted births are written side by side into one mixture."""
+    from ..models.vs import predict_vs_into, process_noise
+
+    fp = scn.filter
+    if born is None or not born.capacity:
+        born = None
+        if not g.capacity:
+            return g
+    q, dither = np.asarray(fp.vs_process_std), np.asarray(fp.vs_dither)
+    add_old = process_noise(q, dither if fp.vs_dither_scope == "all" else None)
+    qa, qb = g.capacity, 0 if born is None else born.capacity
+    shape = g.batch_shape + (qa + qb,)
+    out = GM(np.empty(shape), np.empty(shape + (g.dim,)), np.empty(shape + (g.dim, g.dim)), np.empty(shape, bool),
+             g.pd_beta if born is None else concat_pd_beta(g, born),
+             g.label if born is None else concat_label(g, born))
+    if qa:
+        predict_vs_into(g, scn.dt, fp.p_survival, add_old, out, 0)
+    if born is not None:
+        predict_vs_into(born, scn.dt, fp.p_survival, process_noise(q, dither), out, qa)
+    return out
+
+
+def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
+                scn: "Scenario", pd_fn: PdFn) -> GM:
+    """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
+    step's measurements, one slot per measurement with a birth in some particle
+    (:func:`mmslam.slam.phd.birth.birth_from_moments`; a 7-D VS birth gets the
+    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``),
+    with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one."""
+    fp = scn.filter
+    born = birth_from_moments(states, *moments, spec, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
+                              fp.vs_birth_turn_std, drop_dead=True)
+    prior = spec.pd_beta_prior(scn)
+    if prior is not None:
+        born.pd_beta = np.broadcast_to(np.asarray(prior, float), born.w.shape + (2,)).copy()
+    return born
+
+
+def vs_extent(scn: "Scenario") -> np.ndarray | None:
+    """``(3, 3)`` covariance of a VS bounce point about the car's antenna (``filter.vs_extent_std``), None if 0."""
+    h, v = (float(x) for x in scn.filter.vs_extent_std)
+    return np.diag([h * h, h * h, v * v]) if (h or v) else None
+
+
+def fuse_aa(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """AA fusion ``F_AA`` (eq. 8, TWC2020): MSM matching with ``fusion.msm_position``, matched pairs
+    weighted by ``fusion.aa_weights`` (``visibility``: by each member's learnt ``E[p_D]``)."""
+    from ..fusion import operators as fm
+
+    fu = ctx.scn.fusion
+    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True, weights=fu.aa_weights)
+
+
+def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """VS fusion: the variant's countermeasures, else plain AA fusion.
+
+    ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
+    (eq. 11; the ego Gaussian of :func:`mmslam.slam.filter.fusion_center.ego_gaussian`, widened by
+    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 16-20 (``fuse_vs``).
+    """
+    from ..fusion import operators as fm
+
+    scn, v = ctx.scn, ctx.variant
+    fu = scn.fusion
+    if v.ego_vs_average:
+        em, ec = fm.ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
+        ext = vs_extent(scn)
+        if ext is not None:  # others see this car where its body reflects, not at its antenna
+            ec = ec.copy()
+            ec[0:3, 0:3] += ext
+        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position,
+                                   NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
+    if v.vs_fusion:
+        return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov,
+                          with_pairs=True)
+    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
+
+
+def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
+    """The merge gate ``filter.<merge_param>``; a negative value (e.g. ``merge_va``'s default) means
+    ``filter.merge``, so an override of ``filter.merge`` reaches every type that does not set its own."""
+    v = float(getattr(scn.filter, merge_param))
+    return float(scn.filter.merge) if v < 0 else v
+
+
+def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", merge_param: str = "merge") -> GM:
+    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``,
+    :func:`merge_gate`)."""
+    fp, fu = scn.filter, scn.fusion
+    if fused.capacity:
+        fused = prune_merge(fused, fu.average_prune, merge_gate(scn, merge_param), fp.max_gaussians,
+                            fp.max_trace, pos_dims=3)
+    return fused
+
+
+def reduce_fused_va(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+    """:func:`reduce_fused_static` with the VA merge gate ``filter.merge_va``: two image sources closer
+    than the VA position uncertainty lets U = 49 tell apart stay two (docs/implementation-notes.md,
+    "Detection in cities")."""
+    return reduce_fused_static(fused, pairs, scn, "merge_va")
+
+
+def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+    """``fusion.vs_reduction``: merge the matched pairs only (``matched``), or every pair within
+    ``fusion.vs_merge_gate`` (``gate``); then prune / cap."""
+    fp, fu = scn.filter, scn.fusion
+    if fu.vs_reduction == "matched":
+        fused, gate = merge_pairs(fused, pairs), 0.0
+    else:
+        gate = fu.vs_merge_gate
+    if fused.capacity:
+        fused = prune_merge(fused, fu.average_prune, gate, fp.max_gaussians, fp.max_trace, pos_dims=3)
+    return fused
+
+
+def predict_vs_at_bs(g: GM, scn: "Scenario") -> GM:
+    """The fused VS map predicted one step at the BS without birth (eq. 15)."""
+    from ..fusion.operators import predict_bs_vs
+
+    fp = scn.filter
+    return predict_bs_vs(g, scn.dt, fp.p_survival, np.asarray(fp.vs_process_std), 1)
+
+
+def remove_ego_vs(g: GM, ego: tuple[np.ndarray, np.ndarray], scn: "Scenario") -> GM:
+    """Drop the fused VS components matched to the receiving vehicle itself (``fusion.downlink_ego``
+    = ``remove``; the vehicle is no scatterer of its own map)."""
+    from ..fusion.operators import remove_ego
+
+    if scn.fusion.downlink_ego != "remove":
+        return g
+    return remove_ego(g, ego[0], ego[1], scn.fusion.msm_position)
+
+
+# ====================================================================== registry
+_REGISTRY: dict[str, LandmarkSpec] = {}
+_CODES: dict[int, LandmarkSpec] = {}
+"""code -> spec, kept in step with the registry."""
+
+
+def register_landmark_type(spec: LandmarkSpec, *, replace: bool = False) -> LandmarkSpec:
+    """Add ``spec`` to the registry (by name; its code must be new too). Returns it.
+
+    Raises:
+        MmslamError: the name or code is taken (unless ``replace``), the code is ``OTHER`` or not an
+            integer, the geometry is not a :class:`~mmslam.model.Bounce`, or a mapped type has a DIRECT
+            geometry, fewer than 3 state components or lacks its functions.
+    """
+    if not replace and spec.name in _REGISTRY:
+        raise MmslamError(f"landmark type {spec.name!r} is already registered; pick another name")
+    taken = {c: s.name for c, s in _CODES.items() if s.name != spec.name}
+    if spec.code in taken or spec.code == OTHER or spec.code < 0:
+        raise MmslamError(f"landmark type {spec.name!r}: code {spec.code} is taken "
+                          f"({taken.get(spec.code, 'OTHER')}); pick an unused code >= 0")
+    if not isinstance(spec.code, (int, np.integer)) or isinstance(spec.code, bool):
+        raise MmslamError(f"landmark type {spec.name!r}: code {spec.code!r} must be an integer")
+    try:
+        geometry = Bounce(spec.geometry)
+    except ValueError:
+        raise MmslamError(f"landmark type {spec.name!r}: geometry {spec.geometry!r} is not a path geometry; "
+                          f"use one of {', '.join(b.name for b in Bounce)} (mmslam.model.Bounce)") from None
+    if spec.mapped and (geometry == Bounce.DIRECT or spec.state_dim < 3):
+        raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs a MIRROR or SCATTER geometry and "
+                          f"a state of at least 3 components (position first), got {geometry.name}, "
+                          f"state_dim {spec.state_dim}")
+    if spec.mapped and None in (spec.predict, spec.birth, spec.fuse, spec.reduce_fused):
+        raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs predict, birth, fuse and reduce_fused")
+    _REGISTRY[spec.name] = spec
+    _CODES.clear()
+    _CODES.update({s.code: s for s in _REGISTRY.values()})
+    return spec
+
+
+def unregister_landmark_type(name: str) -> None:
+    """Remove a registered type (tests; the built-in types stay)."""
+    if name in BUILTIN_TYPES:
+        raise MmslamError(f"landmark type {name!r} is built in and cannot be removed")
+    _REGISTRY.pop(name, None)
+    _CODES.clear()
+    _CODES.update({s.code: s for s in _REGISTRY.values()})
+
+
+def landmark_types() -> tuple[LandmarkSpec, ...]:
+    """All registered types, in registration order (BS, VA, SP, VS, then any added ones)."""
+    return tuple(_REGISTRY.values())
+
+
+def landmark_type(name_or_code: str | int) -> LandmarkSpec:
+    """The spec of a type by name (``"VS"``) or code (``3``).
+
+    Raises:
+        MmslamError: no such type.
+    """
+    if isinstance(name_or_code, str):
+        spec = _REGISTRY.get(name_or_code)
+    else:
+        spec = _CODES.get(int(name_or_code))
+    if spec is None:
+        known = ", ".join(f"{s.name}={s.code}" for s in _REGISTRY.values())
+        raise MmslamError(f"unknown landmark type {name_or_code!r}; expected one of {known}")
+    return spec
+
+
+def geometry_of(name_or_code: str | int) -> int:
+    """The path geometry (:class:`~mmslam.model.Bounce` code) of a registered type (name or code);
+    MmslamError for an unknown type. Building blocks are handed this (or the spec), never the code."""
+    return int(landmark_type(name_or_code).geometry)
+
+
+def mapped_types() -> tuple[LandmarkSpec, ...]:
+    """Registered types the filter maps (all but the known BS)."""
+    return tuple(s for s in _REGISTRY.values() if s.mapped)
+
+
+def range_gated_codes() -> np.ndarray:
+    """``(n,)`` codes of the range-gated types (SP, VS, ...)."""
+    return np.array([s.code for s in _REGISTRY.values() if s.range_gated], dtype=int)
+
+
+def is_range_gated(codes: int | np.ndarray) -> np.bool_ | np.ndarray:
+    """Whether landmarks of these type codes are gated by ``sensor.fov_range`` (unknown codes: no);
+    a NumPy bool (``~`` negates it) or a bool array of the shape of ``codes``."""
+    if isinstance(codes, (int, np.integer)) or np.ndim(codes) == 0:  # isinstance first: np.ndim takes ~2 us
+        spec = _CODES.get(int(codes))
+        return np.bool_(spec is not None and spec.range_gated)
+    return np.isin(np.asarray(codes), range_gated_codes())
+
+
+def known_codes() -> tuple[int, ...]:
+    """Codes a path may carry: the registered types and ``OTHER``."""
+    return tuple(sorted({s.code for s in _REGISTRY.values()} | {OTHER}))
+
+
+BS_SPEC = LandmarkSpec(
+    name="BS", code=int(LandmarkType.BS), geometry=Bounce.DIRECT, state_dim=3, mapped=False, range_gated=False,
+    description="base station (line of sight, a known landmark)")
+"""The BS: a known landmark (no map, no estimates); its detection probability is ``filter.p_detect_bs``."""
+VA_SPEC = LandmarkSpec(
+    name="VA", code=int(LandmarkType.VA), geometry=Bounce.MIRROR, state_dim=3, range_gated=False,
+    description="virtual anchor (VA)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
+    reduce_fused=reduce_fused_va, merge_param="merge_va", learns_pd=True)
+SP_SPEC = LandmarkSpec(
+    name="SP", code=int(LandmarkType.SP), geometry=Bounce.SCATTER, state_dim=3, range_gated=True,
+    description="scattering point (SP)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
+    reduce_fused=reduce_fused_static, learns_pd=True)
+VS_SPEC = LandmarkSpec(
+    name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
+    description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,
+    fuse=fuse_vs_map, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs, remove_ego=remove_ego_vs)
+
+for _s in (BS_SPEC, VA_SPEC, SP_SPEC, VS_SPEC):
+    register_landmark_type(_s)
+BUILTIN_TYPES: tuple[str, ...] = tuple(_REGISTRY)
+"""Names of the built-in types (``BS, VA, SP, VS``)."""

@@ -1,0 +1,73 @@
+"""Golden end-to-end test: the `paper` reference runs reproduce the stored fixtures at 1e-9.
+
+Fixtures and tolerances: ``tests/golden/make_golden.py`` (its docstring). Every variant on the
+closed-form paths, plus each fusion variant on a stored short Sionna RT trace; the ``slow`` test
+re-traces that trace with Sionna (LLVM, CPU) and checks it against the stored paths too. A change
+that is meant to change results regenerates the fixtures (``make_golden.py``) and says so.
+"""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+sys.path.insert(0, str(GOLDEN))
+import make_golden as mg  # noqa: E402
+
+sys.path.remove(str(GOLDEN))
+
+
+@pytest.fixture(scope="module")
+def paper():
+    scn = mg.paper()
+    return (scn, *mg.analytic_inputs(scn))
+
+
+def _check(got: dict, fixture: Path) -> None:
+    bad = mg.compare(got, mg.load(fixture))
+    assert not bad, f"{fixture.name}: {len(bad)} arrays differ at rtol {mg.RTOL}:\n" + "\n".join(bad[:20])
+
+
+@pytest.mark.parametrize("name", list(mg.CASES))
+def test_analytic_run_reproduces_golden(paper, name):
+    scn, states, paths = paper
+    _check(mg.snapshot(scn, states, paths, **mg.CASES[name]), GOLDEN / f"analytic_{name}.npz")
+
+
+@pytest.mark.parametrize("name", list(mg.SIONNA_CASES))
+def test_run_on_stored_sionna_trace_reproduces_golden(name):
+    states, paths = mg.load_paths(GOLDEN / "sionna_paths.npz")
+    _check(mg.snapshot(mg.paper(), states, paths, **mg.SIONNA_CASES[name]), GOLDEN / f"sionna_{name}.npz")
+
+
+def test_golden_fixtures_are_not_trivial():
+    """The fixtures exercise what they claim: fusion happened, every map type is populated, the
+    optional per-component state is there, and the compare() tolerance catches a 1e-8 change."""
+    f = mg.load(GOLDEN / "analytic_proposed_p50.npz")
+    for t in ("VA", "SP", "VS"):
+        assert f[f"fused/{t}/w"].size > 0, t
+    assert "fused" in set(f["res/metrics/map"]) and len(set(f["res/metrics/map"])) == 3  # 2 vehicles + BS
+    g = mg.load(GOLDEN / "analytic_proposed_p30_link_beta_labels.npz")
+    assert "fused/VA/pd_beta" in g and "fused/VS/label" in g
+    assert "fused/VA/w" not in mg.load(GOLDEN / "analytic_odometry_p30.npz")
+    bumped = dict(f)
+    bumped["est/mean"] = f["est/mean"] * (1 + 1e-8)
+    bad = mg.compare(bumped, f)
+    assert len(bad) == 1 and bad[0].startswith("est/mean:"), bad
+    assert mg.compare(dict(f), f) == []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sionna") is None, reason="sionna-rt not installed")
+def test_sionna_trace_reproduces_stored_paths():
+    scn = mg.paper()
+    states, paths = mg.sionna_trace(scn)
+    w_states, w_paths = mg.load_paths(GOLDEN / "sionna_paths.npz")
+    bad = mg.compare({"states": states, **{k: (v.astype(str) if v.dtype == object else v) for k, v in paths.items()}},
+                     {"states": w_states, **{k: (v.astype(str) if v.dtype == object else v) for k, v in w_paths.items()}})
+    assert not bad, "\n".join(bad)
+    _check(mg.snapshot(scn, states, paths, **mg.SIONNA_CASES["proposed"]), GOLDEN / "sionna_proposed.npz")
