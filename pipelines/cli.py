@@ -96,9 +96,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run the (variant x grid arm x seed) jobs; finished jobs are kept and skipped on re-runs."""
         from mmslam.outputs import locked
-        from mmslam.pipelines.ablate import (check_run_args, default_command, parse_grid,
-                                             parse_sets, parse_variants, particles_for, precheck_ablation, prepare_cache,
-                                             run_ablation, start_ablation_dir)
+        from mmslam.pipelines.ablate import (check_grid_clash, check_overrides, check_run_args, default_command,
+                                             parse_grid, parse_sets, parse_variants, particles_for, precheck_ablation,
+                                             prepare_cache, run_ablation, start_ablation_dir)
         from mmslam.scenes.scenario import resolve_scenario
 
         vs = parse_variants(variants)
@@ -107,8 +107,10 @@ def register(app: typer.Typer) -> None:
         if not 1 <= max_depth <= 3:
             raise ConfigError(f"--max-depth {max_depth}: expected 1, 2 or 3")
         check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
-        sets_c, _ = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
+        sets_c, arms = parse_sets(sets), parse_grid(grid)  # syntax checked before the trace
+        check_grid_clash(sets_c, arms)
         scn = resolve_scenario(scenario)
+        check_overrides(scn, sets_c, arms)  # values too: before the lock, the trace and any write
         particles = particles_for(scn, sets_c, particles)
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
             precheck_ablation(out, scn.name, source, steps, particles, sets_c)

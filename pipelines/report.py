@@ -27,64 +27,7 @@ from typing import Any
 from mmslam.errors import MmslamError
 from mmslam.pipelines.ablate import (SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
                                      plan_jobs, read_ablation, spec_arms)
-
-REPORT_FILE = "report.html"
-FIGURES_DIR = "figures"
-FIGURE_NAMES = ("fig2a_gospa_vs", "fig2b_gospa_va", "fig3_position_rmse", "gospa_sp", "cardinality_vs",
-                "cardinality_va")
-"""The figures :func:`make_figures` always draws (``figures/<name>.png``; plus ``map_<label>.png``)."""
-
-
-def _json_with(path: Path, keys: tuple[str, ...]) -> bool:
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
-        return False
-    return isinstance(d, dict) and all(k in d for k in keys)
-
-
-def _is_summary_parquet(path: Path) -> bool:
-    import pyarrow.parquet as pq
-
-    try:
-        names = set(pq.read_schema(path).names)
-    except Exception:  # not a Parquet file at all
-        return False
-    return {"variant", "map", "type", "step"} <= names
-
-
-def _is_report_html(path: Path) -> bool:
-    try:
-        with open(path, "rb") as f:
-            return b"<title>mmslam ablation:" in f.read(4096)
-    except OSError:
-        return False
-
-
-def check_ablation_outputs(out_dir: str | Path) -> None:
-    """Refuse (one line) if a file an ablation rewrites in ``out_dir`` exists and is not mmslam's.
-
-    An ablation folder is mmslam's (its marker), but one that an older mmslam wrote into with
-    ``--force`` may hold a user's ``summary.json``, ``summary.parquet``, ``report.html``,
-    ``ablation.json`` or a figure of the same name: each is recognised by its content (keys,
-    columns, title, figure tag) before any work, and never overwritten (:mod:`mmslam.outputs`).
-    """
-    from mmslam.outputs import NEVER, is_mmslam_figure
-    from mmslam.pipelines.ablate import ABLATION_FILE, SUMMARY_JSON, SUMMARY_PARQUET
-
-    out = Path(out_dir)
-    checks = [(out / ABLATION_FILE, lambda p: _json_with(p, ("variants", "config_hash"))),
-              (out / SUMMARY_JSON, lambda p: _json_with(p, ("config", "headline", "per_step"))),
-              (out / SUMMARY_PARQUET, _is_summary_parquet), (out / REPORT_FILE, _is_report_html)]
-    fdir = out / FIGURES_DIR
-    if fdir.is_dir():
-        checks += [(p, is_mmslam_figure) for p in sorted(fdir.iterdir())
-                   if p.stem in FIGURE_NAMES or p.name.startswith("map_")]
-    for p, ours in checks:
-        if p.is_symlink() or (p.exists() and (p.is_dir() or not ours(p))):
-            raise MmslamError(f"{p}: exists and is not a file mmslam wrote; move it out of {out} or choose "
-                              f"another folder ({NEVER})")
-
+from mmslam.pipelines.ablate.store import FIGURE_NAMES, FIGURES_DIR, REPORT_FILE, check_ablation_outputs  # noqa: F401
 
 HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("gospa_VA", "GOSPA VA [m]"), ("gospa_SP", "GOSPA SP [m]"), ("gospa_VS", "GOSPA VS [m]"),

@@ -1,6 +1,7 @@
 """CLI commands of this subpackage: ``mmslam trace``, ``mmslam paths`` and ``mmslam export``."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Optional
 
@@ -13,7 +14,7 @@ MAX_SUBCARRIERS = 1 << 20
 MAX_TIME_STEPS = 10_000
 MAX_EXPORT_BYTES = 8 << 30
 """Largest ``mmslam export`` response (bytes): a typo in --subcarriers must not exhaust memory."""
-from mmslam.limits import MAX_CHUNK_STEPS, MAX_SAMPLES, MAX_SEED, MAX_STEPS, check_int, span
+from mmslam.limits import MAX_CHUNK_STEPS, MAX_SAMPLES, MAX_SEED, MAX_STEPS, MAX_WORKERS, check_int, span
 
 from mmslam.raytrace.schema import TYPE_LABELS as _TYPE_LABELS
 _TYPE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:gray")
@@ -76,10 +77,14 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet/--no-quiet", help="No progress bar."),
         executor: str = typer.Option("local", "--executor", help="local, or dask: chunks of steps traced on a "
                                      "Dask cluster (a LocalCluster of --workers processes, or --scheduler)."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Dask LocalCluster workers (default: CPU cores)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Dask LocalCluster workers (default: CPU "
+                                              "cores, at most one per chunk)." + span(1, MAX_WORKERS)),
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler."),
     ) -> None:
         """Trace a scenario into a resumable path cache; prints the cache directory."""
+        from mmslam.executor import check_executor
+
+        check_executor(executor, scheduler, workers)  # the address is checked here, before any work
         from mmslam.raytrace.trace import SOURCES, DaskExecutor, check_cache_root, make_source, trace_scenario
         from mmslam.scenes.scenario import resolve_scenario
 
@@ -91,22 +96,19 @@ def register(app: typer.Typer) -> None:
         check_int("--samples", samples, 1, MAX_SAMPLES, "rays per source")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
         check_int("--chunk-steps", chunk_steps, 1, MAX_CHUNK_STEPS)
-        if executor not in ("local", "dask"):
-            raise ConfigError(f"--executor '{executor}': expected local or dask")
-        if executor != "dask" and (workers is not None or scheduler):
+        if executor == "local" and (workers is not None or scheduler):
             raise ConfigError("--workers / --scheduler are only used with --executor dask")
-        if workers is not None and workers < 1:
-            raise ConfigError(f"--workers {workers}: expected >= 1")
         check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
-        with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
-            src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
         ex = None
         if executor == "dask":
             ex = DaskExecutor({"name": source, "max_depth": max_depth, "samples": samples, "seed": seed},
                               scheduler=scheduler, workers=workers)
-        d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
-                           progress=not quiet, executor=ex)
+        with ex if ex is not None else contextlib.nullcontext():  # a --scheduler is reached before any work
+            with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
+                src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+            d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
+                               progress=not quiet, executor=ex)
         typer.echo(str(d))
 
     @app.command("paths")

@@ -375,57 +375,56 @@ def _chunk_tables(parts: list[dict[str, dict[str, np.ndarray]]]) -> tuple[dict, 
 
 
 class DaskExecutor:
-    """Trace chunks of steps on a Dask cluster (one worker per GPU or CPU core).
+    """Trace chunks of steps on a Dask cluster (one worker per GPU or CPU core), through the shared
+    executor module :mod:`mmslam.executor` (the same address check and pool as ``mmslam ablate``).
 
     Args:
         spec: how a worker builds the source: ``{"name", "max_depth", "samples", "seed"}``
             (:func:`make_source` arguments; the source itself is not sent).
-        client: a ``distributed.Client``; else one is made for ``scheduler`` (an address) or
-            for a ``LocalCluster`` of ``workers`` processes with one thread each, closed at the end.
+        client: a ``distributed.Client``; else one is made for ``scheduler`` (an address, checked by
+            :func:`mmslam.executor.check_executor`) or for a ``LocalCluster`` of ``workers`` processes
+            (at most one per chunk) with one thread each, closed at the end.
 
-    Chunks are submitted at once and written by the caller in step order as they finish, so
-    at most the chunks in flight are lost when the run is interrupted.
+    ``with DaskExecutor(...) as ex:`` connects to ``scheduler`` on entry (an unreachable one fails
+    before any work) and closes that connection on exit. Chunks are submitted at once and written by
+    the caller in step order as they finish, so at most the chunks in flight are lost when the run
+    is interrupted.
     """
 
     def __init__(self, spec: dict, client: Any = None, scheduler: str | None = None,
                  workers: int | None = None) -> None:
+        from mmslam.executor import check_executor
+
+        check_executor("dask", scheduler, workers)
         self.spec = {k: spec[k] for k in ("name", "max_depth", "samples", "seed")}
         self.client, self.scheduler, self.workers = client, scheduler, workers
+        self._own_client = False
 
-    def _client(self):
-        try:
-            from distributed import Client, LocalCluster
-        except ImportError:
-            raise ConfigError("--executor dask needs dask.distributed; install it with "
-                              "`pip install 'mmslam[dask]'` or use --executor local") from None
-        import logging
+    def __enter__(self) -> "DaskExecutor":
+        from mmslam.executor import connect_dask
 
-        logging.getLogger("distributed").setLevel(logging.CRITICAL)
-        if self.scheduler:
-            try:
-                return Client(self.scheduler, timeout="10s", set_as_default=False), None
-            except Exception as e:
-                raise ConfigError(f"--scheduler {self.scheduler}: cannot reach the dask scheduler "
-                                  f"({' '.join(str(e).split())[:150]}); start it or drop --scheduler") from None
-        n = int(self.workers or os.cpu_count() or 1)
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR)
-        return Client(cluster, set_as_default=False), cluster
+        if self.client is None and self.scheduler:
+            self.client, self._own_client = connect_dask(self.scheduler), True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        from mmslam.executor import close_client
+
+        if self._own_client:
+            close_client(self.client)
+            self.client, self._own_client = None, False
 
     def chunks(self, scn: Scenario, source: PathSource, states: np.ndarray, bounds: list[tuple[int, int]]):
         """Yield ``(start, stop, (paths, rays))`` for every chunk in ``bounds``, in order."""
+        from mmslam.executor import dask_pool
+
         if not bounds:
             return
-        client, cluster = (self.client, None) if self.client is not None else self._client()
-        try:
-            futs = [client.submit(_trace_chunk, self.spec, scn, states[a:b], a, pure=False) for a, b in bounds]
+        with dask_pool(self.scheduler, self.workers, len(bounds), client=self.client) as pool:
+            futs = [pool.submit(_trace_chunk, self.spec, scn, states[a:b], a, key=f"trace-steps{a}-{b}")
+                    for a, b in bounds]
             try:
                 for (a, b), f in zip(bounds, futs):
                     yield a, b, f.result()
             finally:
-                for f in futs:
-                    f.cancel()
-        finally:
-            if cluster is not None:
-                client.close()
-                cluster.close()
+                pool.cancel(futs)

@@ -147,7 +147,7 @@ def param_rows(cls: type, section: str) -> list[tuple[str, str, str, str, str]]:
     for f, s in iter_params(cls):
         d = f.default
         dtext = "[" + ", ".join(f"{x:g}" if isinstance(x, float) else str(x) for x in d) + "]" \
-            if isinstance(d, tuple) else (str(d).lower() if isinstance(d, bool) else
+            if isinstance(d, tuple) else ("not set" if d is None else str(d).lower() if isinstance(d, bool) else
                                            f'"{d}"' if isinstance(d, str) else f"{d:g}")
         rows.append((f"{section}.{f.name}", dtext, s.unit or "-", s.bounds_text(), s.doc))
     return rows

@@ -136,6 +136,41 @@ class SensorParams:
 
 
 @dataclass(frozen=True)
+class TypeParams:
+    """The filter's parameters of one landmark type: a row ``[filter.types.<TYPE>]`` (e.g. ``VA``)."""
+
+    p_detect: float = param(0.95, "the filter's detection probability of a landmark of this type inside the FOV "
+                            "(BS: of the LOS path, lower it where buildings often block the LOS; VA: lower it in "
+                            "cities, where a wall is visible for a few steps at a time, so that a VA outlives "
+                            "missed detections and, below fusion.gamma_detect, is never judged a false alarm by "
+                            "the fusion's accumulated-FOV rule)", "", probability=True)
+    threshold: float = param(0.55, "estimate-extraction weight threshold of the type's maps (unused for the known "
+                             "BS)", "", lo=0.0, hi=10.0)
+    merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
+                                "not set: filter.merge. Set it where distinct landmarks lie closer than their "
+                                "position uncertainty lets U = 49 tell apart (canyon VAs: two image sources 1.53 m "
+                                "apart, merge = 4)", "", lo=0.0, hi=1e6)
+
+    def merge_gate(self, default: float) -> float:
+        """The merge gate of the type: :attr:`merge`, or ``default`` (``filter.merge``) when it is not set."""
+        return float(default) if self.merge is None else float(self.merge)
+
+
+DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
+    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5), "SP": TypeParams(), "VS": TypeParams()}
+"""The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
+prior, and threshold 0.5, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7). A file's row replaces the keys it gives; a type
+without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
+
+TYPE_PARAM_ALIASES: dict[str, tuple[str, str]] = {
+    f"{k}_{t.lower()}": (t, k) for k, ts in (("p_detect", ("BS", "VA", "SP", "VS")), ("threshold", ("VA", "SP", "VS")),
+                                            ("merge", ("VA",))) for t in ts}
+"""The flat keys of mmslam 0.1 (``filter.p_detect_va``, ``threshold_sp``, ``merge_va``, ...), kept as aliases of
+``filter.types.<TYPE>.<key>`` (in files, ``--set`` and attribute reads); ``merge_va`` < 0 (its old default,
+"the same as filter.merge") means no merge gate of its own."""
+
+
+@dataclass(frozen=True)
 class FilterParams:
     """MM-PHD-SLAM parameters (TWC2020 values for ``paper``)."""
 
@@ -152,20 +187,11 @@ class FilterParams:
     birth_weight: float = param(1.5e-5, "weight of each birth Gaussian", "", lo=0.0, lo_open=True, hi=1.0)
     prune: float = param(1e-4, "prune Gaussians of weight below this", "", lo=0.0, hi=1.0)
     merge: float = param(49.0, "merge gate U (squared Mahalanobis distance) in the reduction of the maps "
-                         "(VA maps: merge_va when that is set)", "",
+                         "of every type whose [filter.types.<TYPE>] row sets no merge of its own", "",
                          lo=0.0, hi=1e6)
-    merge_va: float = param(-1.0, "merge gate U of the VA maps (local reduction, averaged map, fused map); "
-                            "negative (the default): the same as filter.merge. Set it where distinct VAs lie "
-                            "closer than the VA position uncertainty lets U = 49 tell apart (canyon: two "
-                            "image sources 1.53 m apart, merge_va = 4)", "", lo=-1.0, hi=1e6)
     max_gaussians: int = param(50, "at most this many Gaussians per type and particle", "", lo=1, hi=10_000)
     max_trace: float = param(50.0, "drop Gaussians whose position covariance trace exceeds this", "m^2",
                              lo=0.0, lo_open=True, hi=1e9)
-    threshold_va: float = param(0.5, "estimate-extraction weight threshold for VAs (the paper's 0.7; 0.5 keeps a "
-                                "wall out of every car's sight in the map longer, docs/city-slam.md)", "", lo=0.0,
-                                hi=10.0)
-    threshold_sp: float = param(0.55, "estimate-extraction weight threshold for SPs", "", lo=0.0, hi=10.0)
-    threshold_vs: float = param(0.55, "estimate-extraction weight threshold for VSs", "", lo=0.0, hi=10.0)
     resample_ess: float = param(0.5, "resample when the effective sample size falls below this fraction "
                                 "of the particles", "", probability=True)
     vs_process_std: tuple[float, ...] = param(
@@ -179,24 +205,13 @@ class FilterParams:
     vs_dither: tuple[float, ...] = param(
         (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18), "dithering T_d added to VS covariances at prediction "
         "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
-    p_detect_bs: float = param(0.95, "the filter's detection probability of the BS (LOS path): lower it "
-                               "where buildings often block the LOS", "", probability=True)
-    p_detect_va: float = param(0.1, "the filter's detection probability of a VA (pd_model beta: the mean of a "
-                               "new VA's Beta prior): low, because a wall is visible from a street for a few "
-                               "steps at a time, so that a VA outlives missed detections and, below "
-                               "fusion.gamma_detect, is never judged a false alarm by the fusion's "
-                               "accumulated-FOV rule (the paper's 0.95; docs/city-slam.md)", "", probability=True)
-    p_detect_sp: float = param(0.95, "the filter's detection probability of an SP inside the FOV range", "",
-                               probability=True)
-    p_detect_vs: float = param(0.95, "the filter's detection probability of a VS inside the FOV range", "",
-                               probability=True)
-    pd_model: str = param("beta", "the filter's detection model inside the FOV: fixed (p_detect_<type> for "
+    pd_model: str = param("beta", "the filter's detection model inside the FOV: fixed (filter.types.<TYPE>.p_detect for "
                           "every Gaussian, the paper's) or beta (each VA / SP Gaussian learns its own p_D "
                           "from its detection history: a Beta(s, t) per Gaussian, E[p_D] = s / (s + t), "
                           "missed -> (s, t + 1), detected -> (s + 1, t); Beta-Gaussian PHD, Mahler, Vo & "
                           "Vo 2011); docs/equations.md", choices=("fixed", "beta"))
     pd_beta_count: float = param(2.0, "pd_model beta: pseudo-count s0 + t0 of a birth's Beta prior, whose mean "
-                                 "is p_detect_<type> (s0 = count p_detect, t0 = count (1 - p_detect)); small: "
+                                 "is filter.types.<TYPE>.p_detect (s0 = count p_detect, t0 = count (1 - p_detect)); small: "
                                  "a Gaussian's own history soon dominates", "", lo=0.0, lo_open=True, hi=1e12)
     pd_beta_forget: float = param(1.0, "pd_model beta: each prediction multiplies a Gaussian's Beta (s, t) by "
                                   "this factor (mean kept, old detections fade; 1: a static detection "
@@ -215,9 +230,24 @@ class FilterParams:
                                  "unobserved) or all (every VS Gaussian at every step, the paper read "
                                  "literally); see docs/vs-fusion.md", choices=("newborn", "all"))
     extraction: str = param("threshold", "landmark estimate extraction from a map PHD: threshold (one "
-                            "estimate per Gaussian with weight above threshold_<type>, TWC2020) or "
+                            "estimate per Gaussian with weight above filter.types.<TYPE>.threshold, TWC2020) or "
                             "vo_ma (round(w) estimates per Gaussian with w > 0.5, Vo & Ma 2006)",
                             choices=("threshold", "vo_ma"))
+    types: dict[str, TypeParams] = field(default_factory=lambda: dict(DEFAULT_TYPE_PARAMS))
+    """Per landmark type (name -> :class:`TypeParams`): the ``[filter.types.<TYPE>]`` rows over
+    :data:`DEFAULT_TYPE_PARAMS`."""
+
+    def type_params(self, name: str) -> TypeParams:
+        """The parameters of landmark type ``name`` (its row, else :class:`TypeParams`'s defaults)."""
+        return self.types.get(name) or TypeParams()
+
+    def __getattr__(self, key: str) -> float:
+        """An old flat key (:data:`TYPE_PARAM_ALIASES`) read from the table (``merge_va``: -1 when not set)."""
+        alias = TYPE_PARAM_ALIASES.get(key)
+        if alias is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {key!r}")
+        v = getattr(self.type_params(alias[0]), alias[1])
+        return -1.0 if v is None else v
 
 
 @dataclass(frozen=True)
@@ -247,7 +277,7 @@ class FusionParams:
                             "the copy of one that saw it (docs/city-slam.md)", choices=("equal", "visibility"))
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
                                 "counts as inside a vehicle's accumulated FOV if the filter's detection "
-                                "probability (filter.p_detect_<type>, 0 beyond the FOV range) reached it "
+                                "probability (filter.types.<TYPE>.p_detect, 0 beyond the FOV range) reached it "
                                 "at a position since the vehicle's last upload", "", probability=True)
     vs_reduction: str = param("matched", "reduction of the fused VS map after each upload: matched (merge "
                               "only the pairs F'_AA matched, then prune and cap) or gate (prune_merge with "
@@ -456,6 +486,42 @@ def _params(src: str, section: str, cls: type, table: Any) -> Any:
     return cls(**kw)
 
 
+def _filter_params(src: str, table: Any) -> FilterParams:
+    """``[filter]``: its declared parameters (:func:`_params`) and the per-type table ``[filter.types.<TYPE>]``
+    (rows over :data:`DEFAULT_TYPE_PARAMS`; the old flat keys of :data:`TYPE_PARAM_ALIASES` fill it too)."""
+    if table is None:
+        return FilterParams()
+    if not isinstance(table, dict):
+        raise _err(src, "filter", "expected a table")
+    table = dict(table)
+    given = table.pop("types", None)
+    if given is None:
+        given = {}
+    if not isinstance(given, dict):
+        raise _err(src, "filter.types", "expected a table of [filter.types.<TYPE>] rows (p_detect, threshold, merge)")
+    rows: dict[str, dict[str, Any]] = {}
+    for name, row in given.items():
+        _name(src, "filter.types", name)
+        if not isinstance(row, dict):
+            raise _err(src, f"filter.types.{name}", "expected a table (p_detect, threshold, merge)")
+        rows[name] = {k: v for k, v in row.items() if v is not None}  # None: not set (a resolved scenario's JSON)
+    for key in [k for k in table if k in TYPE_PARAM_ALIASES]:
+        t, k = TYPE_PARAM_ALIASES[key]
+        v = table.pop(key)
+        if k == "merge" and isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
+            continue  # the old "same as filter.merge": not set
+        if k in rows.get(t, {}):
+            raise _err(src, f"filter.{key}", f"given twice (also as filter.types.{t}.{k}); keep one")
+        rows.setdefault(t, {})[k] = v
+    filt = _params(src, "filter", FilterParams, table)
+    types = dict(DEFAULT_TYPE_PARAMS)
+    for name, row in rows.items():
+        base = {k: v for k, v in dataclasses.asdict(types.get(name, TypeParams())).items() if v is not None}
+        _check_keys(src, f"filter.types.{name}.", row, {f.name for f, _ in iter_params(TypeParams)})
+        types[name] = _params(src, f"filter.types.{name}", TypeParams, {**base, **row})
+    return dataclasses.replace(filt, types=types)
+
+
 def _material(src: str, key: str, v: Any) -> str:
     return _str(src, key, v, MATERIALS)
 
@@ -605,12 +671,12 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<memory>",
         raise _err(src, "name", f"object names must be unique; duplicated: {dup}")
 
     sensor = _params(src, "sensor", SensorParams, data.get("sensor"))
-    filt = _params(src, "filter", FilterParams, data.get("filter"))
-    if filt.pd_model == "beta":  # the Beta prior's mean is p_detect_<type> of the types that learn it (VA, SP)
-        for key in ("p_detect_va", "p_detect_sp"):
-            if not 0.0 < getattr(filt, key) < 1.0:
-                raise _err(src, f"filter.{key}", f"pd_model = \"beta\" needs 0 < {key} < 1 (the mean of the "
-                           f"Beta prior), got {getattr(filt, key)}")
+    filt = _filter_params(src, data.get("filter"))
+    if filt.pd_model == "beta":  # the Beta prior's mean is the p_detect of the types that learn it (VA, SP)
+        for t in ("VA", "SP"):
+            if not 0.0 < filt.type_params(t).p_detect < 1.0:
+                raise _err(src, f"filter.types.{t}.p_detect", f"pd_model = \"beta\" needs 0 < p_detect < 1 (the "
+                           f"mean of the Beta prior), got {filt.type_params(t).p_detect}")
     fusion = _params(src, "fusion", FusionParams, data.get("fusion"))
     if not (isinstance(data.get("fusion"), dict) and "start" in data["fusion"]):
         # default schedule: vehicle i first talks to the BS at step 5 + i (paper: 5 and 6)
@@ -720,6 +786,18 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
         except ValueError as e:
             raise ConfigError(str(e)) from None
         section, _, name = key.partition(".")
+        if section == "filter" and name in TYPE_PARAM_ALIASES:  # an old flat key: its table entry
+            t, k = TYPE_PARAM_ALIASES[name]
+            if k == "merge" and isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
+                value = None  # merge_va < 0: the old "same as filter.merge"
+            name = f"types.{t}.{k}"
+        if section == "filter" and name.startswith("types."):
+            _, t, k = (name.split(".", 2) + ["", ""])[:3]
+            if not t or k not in {f.name for f, _ in iter_params(TypeParams)}:
+                raise ConfigError(f"--set {key}: expected filter.types.<TYPE>.<key> with key p_detect, threshold "
+                                  "or merge (see docs/scenario.md)")
+            d.setdefault("filter", {}).setdefault("types", {}).setdefault(t, {})[k] = value
+            continue
         cls = PARAM_SECTIONS.get(section)
         names = [f.name for f, _ in iter_params(cls)] if cls is not None else []
         if name not in names:
@@ -747,6 +825,18 @@ def parameter_reference() -> str:
         out.append("| key | default | unit | bounds | meaning |\n|---|---|---|---|---|")
         out.extend(f"| `{k}` | {d} | {u} | {_cell(b)} | {_cell(doc)} |" for k, d, u, b, doc in param_rows(cls, section))
         out.append("")
+        if cls is FilterParams:
+            rows = ", ".join(f"{n} (" + ", ".join(f"{k} {v:g}" for k, v in dataclasses.asdict(r).items()
+                                                  if v is not None) + ")" for n, r in DEFAULT_TYPE_PARAMS.items())
+            aliases = ", ".join(f"`{a}`" for a in TYPE_PARAM_ALIASES)
+            out.append(f"#### [filter.types.<TYPE>]\n\nThe filter's parameters of each landmark type, one row per type "
+                       f"(`BS`, `VA`, `SP`, `VS`, or a registered one), e.g. `[filter.types.VA]` with `merge = 4`; "
+                       f"a row sets only the keys it gives over the built-in rows {rows}. The old flat keys "
+                       f"{aliases} are aliases (`merge_va` < 0: not set).\n")
+            out.append("| key | default | unit | bounds | meaning |\n|---|---|---|---|---|")
+            out.extend(f"| `{k}` | {d} | {u} | {_cell(b)} | {_cell(doc)} |"
+                       for k, d, u, b, doc in param_rows(TypeParams, "filter.types.<TYPE>"))
+            out.append("")
     return "\n".join(out)
 
 

@@ -1,7 +1,7 @@
-"""Per-type VA merge gate (filter.merge_va) and the city defaults on canyon (issues 10 and 22)."""
+"""Per-type VA merge gate (filter.types.VA.merge, alias filter.merge_va) and the city defaults on canyon
+(issues 10 and 22)."""
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -10,7 +10,7 @@ from scipy import stats
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter import FusionCenter, LocalFilter
 from mmslam.slam.core.gm import GM, empty
-from mmslam.slam.specs.landmarks import landmark_type, merge_gate
+from mmslam.slam.specs.landmarks import landmark_type
 from mmslam.slam.models.measurement import SP, VA, VS
 
 # Two VAs 1.53 m apart in y (canyon's image sources of the facades y = 9.57 and y = 10.34), each with
@@ -20,8 +20,8 @@ W2 = np.array([0.9, 0.6])
 
 
 def _scn(**filt):
-    scn = load_preset("paper")
-    return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, **filt))
+    """paper with these [filter] keys (old flat aliases such as merge_va allowed) set as by --set."""
+    return with_overrides(load_preset("paper"), [f"filter.{k}={v}" for k, v in filt.items()])
 
 
 def _pair(batch: tuple[int, ...]) -> GM:
@@ -45,8 +45,10 @@ def test_unset_merge_va_follows_filter_merge():
     scn = with_overrides(load_preset("paper"), ["filter.merge=4"])
     assert scn.filter.merge_va < 0
     assert landmark_type(VA).merge_gate(scn) == landmark_type(SP).merge_gate(scn) == 4.0
-    assert merge_gate(scn, "merge_va") == 4.0
-    assert merge_gate(with_overrides(scn, ["filter.merge_va=9"]), "merge_va") == 9.0
+    assert scn.filter.types["VA"].merge is None
+    assert landmark_type(VA).merge_gate(with_overrides(scn, ["filter.merge_va=9"])) == 9.0
+    assert landmark_type(VA).merge_gate(with_overrides(scn, ["filter.types.VA.merge=9"])) == 9.0
+    assert landmark_type(VA).merge_gate(with_overrides(scn, ["filter.merge_va=9", "filter.merge_va=-1"])) == 4.0
 
 
 @pytest.mark.parametrize("merge_va, n_va", [(4.0, 2), (49.0, 1)])

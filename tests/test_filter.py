@@ -6,7 +6,7 @@ import pytest
 
 from mmslam.errors import CacheError, MmslamError
 from mmslam.raytrace.analytic import AnalyticSource
-from mmslam.scenes.scenario import load_preset
+from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.scenes.trajectory import true_trajectories, vehicle_trajectories
 from mmslam.slam.filter import ego_gaussian, run_filter, run_slam
 from mmslam.slam.eval.gospa import gospa
@@ -325,7 +325,7 @@ def test_accumulated_fov_uses_the_filters_detection_probability_and_gamma(p_va, 
     from mmslam.slam.models.measurement import VA
 
     scn = load_preset("paper")
-    scn = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, p_detect_va=p_va))
+    scn = with_overrides(scn, [f"filter.types.VA.p_detect={p_va}"])
     fc = FusionCenter(scn, "baseline")
     fc.maps[VA] = GM(np.array([1.0]), np.array([[200.0, 0.0, 40.0]]), np.eye(3)[None], np.ones(1, bool))
     fused = fc.fuse({VA: empty((), 0, 3)}, np.array([[70.0, 0.0, 0.0]]), np.zeros(7), np.eye(7))
@@ -496,8 +496,8 @@ def test_run_pd_fn_is_the_filters_type_probability_inside_the_sensors_fov(paper,
     from mmslam.slam.sim.sensor import fov_detect_prob
 
     scn, states, paths = paper
-    scn = dataclasses.replace(scn, sensor=dataclasses.replace(scn.sensor, p_detect=p_detect),
-                              filter=dataclasses.replace(scn.filter, p_detect_va=0.5))
+    scn = dataclasses.replace(with_overrides(scn, ["filter.p_detect_va=0.5"]),  # the old flat key: an alias
+                              sensor=dataclasses.replace(scn.sensor, p_detect=p_detect))
     run = CooperativeRun(scn, states, paths, "proposed", 3, 0, 2, evaluate=False)
     rng = np.random.default_rng(2)
     u = np.broadcast_to(rng.normal(size=(4, 1, 3)), (4, 5, 3))

@@ -158,6 +158,6 @@ def test_a_beta_of_huge_count_is_the_fixed_model(paper6):
 def test_a_beta_prior_of_mean_one_is_a_one_line_config_error():
     from mmslam.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="filter.p_detect_sp.*0 < p_detect_sp < 1"):
+    with pytest.raises(ConfigError, match="filter.types.SP.p_detect.*0 < p_detect < 1"):
         with_overrides(load_preset("paper"), ["filter.pd_model=beta", "filter.p_detect_sp=1.0"])
     with_overrides(load_preset("paper"), ["filter.pd_model=fixed", "filter.p_detect_sp=1.0"])  # fine when fixed

@@ -171,10 +171,13 @@ def test_every_filter_section_parameter_is_declared_with_doc_and_bounds():
     import dataclasses
 
     from mmslam.scenes.params import spec_of
-    from mmslam.scenes.scenario import PARAM_SECTIONS
+    from mmslam.scenes.scenario import PARAM_SECTIONS, TypeParams
 
-    for section, cls in PARAM_SECTIONS.items():
+    sections = {**PARAM_SECTIONS, "filter.types.<TYPE>": TypeParams}
+    for section, cls in sections.items():
         for f in dataclasses.fields(cls):
+            if (cls, f.name) == (PARAM_SECTIONS["filter"], "types"):  # the per-type table: TypeParams rows
+                continue
             spec = spec_of(f)
             assert spec is not None and spec.doc, f"{section}.{f.name} has no declaration"
             if not isinstance(f.default, (bool, str)):
@@ -215,12 +218,14 @@ def test_overrides_change_only_the_named_keys():
 def test_parameter_reference_lists_every_key():
     import dataclasses
 
-    from mmslam.scenes.scenario import PARAM_SECTIONS, parameter_reference
+    from mmslam.scenes.scenario import PARAM_SECTIONS, TypeParams, parameter_reference
 
     text = parameter_reference()
-    for section, cls in PARAM_SECTIONS.items():
+    sections = {**PARAM_SECTIONS, "filter.types.<TYPE>": TypeParams}
+    for section, cls in sections.items():
         for f in dataclasses.fields(cls):
-            assert f"`{section}.{f.name}`" in text
+            if (cls, f.name) != (PARAM_SECTIONS["filter"], "types"):  # the table: its rows' keys below
+                assert f"`{section}.{f.name}`" in text
 
 
 def test_city_presets_ship_with_the_package():
@@ -235,20 +240,19 @@ def test_city_presets_ship_with_the_package():
 def test_every_declared_parameter_is_read_by_the_code():
     """No dead knobs: each [sensor]/[filter]/[fusion]/[evaluation] parameter is read outside its
     declaration (an attribute access ``obj.<name>`` in the code, docstrings and strings not counted,
-    or a landmark spec's ``p_detect_param`` / ``threshold_param`` / ``merge_param``)."""
+    including the per-type table's keys (:class:`TypeParams`, read through the landmark specs)."""
     import ast
     from pathlib import Path
 
     from mmslam.scenes.params import iter_params
-    from mmslam.scenes.scenario import PARAM_SECTIONS
-    from mmslam.slam.specs.landmarks import landmark_types
+    from mmslam.scenes.scenario import PARAM_SECTIONS, TypeParams
 
     root = Path(__file__).resolve().parents[1]
     skip = {root / "scenes" / "scenario.py", root / "scenes" / "params.py"}
     read = {n.attr for d in ("slam", "pipelines", "raytrace", "scenes", "mmslam")
             for p in sorted((root / d).rglob("*.py")) if p not in skip
             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Attribute)}
-    read |= {n for s in landmark_types() for n in (s.p_detect_param, s.threshold_param, s.merge_param) if n}
     dead = [f"{sec}.{f.name}" for sec, cls in PARAM_SECTIONS.items() for f, _ in iter_params(cls)
             if f.name not in read]
+    dead += [f"filter.types.<TYPE>.{f.name}" for f, _ in iter_params(TypeParams) if f.name not in read]
     assert dead == []

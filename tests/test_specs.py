@@ -9,7 +9,7 @@ import pytest
 from mmslam.errors import ConfigError, MmslamError
 from mmslam.model import Bounce, LandmarkType
 from mmslam.raytrace.analytic import AnalyticSource
-from mmslam.scenes.scenario import FilterParams, load_preset, with_overrides
+from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.scenes.trajectory import vehicle_trajectories
 from mmslam.slam.specs import landmarks as L
 from mmslam.slam.specs import variants as V
@@ -82,19 +82,58 @@ def test_fov_rule_follows_the_specs():
     np.testing.assert_array_equal(got > 0, [not s.range_gated for s in L.landmark_types()])
 
 
-def test_spec_parameters_are_declared_filter_parameters():
-    names = {f.name for f in dataclasses.fields(FilterParams)}
+def test_spec_parameters_are_the_rows_of_the_per_type_table():
+    """Each built-in type reads its own [filter.types.<NAME>] row; the old flat keys are aliases of the
+    rows' entries (in --set and as attributes), a type without a row gets TypeParams' defaults."""
+    from mmslam.scenes.scenario import DEFAULT_TYPE_PARAMS, TYPE_PARAM_ALIASES, TypeParams
+
     scn = load_preset("paper")
+    assert set(DEFAULT_TYPE_PARAMS) == set(L.BUILTIN_TYPES)
     for spec in L.landmark_types():
-        assert spec.p_detect_param in names
-        assert 0.0 <= spec.p_detect(scn) <= 1.0
+        assert spec.params == spec.name and spec.type_params(scn) == scn.filter.types[spec.name]
+        assert spec.p_detect(scn) == 0.95
         if spec.mapped:
-            assert spec.threshold_param in names and spec.threshold(scn) > 0
+            assert spec.threshold(scn) == (0.7 if spec.name == "VA" else 0.55)
+            assert spec.merge_gate(scn) == scn.filter.merge == 49.0
         else:
             with pytest.raises(MmslamError, match="no estimate threshold"):
                 spec.threshold(scn)
-    scn2 = with_overrides(scn, ["filter.threshold_vs=0.8", "filter.p_detect_sp=0.5"])
+    scn2 = with_overrides(scn, ["filter.threshold_vs=0.8", "filter.p_detect_sp=0.5", "filter.types.VA.merge=4"])
     assert L.landmark_type("VS").threshold(scn2) == 0.8 and L.landmark_type("SP").p_detect(scn2) == 0.5
+    assert L.landmark_type("VA").merge_gate(scn2) == 4.0 and L.landmark_type("SP").merge_gate(scn2) == 49.0
+    assert scn2.filter.threshold_vs == 0.8 and scn2.filter.merge_va == 4.0  # alias attributes
+    assert len(TYPE_PARAM_ALIASES) == 8 and all(getattr(scn.filter, a) is not None for a in TYPE_PARAM_ALIASES)
+    assert scn.filter.type_params("LP") == TypeParams()
+    lp = dataclasses.replace(L.SP_SPEC, name="LPX", code=9, params="SP")
+    assert lp.type_params(scn2) is scn2.filter.types["SP"] and lp.p_detect(scn2) == 0.5
+
+
+def test_the_per_type_table_in_a_file_and_its_aliases():
+    """[filter.types.<TYPE>] rows set only the keys they give; an old flat key fills the same entry; both for
+    one entry is refused naming the key; merge_va < 0 is 'not set'; the resolved scenario round-trips."""
+    import tomllib
+    from importlib import resources
+
+    from mmslam.scenes.scenario import scenario_from_dict, scenario_from_resolved
+
+    text = resources.files("mmslam.scenes").joinpath("presets", "paper.toml").read_text()
+
+    def load(**filt):
+        data = tomllib.loads(text)
+        data["filter"].update(filt)
+        return scenario_from_dict(data, "test.toml")
+
+    scn = load(merge_va=-1, p_detect_sp=0.4, types={"VA": {"merge": 4.0}, "LP": {"p_detect": 0.3}})
+    assert scn.filter.types["VA"].merge == 4.0 and scn.filter.types["VA"].threshold == 0.7  # row over built-in
+    assert scn.filter.types["SP"].p_detect == 0.4 and scn.filter.types["LP"].p_detect == 0.3
+    assert scenario_from_resolved(scn.to_dict()).filter == scn.filter
+    assert load(merge_va=-1).filter.types["VA"].merge is None
+    with pytest.raises(ConfigError, match=r"filter.p_detect_va.*given twice \(also as filter.types.VA.p_detect\)"):
+        load(p_detect_va=0.4, types={"VA": {"p_detect": 0.5}})
+    with pytest.raises(ConfigError, match="filter.types.VA.bogus"):
+        load(types={"VA": {"bogus": 1}})
+    with pytest.raises(ConfigError, match="filter.types.VA.p_detect"):
+        load(types={"VA": {"p_detect": 1.5}})
 
 
 def test_type_registry_round_trip_and_errors():
@@ -249,3 +288,32 @@ def test_report_lists_each_variants_label_and_what_it_runs():
     assert "countermeasures: ego-VS averaging (eq. 11), prediction at the BS (eq. 15)" in out
     assert "not registered" in out  # an old ablation's variant from a plugin not loaded now
     assert V.get_variant("odometry").describe().startswith("dead reckoning")
+
+
+def test_variants_choose_the_vs_fusion_operator_when_the_fusion_centre_is_built():
+    """cm1 fuses the VS map with F_AA, a variant with vs_fusion with eqs. 16-20; ego averaging (eq. 11)
+    wraps either; the fusion centre holds the chosen operator per type (no flag read at fuse time)."""
+    from mmslam.slam.filter.fusion_center import FusionCenter
+
+    vs = L.landmark_type("VS")
+    assert vs.fusion_operator(V.get_variant("cm1")) is L.fuse_aa
+    assert L.vs_fusion_operator(V.VariantSpec("t", "t", ("VS",), vs_fusion=True)) is L.fuse_vs
+    assert L.landmark_type("VA").fusion_operator(V.get_variant("proposed")) is L.fuse_aa
+    scn = load_preset("paper")
+    fc = FusionCenter(scn, "proposed")
+    op = fc.operators[vs.code]
+    assert op not in (L.fuse_aa, L.fuse_vs)  # the ego-averaging wrapper
+    # the wrapper is fuse_vs of the ego-averaged upload
+    from mmslam.slam.core.gm import GM
+
+    bs_map = GM(np.array([0.2]), np.array([[60.0, 5.0, 1.0, 3.0, 0.0, 0.0, 0.0]]), np.eye(7)[None], np.array([True]))
+    up = GM(np.array([0.9]), np.array([[61.0, 5.0, 1.0, 3.0, 0.0, 0.0, 0.0]]), np.eye(7)[None], np.array([True]))
+    ego = np.array([10.0, 0.0, 1.5, 0.0, 8.0, 0.0, 0.0])
+    ctx = L.FusionInput(scn, V.get_variant("proposed"), ego, np.eye(7) * 0.1, 0)
+    inside = np.array([True])
+    got, pairs = op(bs_map, up, inside, ctx)
+    ref, ref_pairs = L.fuse_vs(bs_map, L.ego_averaged(up, ctx), inside, ctx)
+    np.testing.assert_array_equal(got.w, ref.w)
+    np.testing.assert_array_equal(got.m, ref.m)
+    np.testing.assert_array_equal(pairs, ref_pairs)
+    assert L.ego_averaged(up, ctx).capacity == up.capacity + 1  # the ego Gaussian joined the upload

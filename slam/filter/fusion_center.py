@@ -35,6 +35,8 @@ class FusionCenter:
         self.variant = get_variant(variant)
         self.specs: dict[int, LandmarkSpec] = {t.code: t for t in self.variant.types()}
         self.types = tuple(self.specs)
+        # each type's fusion operator, chosen once by the variant (e.g. the proposed VS fusion)
+        self.operators = {t: s.fusion_operator(self.variant) for t, s in self.specs.items()}
         self.maps: dict[int, GM] = {t: empty((), 0, s.state_dim) for t, s in self.specs.items()}
 
     def predict(self) -> None:
@@ -74,6 +76,6 @@ class FusionCenter:
                 # the uploading vehicle's p_D of a landmark it does not hold: the type's (with a Beta learnt
                 # per vehicle, pd_beta_downlink = prior, its birth prior's mean; docs/city-slam.md)
                 inside &= spec.p_detect(self.scn) >= gamma
-            fused, pairs = spec.fuse(bs_map, ue, inside, ctx)
-            self.maps[t] = spec.reduce_fused(fused, pairs, self.scn)
+            fused, pairs = self.operators[t](bs_map, ue, inside, ctx)
+            self.maps[t] = spec.reduce_fused(fused, pairs, self.scn, spec)
         return dict(self.maps)

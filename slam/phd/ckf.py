@@ -295,7 +295,8 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
     Args:
         m: ``(N, d)`` means; P: ``(N, d, d)`` covariances; states: ``(N, 7)`` the vehicle state of
             each Gaussian's particle.
-        geometry: :class:`mmslam.model.Bounce` code (:func:`~mmslam.slam.models.measurement.geometry_of`).
+        geometry: :class:`mmslam.model.Bounce` code (the type's ``LandmarkSpec.geometry``, handed over by
+            the caller).
         bs: ``(3,)`` BS position (m).
         Z: ``(J, 5)`` measurements; R: ``(5, 5)`` one covariance, or ``(J, 5, 5)`` one per measurement.
         stage: named in errors.

@@ -22,8 +22,9 @@ VS            3      SCATTER     7      fov_range      CT (eq. 2)  ``F_AA`` (cm1
 - **dynamics**: the local prediction of the type's map (:data:`predict_static_map`: survival
   ``p_S``; :func:`predict_vs_map`: coordinated turn with dithering), and optionally a prediction
   at the BS between uploads (:func:`predict_vs_at_bs`, variant flag ``predict_at_bs``).
-- **parameters**: its detection probability ``filter.<p_detect_param>`` and estimate threshold
-  ``filter.<threshold_param>`` (default ``p_detect_<name>`` / ``threshold_<name>``).
+- **parameters**: its row of the per-type table ``[filter.types.<NAME>]`` (detection probability
+  ``p_detect``, estimate threshold ``threshold``, merge gate ``merge``;
+  :class:`mmslam.scenes.scenario.TypeParams`), or the row named by ``params``.
 - **evaluation**: ``moving`` types (VS) are scored against the other vehicles' true positions,
   static ones against the landmarks first seen so far.
 
@@ -47,7 +48,7 @@ from ..phd.gmphd import predict_static
 from ..phd.reduction import merge_pairs, prune_merge
 
 if TYPE_CHECKING:  # pragma: no cover
-    from mmslam.scenes.scenario import Scenario, SensorParams
+    from mmslam.scenes.scenario import Scenario, SensorParams, TypeParams
 
     from .variants import VariantSpec
 
@@ -75,6 +76,10 @@ class FusionInput:
     vehicle: int | None = None
 
 
+FuseFn = Callable[[GM, GM, np.ndarray, FusionInput], "tuple[GM, np.ndarray | None]"]
+"""``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused union, matched pairs or None)``."""
+
+
 @dataclass(frozen=True)
 class LandmarkSpec:
     """One landmark type of the filter (see the module docstring for the built-in ones).
@@ -89,12 +94,9 @@ class LandmarkSpec:
         range_gated: detectable only within ``sensor.fov_range`` (m) of the vehicle.
         mapped: the filter keeps a map of it (False: a known landmark, the BS).
         moving: scored against the vehicles' true positions (else: static first-seen truth).
-        p_detect_param, threshold_param: ``filter.*`` parameter names of its detection
-            probability inside the FOV and of its estimate threshold ('' = ``p_detect_<name>``,
-            ``threshold_<name>`` in lower case).
-        merge_param: ``filter.*`` parameter name of its merge gate ``U`` (squared Mahalanobis
-            distance) in the local reduction and the averaged map (default ``merge``; VA:
-            ``merge_va``).
+        params: the row of the per-type table ``[filter.types.<row>]`` with its detection
+            probability inside the FOV, estimate threshold and merge gate ``U`` ('' = its own ``name``;
+            a type without a row gets :class:`~mmslam.scenes.scenario.TypeParams`'s defaults).
         learns_pd: with ``filter.pd_model = "beta"`` its Gaussians carry a Beta of their own
             detection probability (:mod:`mmslam.slam.phd.detection`; VA and SP, not the moving VS).
         predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
@@ -103,8 +105,12 @@ class LandmarkSpec:
             ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
         extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
             landmark state's position (None: a point).
-        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``.
-        reduce_fused: ``reduce_fused(fused, pairs, scn) -> GM``, the reduction after fusion.
+        fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``, the
+            type's fusion operator (:data:`FuseFn`).
+        fuse_for: ``fuse_for(variant) -> FuseFn``: the operator a variant uses, chosen when the
+            variant's fusion centre is built (:meth:`fusion_operator`); None: ``fuse`` for every variant.
+        reduce_fused: ``reduce_fused(fused, pairs, scn, spec) -> GM``, the reduction after fusion (``spec``:
+            this type's spec, e.g. for its :meth:`merge_gate`).
         predict_at_bs: ``predict_at_bs(fused map, scn) -> map`` between uploads (only for variants
             with ``predict_at_bs``), or None.
         remove_ego: ``remove_ego(fused map, (mean (7,), cov (7, 7)), scn) -> map`` on the downlink
@@ -119,34 +125,35 @@ class LandmarkSpec:
     range_gated: bool
     mapped: bool = True
     moving: bool = False
-    p_detect_param: str = ""
-    threshold_param: str = ""
-    merge_param: str = "merge"
+    params: str = ""
     learns_pd: bool = False
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
     extent: Callable[["Scenario"], np.ndarray | None] = point_extent
-    fuse: Callable[[GM, GM, np.ndarray, FusionInput], tuple[GM, np.ndarray | None]] | None = None
-    reduce_fused: Callable[[GM, np.ndarray | None, "Scenario"], GM] | None = None
+    fuse: FuseFn | None = None
+    fuse_for: Callable[["VariantSpec"], FuseFn] | None = None
+    reduce_fused: Callable[[GM, np.ndarray | None, "Scenario", "LandmarkSpec"], GM] | None = None
     predict_at_bs: Callable[[GM, "Scenario"], GM] | None = None
     remove_ego: Callable[[GM, tuple[np.ndarray, np.ndarray], "Scenario"], GM] | None = None
 
     def __post_init__(self) -> None:
-        if not self.p_detect_param:
-            object.__setattr__(self, "p_detect_param", f"p_detect_{self.name.lower()}")
-        if not self.threshold_param and self.mapped:
-            object.__setattr__(self, "threshold_param", f"threshold_{self.name.lower()}")
+        if not self.params:
+            object.__setattr__(self, "params", self.name)
+
+    def type_params(self, scn: "Scenario") -> "TypeParams":
+        """This type's row of ``filter.types`` (:class:`~mmslam.scenes.scenario.TypeParams`)."""
+        return scn.filter.type_params(self.params)
 
     def fov_radius(self, sensor: "SensorParams") -> float:
         """Radius (m) of the FOV about the vehicle: ``sensor.fov_range`` if range-gated, else infinite."""
         return float(sensor.fov_range) if self.range_gated else float("inf")
 
     def p_detect(self, scn: "Scenario") -> float:
-        """The filter's detection probability inside the FOV (``filter.<p_detect_param>``)."""
-        return float(getattr(scn.filter, self.p_detect_param))
+        """The filter's detection probability inside the FOV (``filter.types.<params>.p_detect``)."""
+        return float(self.type_params(scn).p_detect)
 
     def pd_beta_prior(self, scn: "Scenario") -> tuple[float, float] | None:
-        """Birth Beta ``(s0, t0)`` of this type's detection probability (mean ``filter.<p_detect_param>``,
+        """Birth Beta ``(s0, t0)`` of this type's detection probability (mean ``filter.types.<params>.p_detect``,
         pseudo-count ``filter.pd_beta_count``), or None where the type's ``p_D`` is fixed
         (``filter.pd_model = "fixed"``, or a type that does not ``learns_pd``)."""
         if scn.filter.pd_model != "beta" or not self.learns_pd:
@@ -155,16 +162,20 @@ class LandmarkSpec:
 
         return prior_beta(self.p_detect(scn), float(scn.filter.pd_beta_count))
 
+    def fusion_operator(self, variant: "VariantSpec") -> FuseFn:
+        """The fusion operator of this type for ``variant`` (``fuse_for(variant)``, else ``fuse``)."""
+        return self.fuse if self.fuse_for is None else self.fuse_for(variant)
+
     def merge_gate(self, scn: "Scenario") -> float:
         """Merge gate ``U`` (squared Mahalanobis distance, dimensionless) of this type's maps
-        (``filter.<merge_param>``; a negative value means ``filter.merge``)."""
-        return merge_gate(scn, self.merge_param)
+        (``filter.types.<params>.merge``; not set: ``filter.merge``)."""
+        return self.type_params(scn).merge_gate(scn.filter.merge)
 
     def threshold(self, scn: "Scenario") -> float:
-        """Estimate threshold on a component's weight (``filter.<threshold_param>``)."""
-        if not self.threshold_param:
+        """Estimate threshold on a component's weight (``filter.types.<params>.threshold``)."""
+        if not self.mapped:
             raise MmslamError(f"landmark type {self.name!r} is not mapped and has no estimate threshold")
-        return float(getattr(scn.filter, self.threshold_param))
+        return float(self.type_params(scn).threshold)
 
 
 # ====================================================================== the types' functions
@@ -235,56 +246,57 @@ def fuse_aa(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tup
     return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True, weights=fu.aa_weights)
 
 
-def fuse_vs_map(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
-    """VS fusion: the variant's countermeasures, else plain AA fusion.
-
-    ``ego_vs_average``: the upload is the averaged VS map with the ego vehicle placed by ``F'_AA``
-    (eq. 11; the ego Gaussian of :func:`mmslam.slam.filter.fusion_center.ego_gaussian`, widened by
-    :func:`vs_extent`); ``vs_fusion``: the fused VS mixture of eqs. 16-20 (``fuse_vs``).
-    """
+def fuse_vs(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+    """The proposed VS fusion ``F'_AA`` of the BS and uploaded VS maps (eqs. 16-20; gates
+    ``fusion.msm_position`` / ``msm_velocity``, ``fusion.beta_inside_fov`` for unmatched BS components)."""
     from ..fusion import operators as fm
 
-    scn, v = ctx.scn, ctx.variant
-    fu = scn.fusion
-    if v.ego_vs_average:
-        em, ec = fm.ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
-        ext = vs_extent(scn)
-        if ext is not None:  # others see this car where its body reflects, not at its antenna
-            ec = ec.copy()
-            ec[0:3, 0:3] += ext
-        upload = fm.ego_vs_average(upload, em, ec, fu.msm_position,
-                                   NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
-    if v.vs_fusion:
-        return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov,
-                          with_pairs=True)
-    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True)
+    fu = ctx.scn.fusion
+    return fm.fuse_vs(bs_map, upload, inside, fu.msm_position, fu.msm_velocity, fu.beta_inside_fov, with_pairs=True)
 
 
-def merge_gate(scn: "Scenario", merge_param: str = "merge") -> float:
-    """The merge gate ``filter.<merge_param>``; a negative value (e.g. ``merge_va``'s default) means
-    ``filter.merge``, so an override of ``filter.merge`` reaches every type that does not set its own."""
-    v = float(getattr(scn.filter, merge_param))
-    return float(scn.filter.merge) if v < 0 else v
+def ego_averaged(upload: GM, ctx: FusionInput) -> GM:
+    """The uploaded VS map with the ego vehicle placed by ``F'_AA`` (eq. 11): its ego Gaussian
+    (:func:`mmslam.slam.fusion.operators.ego_gaussian`, widened by :func:`vs_extent`), labelled with
+    the vehicle's ego label."""
+    from ..fusion import operators as fm
+
+    scn = ctx.scn
+    em, ec = fm.ego_gaussian(ctx.ego_mean, ctx.ego_cov, scn.filter.vs_process_std)
+    ext = vs_extent(scn)
+    if ext is not None:  # others see this car where its body reflects, not at its antenna
+        ec = ec.copy()
+        ec[0:3, 0:3] += ext
+    return fm.ego_vs_average(upload, em, ec, scn.fusion.msm_position,
+                             NO_LABEL if ctx.vehicle is None else ego_label(ctx.vehicle))
 
 
-def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", merge_param: str = "merge") -> GM:
-    """``prune_merge`` of a fused map (``fusion.average_prune``, merge gate ``filter.<merge_param>``,
-    :func:`merge_gate`)."""
+def vs_fusion_operator(variant: "VariantSpec") -> FuseFn:
+    """The VS map's fusion operator of a variant, chosen once when its fusion centre is built:
+    ``vs_fusion``: :func:`fuse_vs` (eqs. 16-20), else :func:`fuse_aa` (eq. 8); ``ego_vs_average``:
+    applied to the :func:`ego_averaged` upload (eq. 11)."""
+    fuse = fuse_vs if variant.vs_fusion else fuse_aa
+    if not variant.ego_vs_average:
+        return fuse
+
+    def fuse_ego_averaged(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
+        return fuse(bs_map, ego_averaged(upload, ctx), inside, ctx)
+
+    return fuse_ego_averaged
+
+
+def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", spec: LandmarkSpec) -> GM:
+    """``prune_merge`` of a fused map (``fusion.average_prune``, the type's merge gate
+    :meth:`LandmarkSpec.merge_gate`: e.g. ``filter.types.VA.merge``, so two image sources closer than the
+    VA position uncertainty lets U = 49 tell apart stay two, docs/implementation-notes.md, "Detection in
+    cities")."""
     fp, fu = scn.filter, scn.fusion
     if fused.capacity:
-        fused = prune_merge(fused, fu.average_prune, merge_gate(scn, merge_param), fp.max_gaussians,
-                            fp.max_trace, pos_dims=3)
+        fused = prune_merge(fused, fu.average_prune, spec.merge_gate(scn), fp.max_gaussians, fp.max_trace, pos_dims=3)
     return fused
 
 
-def reduce_fused_va(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
-    """:func:`reduce_fused_static` with the VA merge gate ``filter.merge_va``: two image sources closer
-    than the VA position uncertainty lets U = 49 tell apart stay two (docs/implementation-notes.md,
-    "Detection in cities")."""
-    return reduce_fused_static(fused, pairs, scn, "merge_va")
-
-
-def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario") -> GM:
+def reduce_fused_vs(fused: GM, pairs: np.ndarray | None, scn: "Scenario", spec: LandmarkSpec | None = None) -> GM:
     """``fusion.vs_reduction``: merge the matched pairs only (``matched``), or every pair within
     ``fusion.vs_merge_gate`` (``gate``); then prune / cap."""
     fp, fu = scn.filter, scn.fusion
@@ -421,7 +433,7 @@ BS_SPEC = LandmarkSpec(
 VA_SPEC = LandmarkSpec(
     name="VA", code=int(LandmarkType.VA), geometry=Bounce.MIRROR, state_dim=3, range_gated=False,
     description="virtual anchor (VA)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
-    reduce_fused=reduce_fused_va, merge_param="merge_va", learns_pd=True)
+    reduce_fused=reduce_fused_static, learns_pd=True)
 SP_SPEC = LandmarkSpec(
     name="SP", code=int(LandmarkType.SP), geometry=Bounce.SCATTER, state_dim=3, range_gated=True,
     description="scattering point (SP)", predict=predict_static_map, birth=birth_point, fuse=fuse_aa,
@@ -429,7 +441,8 @@ SP_SPEC = LandmarkSpec(
 VS_SPEC = LandmarkSpec(
     name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
     description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,
-    fuse=fuse_vs_map, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs, remove_ego=remove_ego_vs)
+    fuse=fuse_aa, fuse_for=vs_fusion_operator, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs,
+    remove_ego=remove_ego_vs)
 
 for _s in (BS_SPEC, VA_SPEC, SP_SPEC, VS_SPEC):
     register_landmark_type(_s)

@@ -1,0 +1,248 @@
+"""Running the grid: the cache, the worker-side job, the driver that saves each result as it arrives."""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mmslam.errors import (ConfigError, EnvironmentFailure, Interrupted, deferred_sigint, environment_cause,
+                           was_interrupted)
+from mmslam.slam.specs.variants import COMPARED_WITH
+from mmslam.executor import THREAD_VARS, Pool, open_pool
+from mmslam.pipelines.ablate.options import (ABLATION_FILE, JOBS_DIR, Job, VARIANTS, check_grid_clash,
+                                             check_run_args, default_command, is_finished, job_dir, parse_grid,
+                                             parse_sets, parse_variants, plan_jobs, SUMMARY_JSON,
+                                             SUMMARY_PARQUET)
+from mmslam.pipelines.ablate.store import (_cache_info, _check_compatible, _check_job_meta, _holding_out_lock,
+                                           _write_json, read_ablation, remove_stale_temps, start_ablation_dir)
+from mmslam.pipelines.ablate.command import check_overrides, particles_for
+from mmslam.pipelines.ablate.aggregation import Summary, aggregate, check_result_finite
+
+
+def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | None = None,
+                  progress: bool = True, max_depth: int = 1, samples: int = 1_000_000,
+                  seed: int = 0) -> Path:
+    """Trace ``scenario`` with ``source`` into ``out_dir/cache`` (reused / resumed if present).
+
+    ``out_dir`` must be missing, empty or an ablation (:func:`start_ablation_dir`, which marks it).
+
+    Args:
+        scenario: a preset name, a TOML path or a :class:`~mmslam.scenes.scenario.Scenario`.
+        source: ``analytic`` or ``sionna``.
+        out_dir: the ablation directory.
+        steps: steps to trace (default: the scenario's).
+        progress: show the trace progress bar.
+        max_depth, samples, seed: Sionna solver settings (ignored by ``analytic``); the defaults
+            are those of ``mmslam trace``, so a cache traced by it under ``out_dir/cache`` is reused.
+
+    Returns:
+        The cache directory.
+    """
+    from mmslam.raytrace.trace import make_source, trace_scenario
+    from mmslam.scenes.scenario import resolve_scenario
+
+    scn = resolve_scenario(scenario)
+    start_ablation_dir(out_dir)  # out_dir is (or becomes) an ablation: never a user's folder (mmslam.outputs)
+    with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
+        src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
+    return Path(trace_scenario(scn, src, Path(out_dir) / "cache", steps=steps, progress=progress))
+
+
+def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int | None,
+            overrides: Sequence[str] = ()) -> Any:
+    """Run one filter job (in a worker process) and return its :class:`Result`.
+
+    Pins BLAS/OpenMP pools to one thread when ``threadpoolctl`` is available (the environment
+    variables are set by the parent for the local pool; dask's nanny sets them for its workers).
+    """
+    for k in THREAD_VARS:
+        os.environ.setdefault(k, "1")
+    with contextlib.suppress(ImportError):
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    from mmslam.slam.filter import run_slam
+
+    return run_slam(cache_dir, variant=variant, particles=int(particles), seed=int(seed),
+                    steps=None if steps is None else int(steps), overrides=tuple(overrides))
+
+
+@dataclass
+class AblationRun:
+    """What :func:`run_ablation` did.
+
+    ``jobs`` is the asked grid, ``ran`` the jobs run now (in completion order), ``skipped`` those
+    found finished; ``wall_time_s`` covers running and aggregating; ``executor`` describes the
+    pool used (e.g. ``"local pool, 2 processes"``).
+    """
+
+    out_dir: Path
+    jobs: list[Job]
+    ran: list[Job]
+    skipped: list[Job]
+    wall_time_s: float
+    summary: "Summary"
+    executor: str = "local"
+
+
+@_holding_out_lock
+def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[str] | str = VARIANTS,
+                 mc: int = 10, particles: int | None = None, steps: int | None = None,
+                 executor: str = "local", scheduler: str | None = None, workers: int | None = None,
+                 progress: bool = True, command: str | None = None, seed0: int = 0,
+                 sets: Sequence[str] = (), grid: Sequence[str] = ()) -> AblationRun:
+    """Run the (variant x seed) grid on ``cache_dir``, store each job under ``out_dir/jobs``.
+
+    Finished jobs are skipped. When all jobs are stored, :func:`aggregate` writes the summary.
+    ``DIR/ablation.json`` records the grid of this call (variants x seeds); the summary and
+    ``mmslam report`` cover that grid. A different trace, ``particles`` or ``steps`` than the
+    stored ones is refused (use another ``out_dir``); more seeds or variants extend the grid.
+
+    Args:
+        cache_dir: a path cache (see :func:`prepare_cache`).
+        out_dir: the ablation directory.
+        variants: subset of :data:`VARIANTS` (a sequence or ``"a,b"``).
+        mc: Monte Carlo runs per variant (seeds ``seed0..seed0+mc-1``).
+        particles: particles per vehicle filter (None: the cached scenario's ``filter.particles``
+            after ``sets``).
+        steps: time steps to run (default: all steps in the cache).
+        executor: ``local`` (process pool) or ``dask``.
+        scheduler: dask scheduler address (``tcp://host:8786``); None starts a LocalCluster.
+        workers: processes (local) or LocalCluster workers; default: all cores.
+        progress: show a progress bar on stderr.
+        command: the shell command that reproduces this ablation (stored for the report).
+        seed0: first seed (check results on seeds the code was not tuned on).
+        sets: ``section.key=value`` parameter overrides for every job (``--set``; filter, fusion,
+            sensor and evaluation parameters; never ones that change the trace).
+        grid: ``section.key=v1,v2`` (``--grid``): every variant runs once per combination of
+            the listed values; the summary labels each arm ``variant[key=value,...]``.
+
+    Raises:
+        MmslamError: bad arguments, a results directory made with other settings, an unreachable
+            scheduler. Jobs finished before an error stay stored.
+    """
+    variants = parse_variants(variants)
+    check_run_args(mc, particles, steps, executor, scheduler, workers, seed0)
+    sets = parse_sets(sets)
+    arms = parse_grid(grid)
+    check_grid_clash(sets, arms)
+    out = Path(out_dir)
+    info = _cache_info(Path(cache_dir))
+    check_overrides(info, sets, arms)
+    particles = particles_for(info["scenario"], sets, particles)
+    old = read_ablation(out) if (out / ABLATION_FILE).is_file() else None
+    n_steps = info["cache_steps"] if steps is None else int(steps)
+    if steps is None and old is not None and 0 < int(old.get("steps") or 0) <= n_steps:
+        n_steps = int(old["steps"])  # resume what was asked, even if the cache has grown since
+    if n_steps > info["cache_steps"]:
+        raise ConfigError(f"--steps {n_steps}: the cache {info['cache_dir']} holds only "
+                          f"{info['cache_steps']} steps; trace more steps first")
+    seeds = list(range(int(seed0), int(seed0) + int(mc)))
+    spec = {**info, "variants": list(variants), "mc": int(mc), "seed0": int(seed0), "seeds": seeds,
+            "particles": int(particles), "steps": n_steps, "sets": list(sets), "grid": list(grid),
+            "arms": [list(a) for a in arms],
+            "command": command or default_command(info["scenario_name"], variants, mc, particles,
+                                                  info["source"], out, steps, seed0=seed0, sets=sets,
+                                                  grid=grid)}
+    if old is not None:
+        _check_compatible(out, old, spec)
+    start_ablation_dir(out, force=True)
+    remove_stale_temps(out, (ABLATION_FILE, SUMMARY_PARQUET, SUMMARY_JSON))
+    (out / JOBS_DIR).mkdir(exist_ok=True)
+    _write_json(out / ABLATION_FILE, spec)
+
+    jobs = plan_jobs(variants, mc, seed0, arms)
+    done = [j for j in jobs if is_finished(out, j)]
+    for j in done:
+        _check_job_meta(out, j, int(particles), n_steps, sets + j.arm)
+    # longest first (variants with a VS map cost more than baseline): less idle time at the end;
+    # the order never changes a job's result
+    pending = sorted((j for j in jobs if j not in done), key=lambda j: (j.variant == COMPARED_WITH, j.seed))
+    t0 = time.perf_counter()
+    ran: list[Job] = []
+    desc = "nothing to run"
+    if pending:
+        with open_pool(executor, scheduler, workers, len(pending)) as pool:
+            desc = pool.describe
+            ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
+                         None if steps is None else n_steps, progress, len(done), len(jobs), sets)
+    summary = aggregate(out)
+    return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
+
+
+ENVIRONMENT_FIX = ("free memory or lower --workers / --particles, or restart the Dask scheduler and its workers "
+                   "(or drop --scheduler)")
+"""What the user can change after an environment failure of an ablation."""
+
+
+def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,
+           steps: int | None, progress: bool, n_done: int, n_total: int, sets: Sequence[str] = ()) -> list[Job]:
+    """Submit ``pending``, save each result as it arrives; cancel the rest on error.
+
+    Ctrl-C / SIGTERM: :class:`Interrupted`; a failure of the machine or the cluster (out of memory, a
+    worker killed, the Dask scheduler lost): :class:`EnvironmentFailure`. Both say how many jobs are
+    kept (finished results not yet collected are saved first) and how to resume.
+    """
+    futs: dict[Any, Job] = {}
+    ran: list[Job] = []
+    bar = None
+    if progress:
+        from rich.console import Console
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                                   TimeElapsedColumn, TimeRemainingColumn)
+
+        bar = Progress(TextColumn("ablation [dim]{task.fields[last]}"), BarColumn(), MofNCompleteColumn(),
+                       TextColumn("jobs"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                       console=Console(stderr=True))
+        task = bar.add_task("jobs", total=n_total, completed=n_done, last=pool.describe)
+        bar.start()
+    def save(fut: Any, job: Job) -> None:
+        result = fut.result()
+        check_result_finite(result, f"job {job.name}", "the filter failed numerically (this is a bug); nothing "
+                            "was stored for this job", exit_code=1)
+        result.meta.setdefault("variant", job.variant)
+        result.meta.setdefault("seed", job.seed)
+        result.save(job_dir(out, job))
+        ran.append(job)
+
+    def keep_collected() -> None:
+        for fut, job in futs.items():  # finished but not yet collected: keep them
+            with contextlib.suppress(Exception):  # a lost scheduler cannot hand them over
+                if job not in ran and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    save(fut, job)
+
+    try:
+        for j in pending:
+            futs[pool.submit(run_job, cache_dir, j.variant, j.seed, particles, steps, tuple(sets) + j.arm,
+                             key=j.name)] = j
+        for fut in pool.as_completed(list(futs)):
+            job = futs[fut]
+            save(fut, job)
+            if bar is not None:
+                bar.update(task, advance=1, last=f"{job.name} done")
+    except BaseException as e:
+        interrupted = was_interrupted(e)
+        cause = None if interrupted else environment_cause(e)
+        with contextlib.suppress(Exception):
+            pool.cancel(list(futs))
+        if not interrupted and cause is None:
+            raise
+        keep_collected()
+        if bar is not None:
+            bar.stop()
+            bar = None
+        left = len(pending) - len(ran)
+        kept = (f"{n_done + len(ran)} of {n_total} jobs are kept in {out / JOBS_DIR} ({len(ran)} finished in "
+                f"this run); {left} unfinished jobs were cancelled")
+        if interrupted:
+            raise Interrupted(f"{kept}; re-run the same command to resume") from None
+        raise EnvironmentFailure(f"{cause}; {kept}; {ENVIRONMENT_FIX}, then re-run the same command to "
+                                 "resume") from None
+    finally:
+        if bar is not None:
+            bar.stop()
+    return ran
