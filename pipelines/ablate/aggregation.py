@@ -200,7 +200,7 @@ def aggregate(out_dir: str | Path) -> Summary:
         vkeys: list[tuple] = []
         akeys: list[tuple] = []
         vvals: dict[str, list[np.ndarray]] = {q: [] for q in STATE_QUANTITIES}
-        for r in res:
+        for r in res if mp != OTHERS_MAP else ():
             vt = r.vehicles
             idx = np.asarray(vt["vehicle"]).astype(int)
             st = np.asarray(vt["step"]).astype(int).tolist()
@@ -239,6 +239,17 @@ def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> l
     return list(dict.fromkeys(j.label for j in ranked))
 
 
+OTHERS_MAP = "fused_others"
+"""The fused VS map without the vehicles' own uploads (:meth:`mmslam.slam.eval.evaluation.MapScorer.record_others`):
+VS mapping of *other* vehicles, a headline row of its own where the runs have it."""
+
+
+def _maps(names: list[str], res: Sequence[Any]) -> list[str]:
+    """Headline maps: each vehicle, ``fused``, then :data:`OTHERS_MAP` where some run scored it."""
+    has = any(np.any(np.asarray(r.metrics["map"]).astype(str) == OTHERS_MAP) for r in res)
+    return list(names) + ["fused"] + ([OTHERS_MAP] if has else [])
+
+
 def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[str, float]]:
     """One run's scalar scores per map: mean GOSPA and PHD mass per type, position RMSE (steps >= fusion_start)."""
     m = r.metrics
@@ -248,7 +259,7 @@ def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[s
     vt = r.vehicles
     vlate = np.asarray(vt["step"]) >= fusion_start
     out: dict[str, dict[str, float]] = {}
-    for mp in list(names) + ["fused"]:
+    for mp in _maps(names, [r]):
         row: dict[str, float] = {}
         for ty in TYPES:
             sel = (mp_col == mp) & (ty_col == ty) & late
@@ -256,6 +267,10 @@ def _run_scores(r: Any, names: list[str], fusion_start: int) -> dict[str, dict[s
             row[f"gospa_{ty}"] = float(g.mean()) if g.size else math.nan
             c = np.asarray(m["card"], float)[sel] if "card" in m else np.zeros(0)
             row[f"card_{ty}"] = float(c.mean()) if c.size else math.nan
+        if mp == OTHERS_MAP:  # a VS score only: no vehicle state behind it
+            row["pos_rmse"] = math.nan
+            out[mp] = row
+            continue
         sel = vlate if mp == "fused" else vlate & (np.asarray(vt["vehicle"]).astype(int) == names.index(mp))
         e = np.asarray(vt["pos_err"], float)[sel]
         e = e[np.isfinite(e)]
@@ -298,7 +313,7 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
             row[q + "_sig"] = None
             if ref is None:
                 continue
-            common = sorted(set(runs) & set(per_run[ref]))
+            common = [s for s in sorted(set(runs) & set(per_run[ref])) if mp in per_run[ref][s]]
             d = np.array([runs[s][mp][q] - per_run[ref][s][mp][q] for s in common])
             mean, half = ci95(d)
             row[q + "_diff"], row[q + "_diff_ci"] = mean, half
@@ -307,7 +322,7 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
 
 def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start: int) -> list[dict[str, Any]]:
     """Mean GOSPA per (map, type) and position RMSE over steps >= fusion_start, over all seeds."""
-    maps = list(names) + ["fused"]
+    maps = _maps(names, res)
     wall = [float(r.meta.get("wall_time_s", math.nan)) for r in res]
     rows = []
     for mp in maps:
