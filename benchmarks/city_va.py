@@ -1,18 +1,33 @@
-"""Fused VA GOSPA and position RMSE on a traced city cache (issue 10 acceptance), per seed.
+"""City SLAM acceptance in one run (issues 10 and 22): VA map, localisation, VS of other vehicles, per seed.
 
 Usage (one process, nice it on a shared machine)::
 
-    python benchmarks/city_va.py CACHE_DIR [--seeds 0-4] [--particles 300] [--kmin 10]
-        [--variant proposed] [--set section.key=value ...] [--save OUT.npz]
+    python benchmarks/city_va.py CACHE_DIR [CACHE_DIR ...] [--seeds 100-109] [--particles 300] [--kmin 10]
+        [--variant proposed] [--set section.key=value ...] [--odometry] [--ignore-va]
+        [--compare section.key=value[,section.key=value ...]] [--save OUT.json]
 
-Prints, per seed and as the mean (with the 95% Student-t half-width over seeds): the fused VA
-GOSPA averaged over steps ``k >= kmin`` (m), the same for an empty map (the truth's GOSPA with no
-estimates, c = evaluation.gospa_c), and the position RMSE over all vehicles and steps ``k >= kmin``
-(m). ``--odometry`` also runs dead reckoning for the RMSE reference.
+Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the cache's scenario and the
+``--set`` overrides, and prints, averaged over steps ``k >= kmin``:
+
+- ``va``: the fused VA GOSPA (m), its missed / false parts (m^2), the truth count and ``n_visible`` (VAs some
+  vehicle could detect at that step);
+- ``empty``: the same truth's GOSPA with no estimates (``sqrt(c^alpha / 2 n_true)`` per step; computed, no run);
+- ``rmse``: the position RMSE (m) over all vehicles and those steps, and ``rmse_nlos`` over the (vehicle, step)
+  pairs without a line-of-sight path in the cache (the car that lost the BS);
+- ``vs`` / ``vs_others``: the fused VS GOSPA against every vehicle, and of the fused map's non-ego Gaussians
+  against the vehicles another vehicle could see (map ``fused_others``; NaN without labels).
+
+``--odometry``: dead reckoning too (``odo_rmse``). ``--ignore-va``: the same variant with the VA paths dropped
+from the measurements (``include_types`` without VA: the filter never sees a wall bounce), ``noVA_rmse`` and
+``noVA_rmse_nlos``. ``--compare``: the variant once more with these extra overrides (``cmp_*``). Every claimed
+difference is printed as a paired mean with its 95% Student-t half-width over the seeds.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import re
 import sys
 import time
 
@@ -28,32 +43,112 @@ def seeds_of(s: str) -> list[int]:
     return [int(x) for x in s.split(",")]
 
 
-def scores(r, kmin: int) -> dict[str, float]:
-    """One run's fused VA GOSPA (m), its missed / false parts (m^2) and truth count, averaged over steps
-    ``k >= kmin``, and the position RMSE (m) over all vehicles and those steps."""
+def nlos_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
+    """``(steps, n_veh)`` bool: no line-of-sight (BS) path for that vehicle at that step."""
+    from mmslam.slam.specs.landmarks import BS_SPEC
+
+    los = np.zeros((steps, n_veh), bool)
+    st, rx, ty = (np.asarray(paths[c]) for c in ("step", "rx", "type"))
+    sel = (ty == BS_SPEC.code) & (st < steps)
+    los[st[sel], rx[sel]] = True
+    return ~los
+
+
+def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
+    """One run's scores, averaged over steps ``k >= kmin`` (module docstring); ``ev``: ``[evaluation]``."""
     m = r.metrics
     mp, ty, st = np.asarray(m["map"]).astype(str), np.asarray(m["type"]).astype(str), np.asarray(m["step"])
+    out: dict[str, float] = {}
+
+    def mean(col: str, map_: str, typ: str) -> float:
+        sel = (mp == map_) & (ty == typ) & (st >= kmin)
+        a = np.asarray(m[col], float)[sel]
+        return float(a.mean()) if a.size else math.nan
+
+    out["va"] = mean("gospa", "fused", "VA")
+    out["missed"], out["false"] = mean("missed", "fused", "VA"), mean("false", "fused", "VA")
+    out["n_true"], out["n_visible"] = mean("n_true", "fused", "VA"), mean("n_visible", "fused", "VA")
     sel = (mp == "fused") & (ty == "VA") & (st >= kmin)
-    g = np.asarray(m["gospa"], float)[sel]
-    miss = np.asarray(m["missed"], float)[sel]
     n_true = np.asarray(m["n_true"], float)[sel]
+    out["empty"] = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * n_true) ** (1 / ev.gospa_p))) if n_true.size else math.nan
+    out["vs"], out["vs_others"] = mean("gospa", "fused", "VS"), mean("gospa", "fused_others", "VS")
     v = r.vehicles
-    e = np.asarray(v["pos_err"], float)[np.asarray(v["step"]) >= kmin]
-    return {"va": float(g.mean()), "rmse": float(np.sqrt(np.mean(e * e))), "missed": float(miss.mean()),
-            "false": float(np.asarray(m["false"], float)[sel].mean()), "n_true": float(n_true.mean())}
+    k, n = np.asarray(v["step"]), np.asarray(v["vehicle"]).astype(int)
+    e = np.asarray(v["pos_err"], float)
+    late = k >= kmin
+    out["rmse"] = float(np.sqrt(np.mean(e[late] ** 2)))
+    nl = late & nlos[k, n]
+    out["rmse_nlos"] = float(np.sqrt(np.mean(e[nl] ** 2))) if nl.any() else math.nan
+    out["nlos_share"] = float(nl.sum() / max(late.sum(), 1))
+    return out
 
 
 def ci(a) -> tuple[float, float]:
-    """Mean and 95% Student-t half-width over runs."""
+    """Mean and 95% Student-t half-width over runs (NaNs dropped)."""
     a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
     if a.size < 2:
-        return float(a.mean()), float("nan")
+        return (float(a.mean()) if a.size else math.nan), math.nan
     return float(a.mean()), float(stats.t.ppf(0.975, a.size - 1) * a.std(ddof=1) / np.sqrt(a.size))
+
+
+def run_scene(cache: str, a: argparse.Namespace) -> dict:
+    """All runs of one cache; prints per seed and the summary; returns the rows and summary."""
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.slam.filter import run_slam
+    from mmslam.slam.specs.landmarks import VA_SPEC, landmark_types
+
+    c = load_cache(cache)
+    steps = c.states.shape[0] if a.steps is None else a.steps
+    n_veh = c.states.shape[1]
+    nlos = nlos_mask(c.paths, c.states.shape[0], n_veh)
+    ev = c.scenario.evaluation
+    no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
+    cmp_sets = [x for x in re.split(r",(?=\w+\.\w+=)", a.compare) if x] if a.compare else []
+    rows = []
+    print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
+    for s in seeds_of(a.seeds):
+        t0 = time.perf_counter()
+        sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev)
+        if a.odometry:
+            sc["odo_rmse"] = scores(run_slam(cache, "odometry", a.particles, s, steps=steps, overrides=a.set),
+                                    a.kmin, nlos, ev)["rmse"]
+        if a.ignore_va:
+            o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, include_types=no_va,
+                                overrides=a.set), a.kmin, nlos, ev)
+            sc["noVA_rmse"], sc["noVA_rmse_nlos"] = o["rmse"], o["rmse_nlos"]
+        if cmp_sets:
+            o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set + cmp_sets),
+                       a.kmin, nlos, ev)
+            sc.update({f"cmp_{k}": v for k, v in o.items()})
+        sc["seed"] = s
+        rows.append(sc)
+        print(f"seed {s}: " + "  ".join(f"{k} {v:.3f}" for k, v in sc.items() if k != "seed")
+              + f"  [{time.perf_counter() - t0:.0f} s]", flush=True)
+    summ = {}
+    for key in [k for k in rows[0] if k != "seed"]:
+        summ[key] = ci([r[key] for r in rows])
+        print(f"  mean {key}: {summ[key][0]:.3f} +- {summ[key][1]:.3f}")
+    va, emp = summ["va"][0], summ["empty"][0]
+    print(f"  VA / empty map: {va / emp:.3f}")
+    pairs = []
+    if a.odometry:
+        pairs.append(("rmse", "odo_rmse"))
+        print(f"  RMSE / odometry: {summ['rmse'][0] / summ['odo_rmse'][0]:.3f}")
+    if a.ignore_va:
+        pairs += [("rmse", "noVA_rmse"), ("rmse_nlos", "noVA_rmse_nlos")]
+    if cmp_sets:
+        pairs += [(k, f"cmp_{k}") for k in ("va", "rmse", "vs", "vs_others")]
+    for x, y in pairs:
+        d = ci([r[x] - r[y] for r in rows])
+        summ[f"{x}-{y}"] = d
+        print(f"  paired {x} - {y}: {d[0]:+.3f} +- {d[1]:.3f}" + ("  (beyond the spread)" if abs(d[0]) > d[1] else ""))
+    return {"scene": c.scenario.name, "cache": cache, "rows": rows, "summary": summ}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("cache")
+    ap.add_argument("cache", nargs="+")
     ap.add_argument("--seeds", default="0-4")
     ap.add_argument("--particles", type=int, default=300)
     ap.add_argument("--kmin", type=int, default=10)
@@ -61,30 +156,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--odometry", action="store_true")
+    ap.add_argument("--ignore-va", action="store_true")
+    ap.add_argument("--compare", default="")
     ap.add_argument("--save", default=None)
     a = ap.parse_args(argv)
-    from mmslam.slam.filter import run_slam
-
-    rows = []
-    seeds = seeds_of(a.seeds)
-    for s in seeds:
-        t0 = time.perf_counter()
-        r = run_slam(a.cache, a.variant, a.particles, s, steps=a.steps, overrides=a.set)
-        sc = scores(r, a.kmin)
-        if a.odometry:
-            o = run_slam(a.cache, "odometry", a.particles, s, steps=a.steps, overrides=a.set)
-            so = scores(o, a.kmin)
-            sc["empty"], sc["odo_rmse"] = so["va"], so["rmse"]
-        rows.append(sc)
-        print(f"seed {s}: fused VA GOSPA {sc['va']:.2f} m (missed^2 {sc['missed']:.1f}, false^2 {sc['false']:.1f}, "
-              f"n_true {sc['n_true']:.2f})  RMSE {sc['rmse']:.3f} m"
-              + (f"  empty {sc['empty']:.2f} m  odometry RMSE {sc['odo_rmse']:.3f} m" if a.odometry else "")
-              + f"  [{time.perf_counter() - t0:.0f} s]", flush=True)
-    for key in ("va", "rmse", "missed", "false") + (("empty", "odo_rmse") if a.odometry else ()):
-        m, h = ci([r[key] for r in rows])
-        print(f"mean {key}: {m:.3f} +- {h:.3f}")
+    out = [run_scene(c, a) for c in a.cache]
     if a.save:
-        np.savez(a.save, seeds=np.array(seeds), **{k: np.array([r[k] for r in rows]) for k in rows[0]})
+        with open(a.save, "w") as f:
+            json.dump(out, f, indent=1)
     return 0
 
 

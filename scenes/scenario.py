@@ -165,8 +165,9 @@ class TypeParams:
 
 
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
-    "BS": TypeParams(), "VA": TypeParams(threshold=0.7), "SP": TypeParams(), "VS": TypeParams()}
-"""The built-in rows of ``[filter.types]`` (TWC2020 values). A file's row replaces the keys it gives; a type
+    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5), "SP": TypeParams(), "VS": TypeParams()}
+"""The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
+prior, and threshold 0.5, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
 
 TYPE_PARAM_ALIASES: dict[str, tuple[str, str]] = {
@@ -183,7 +184,8 @@ class FilterParams:
 
     particles: int = param(300, "particles per vehicle: the default of run_filter / run_slam and of "
                            "--particles (mmslam slam, ablate, demo) when none is given", "", lo=1, hi=MAX_PARTICLES)
-    r_scale: float = param(9.0, "the filter's measurement covariance is r_scale x the true R (tuning)", "",
+    r_scale: float = param(1.0, "the filter's measurement covariance is r_scale x the true R (1: the sensor's "
+                           "own; the paper's filter inflates it, 9; docs/city-slam.md)", "",
                            lo=0.0, lo_open=True, hi=1e6)
     prior_std: tuple[float, ...] = param(
         (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3), "std of the initial vehicle prior around the true state "
@@ -217,7 +219,7 @@ class FilterParams:
     vs_dither: tuple[float, ...] = param(
         (9.0, 9.0, 0.09, 5.0, 5.0, 0.09, 0.18), "dithering T_d added to VS covariances at prediction "
         "(diagonal of [x, y, z, vx, vy, vz, turn rate])", "m^2, m^2/s^2, rad^2/s^2", lo=0.0, hi=1e6, length=7)
-    pd_model: str = param("fixed", "the filter's detection model inside the FOV: fixed (filter.types.<TYPE>.p_detect for "
+    pd_model: str = param("beta", "the filter's detection model inside the FOV: fixed (filter.types.<TYPE>.p_detect for "
                           "every Gaussian, the paper's) or beta (each VA / SP Gaussian learns its own p_D "
                           "from its detection history: a Beta(s, t) per Gaussian, E[p_D] = s / (s + t), "
                           "missed -> (s, t + 1), detected -> (s + 1, t); Beta-Gaussian PHD, Mahler, Vo & "
@@ -228,7 +230,7 @@ class FilterParams:
     pd_beta_forget: float = param(1.0, "pd_model beta: each prediction multiplies a Gaussian's Beta (s, t) by "
                                   "this factor (mean kept, old detections fade; 1: a static detection "
                                   "profile)", "", lo=0.0, lo_open=True, hi=1.0)
-    pd_beta_downlink: str = param("keep", "pd_model beta: the Beta of each Gaussian of the fused map a vehicle "
+    pd_beta_downlink: str = param("prior", "pd_model beta: the Beta of each Gaussian of the fused map a vehicle "
                                   "receives: keep (the BS's pooled history) or prior (the birth prior: "
                                   "visibility is learnt per vehicle, from its own detections)",
                                   choices=("keep", "prior"))
@@ -275,13 +277,18 @@ class FusionParams:
                                    "accumulated FOV", "", probability=True)
     average_prune: float = param(0.1, "pruning threshold of the averaged and fused map PHDs", "", lo=0.0,
                                  hi=1.0)
-    average_by_label: bool = param(False, "averaged map (eq. 7): every Gaussian carries an identity label (a "
+    average_by_label: bool = param(True, "averaged map (eq. 7): every Gaussian carries an identity label (a "
                                    "birth's is the same in every particle, a corrected or merged Gaussian "
                                    "keeps its slot's or cluster leader's, the downlink gives every particle "
                                    "the fused map's), and the particles' copies of one labelled landmark "
                                    "(each particle's heaviest Gaussian of the label) are moment-matched into "
                                    "one before the gated merge; off: the gate alone decides "
                                    "(docs/implementation-notes.md, VA 2 and the averaged map)")
+    aa_weights: str = param("visibility", "weights of a matched pair in the AA fusion of static maps (eq. 8): "
+                            "equal (1/2 each, the paper's) or visibility (each member's learnt E[p_D] over "
+                            "the pair's sum, where both carry a Beta detection model, filter.pd_model = beta; "
+                            "equal otherwise): a vehicle's copy of a landmark it could not see does not dilute "
+                            "the copy of one that saw it (docs/city-slam.md)", choices=("equal", "visibility"))
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
                                 "counts as inside a vehicle's accumulated FOV if the filter's detection "
                                 "probability (filter.types.<TYPE>.p_detect, 0 beyond the FOV range) reached it "
@@ -312,6 +319,9 @@ class EvalParams:
     fused_steps: str = param("all", "steps the headline mean of the fused map's GOSPA covers: all (every step from "
                              "the first upload on) or uploads (only the steps with an upload: the TWC2020 code's "
                              "mean over k = 10:2:40, its fusion steps)", choices=("all", "uploads"))
+    va_resolution: float = param(1.0, "VA truths (image sources) closer than this count as one landmark: two "
+                                 "parallel facades less than half of it apart, which the sensor cannot tell "
+                                 "apart (docs/city-slam.md)", "m", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)

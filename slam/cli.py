@@ -61,6 +61,10 @@ def register(app: typer.Typer) -> None:
         sets: list[str] = typer.Option([], "--set", help="section.key=value override of a filter, fusion, sensor "
                                        "or evaluation parameter (repeatable), e.g. --set fusion.vs_reduction=gate; "
                                        "see docs/scenario.md. Parameters of the trace are refused."),
+        ignore_types: str = typer.Option("", "--ignore-types", help="Path types (comma-separated names, e.g. VA) "
+                                         "left out of the measurements: the filter never sees them (e.g. VA: "
+                                         "localisation without wall bounces, the reference for what the VA map "
+                                         "adds)."),
         animate: Optional[Path] = typer.Option(None, "--animate", help="Also draw the run step by step (vehicles, "
                                                "the fused map's estimates vs truth, the traced paths) into this "
                                                ".gif (or .mp4, needs ffmpeg) file."),
@@ -78,6 +82,15 @@ def register(app: typer.Typer) -> None:
         check_int("--particles", particles, 1, MAX_PARTICLES, "a number of particles")
         check_int("--steps", steps, 1, MAX_STEPS, "a number of steps")
         check_int("--seed", seed, 0, MAX_SEED, "a seed")
+        include = None
+        if ignore_types.strip():
+            from mmslam.slam.specs.landmarks import landmark_type, landmark_types
+
+            try:
+                drop = {landmark_type(x.strip()).code for x in ignore_types.split(",") if x.strip()}
+            except MmslamError as e:
+                raise MmslamError(f"--ignore-types {ignore_types!r}: {e}") from None
+            include = tuple(t.code for t in landmark_types() if t.code not in drop)
         from mmslam.outputs import check_target, locked
         from mmslam.slam.filter.result import RESULT_FILES, RESULT_KIND
 
@@ -89,7 +102,7 @@ def register(app: typer.Typer) -> None:
             check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps,
-                               overrides=tuple(sets), compile_notice=lambda m: Console().print(
+                               overrides=tuple(sets), include_types=include, compile_notice=lambda m: Console().print(
                                    m, highlight=False, soft_wrap=True))  # stdout: stderr is for errors
             except BaseException as e:
                 if not was_interrupted(e):

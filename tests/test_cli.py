@@ -126,3 +126,22 @@ def test_slam_set_overrides_a_filter_parameter_and_refuses_an_unknown_one(tmp_pa
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "filter.nope" in err
     assert not (tmp_path / "r2").exists()
+
+
+def test_slam_ignore_types_leaves_those_paths_out_of_the_measurements(tmp_path, capsys):
+    """--ignore-types VA: the run's include_types lack VA (1) and keep BS, SP, VS; an unknown name is one line,
+    exit 2, naming the option."""
+    import json
+
+    cache = tmp_path / "c"
+    assert main(["trace", "paper", "--source", "analytic", "--out", str(cache), "--steps", "3", "--quiet"]) == 0
+    (cdir,) = [p for p in cache.iterdir() if p.is_dir()]
+    args = ["slam", str(cdir), "--particles", "5", "--steps", "2"]
+    assert main(args + ["--ignore-types", "VA", "--out", str(tmp_path / "r")]) == 0
+    assert json.loads((tmp_path / "r" / "meta.json").read_text())["include_types"] == [0, 2, 3]
+    assert main(args + ["--out", str(tmp_path / "r2")]) == 0
+    assert json.loads((tmp_path / "r2" / "meta.json").read_text())["include_types"] == [0, 1, 2, 3]
+    capsys.readouterr()
+    assert main(args + ["--ignore-types", "WALL", "--out", str(tmp_path / "r3")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--ignore-types" in err and "WALL" in err and "\n" not in err

@@ -380,6 +380,27 @@ def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
     assert len(seen[0]) == 1 and len(seen[1]) == 1  # vehicle 0: the two facades are one VA
 
 
+def test_va_truths_closer_than_the_resolution_are_one():
+    """evaluation.va_resolution (1 m): the images of two parallel facades 0.4 m apart (0.8 m apart) are one
+    VA for the truth, those of facades 0.765 m apart (canyon's, images 1.53 m apart) stay two; a chain
+    of images each within the resolution of the next is one; the keys of one cluster are the first's."""
+    from mmslam.slam.eval.evaluation import first_seen as _first_seen, resolve_points, truth_keys
+    from mmslam.slam.models.measurement import VA
+
+    y = [20.0, 20.8, 22.33, 40.0, 40.9, 41.8]  # 20 / 20.8 one; 22.33 apart; 40 - 40.9 - 41.8 a chain
+    n = len(y)
+    paths = {"step": np.arange(n), "rx": np.zeros(n, int), "type": np.full(n, VA),
+             "landmark_id": np.array([f"f{i}" for i in range(n)]), "lm_x": np.zeros(n), "lm_y": np.array(y),
+             "lm_z": np.full(n, 40.0)}
+    k = truth_keys(paths, 1.0)
+    assert k[0] == k[1] != k[2] and k[3] == k[4] == k[5] != k[0]
+    assert len(set(truth_keys(paths))) == n  # the default key resolution (1 mm): all distinct
+    seen = _first_seen(paths, 1, n, np.zeros((n, 1, 3)), load_preset("paper").sensor, 1.0)[VA][0]
+    assert len(seen) == 3 and sorted(s for s, _ in seen.values()) == [0, 2, 3]
+    np.testing.assert_array_equal(resolve_points(np.array([[0, 0, 0], [0, 0, 0.99], [0, 0, 3.0]]), 1.0),
+                                  [0, 0, 2])
+
+
 def test_power_aware_sensor_gives_the_filter_each_measurements_covariance(paper, monkeypatch):
     """sensor.model = link: every correction gets R_z = r_scale diag(R_meas) of exactly its measurements."""
     from mmslam.scenes.scenario import with_overrides

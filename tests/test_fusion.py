@@ -206,3 +206,38 @@ def test_merge_pairs_is_the_moment_match_of_each_pair_and_leaves_the_rest():
     np.testing.assert_allclose(ref.P[0], out.P[0])
     with pytest.raises(ValueError, match="disjoint"):
         merge_pairs(g, np.array([[0, 1], [1, 2]]))
+
+
+def _with_beta(g, ab):
+    return GM(g.w, g.m, g.P, g.mask, np.asarray(ab, float))
+
+
+def test_fuse_aa_visibility_weights_by_hand():
+    """fusion.aa_weights = visibility: a matched pair weighted by each member's E[p_D] = s / (s + t).
+
+    BS copy: w 1.0, Beta (3, 1) -> pi 0.75 (seen); upload: w 0.2, Beta (0.2, 3.8) -> pi 0.05 (a car
+    that never saw it, its copy decayed by misses). beta_b = 0.75 / 0.8, beta_u = 0.05 / 0.8: the pair
+    sums to 0.9375 + 0.0125 = 0.95 instead of (1.0 + 0.2) / 2 = 0.6 with the paper's 1/2."""
+    bs = _with_beta(_gm([1.0], [[0, 0, 0]], _iso([[0, 0, 0]], 1.0)), [[3.0, 1.0]])
+    ue = _with_beta(_gm([0.2, 0.5], [[0.5, 0, 0], [0, 60, 0]], _iso([[0, 0, 0], [0, 60, 0]], 1.0)),
+                    [[0.2, 3.8], [1.0, 1.0]])
+    vis = fuse_aa(bs, ue, np.array([False]), 20.0, weights="visibility")
+    assert _find(vis, [0, 0, 0]) == pytest.approx(0.9375)
+    assert _find(vis, [0.5, 0, 0]) == pytest.approx(0.0125)
+    assert _find(vis, [0, 60, 0]) == pytest.approx(0.5)  # unmatched upload: 1 either way
+    eq = fuse_aa(bs, ue, np.array([False]), 20.0, weights="equal")
+    assert _find(eq, [0, 0, 0]) == pytest.approx(0.5) and _find(eq, [0.5, 0, 0]) == pytest.approx(0.1)
+
+
+def test_fuse_aa_visibility_weights_reduce_to_the_paper_rule():
+    """Equal E[p_D] on both sides, or no Beta (a fixed p_D): beta = 1/2 exactly, as eq. (8)."""
+    bs = _gm([0.8, 0.6], [[0, 0, 0], [30, 0, 0]], _iso([[0, 0, 0], [30, 0, 0]], 1.0))
+    ue = _gm([0.7], [[1, 0, 0]], _iso([[1, 0, 0]], 1.0))
+    inside = np.array([True, True])
+    ref = fuse_aa(bs, ue, inside, 20.0)
+    for b, u in ((bs, ue), (_with_beta(bs, [[1.0, 9.0], [2.0, 2.0]]), _with_beta(ue, [[3.0, 27.0]]))):
+        out = fuse_aa(b, u, inside, 20.0, weights="visibility")
+        np.testing.assert_allclose(out.w, ref.w, rtol=1e-12)
+        np.testing.assert_allclose(out.m, ref.m, rtol=1e-12)
+    with pytest.raises(ValueError, match="fusion weights"):
+        fuse_aa(bs, ue, inside, 20.0, weights="max")

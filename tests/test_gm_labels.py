@@ -365,3 +365,33 @@ def test_compact_refuses_a_label_array_of_another_shape():
     g = _gm([[1.0, 0.5, 0.2]] * 2, np.zeros((2, 3, 3)), label=[[7], [8]])
     with pytest.raises(ValueError, match=r"GM.label has shape \(2, 1\); expected the weights' \(2, 3\)"):
         compact(g)
+
+
+def test_fused_others_scores_the_vs_map_without_the_ego_uploads():
+    """MapScorer.record_others: the fused VS map's Gaussians labelled ego_label(n) (each car's own upload,
+    eq. 11) are left out, the rest scored against the cars some other car can see (within fov_range).
+    Cars 0 and 1 are 10 m apart, car 2 is 500 m away: truth {car 0, car 1}; estimates: car 1 found by a
+    measurement (label 7) and the three ego Gaussians; only car 1 is an estimate, car 0 is missed."""
+    from mmslam.slam.eval.evaluation import MapScorer
+    from mmslam.slam.core.gm import GM, ego_label
+    from mmslam.slam.specs.landmarks import VS_SPEC
+
+    scn = load_preset("paper")
+    true = np.zeros((1, 3, 7))
+    true[0, :, 0] = [0.0, 10.0, 500.0]
+    e = np.zeros(0)
+    paths = {"step": e.astype(int), "rx": e.astype(int), "type": e.astype(int), "landmark_id": e.astype(str),
+             "lm_x": e, "lm_y": e, "lm_z": e}
+    sc = MapScorer(scn, paths, true, ["a", "b", "c"])
+    m = np.zeros((4, 7))
+    m[:, 0] = [10.0, 0.0, 10.0, 500.0]
+    lab = np.array([7, ego_label(0), ego_label(1), ego_label(2)], np.int64)
+    g = GM(np.ones(4), m, np.broadcast_to(np.eye(7), (4, 7, 7)).copy(), np.ones(4, bool), None, lab)
+    sc.record_others(0, {VS_SPEC.code: g})
+    mt = sc.metrics.cols
+    assert mt["map"] == ["fused_others"] and mt["type"] == ["VS"]
+    assert mt["n_est"] == [1] and mt["n_true"] == [2]
+    c = scn.evaluation.gospa_c
+    assert mt["missed"][0] == pytest.approx(c ** 2 / 2) and mt["loc"][0] == pytest.approx(0.0)
+    sc.record_others(0, {VS_SPEC.code: GM(g.w, g.m, g.P, g.mask)})  # no labels: nothing recorded
+    assert len(sc.metrics.cols["map"]) == 1

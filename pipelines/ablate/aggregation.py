@@ -231,7 +231,7 @@ def aggregate(out_dir: str | Path) -> Summary:
         vkeys: list[tuple] = []
         akeys: list[tuple] = []
         vvals: dict[str, list[np.ndarray]] = {q: [] for q in STATE_QUANTITIES}
-        for r in res:
+        for r in res if mp != OTHERS_MAP else ():
             vt = r.vehicles
             idx = np.asarray(vt["vehicle"]).astype(int)
             st = np.asarray(vt["step"]).astype(int).tolist()
@@ -275,10 +275,21 @@ def _labels_in_order(jobs: dict[Job, Any], arms: Sequence[tuple[str, ...]]) -> l
     return list(dict.fromkeys(j.label for j in ranked))
 
 
+OTHERS_MAP = "fused_others"
+"""The fused VS map without the vehicles' own uploads (:meth:`mmslam.slam.eval.evaluation.MapScorer.record_others`):
+VS mapping of *other* vehicles, a headline row of its own where the runs have it."""
+
+
+def _maps(names: list[str], res: Sequence[Any]) -> list[str]:
+    """Headline maps: each vehicle, ``fused``, then :data:`OTHERS_MAP` where some run scored it."""
+    has = any(np.any(np.asarray(r.metrics["map"]).astype(str) == OTHERS_MAP) for r in res)
+    return list(names) + ["fused"] + ([OTHERS_MAP] if has else [])
+
+
 def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[int] | None = None
                 ) -> dict[str, dict[str, float]]:
     """One run's scalar scores per map: mean GOSPA and PHD mass per type, position RMSE (steps >= fusion_start;
-    the fused map's GOSPA only over ``uploads`` when given, :func:`upload_steps`)."""
+    the fused maps' GOSPA only over ``uploads`` when given, :func:`upload_steps`)."""
     m = r.metrics
     mp_col = np.asarray(m["map"]).astype(str)
     ty_col = np.asarray(m["type"]).astype(str)
@@ -286,7 +297,7 @@ def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[i
     vt = r.vehicles
     vlate = np.asarray(vt["step"]) >= fusion_start
     out: dict[str, dict[str, float]] = {}
-    for mp in list(names) + ["fused"]:
+    for mp in _maps(names, [r]):
         row: dict[str, float] = {}
         for ty in TYPES:
             sel = (mp_col == mp) & (ty_col == ty) & late
@@ -294,6 +305,10 @@ def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[i
             row[f"gospa_{ty}"] = float(g.mean()) if g.size else math.nan
             c = np.asarray(m["card"], float)[sel] if "card" in m else np.zeros(0)
             row[f"card_{ty}"] = float(c.mean()) if c.size else math.nan
+        if mp == OTHERS_MAP:  # a VS score only: no vehicle state behind it
+            row["pos_rmse"] = math.nan
+            out[mp] = row
+            continue
         sel = vlate if mp == "fused" else vlate & (np.asarray(vt["vehicle"]).astype(int) == names.index(mp))
         e = np.asarray(vt["pos_err"], float)[sel]
         e = e[np.isfinite(e)]
@@ -383,7 +398,7 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
             row[q + "_sig"] = None
             if ref is None:
                 continue
-            common = sorted(set(runs) & set(per_run[ref]))
+            common = [s for s in sorted(set(runs) & set(per_run[ref])) if mp in per_run[ref][s]]
             d = np.array([runs[s][mp][q] - per_run[ref][s][mp][q] for s in common])
             mean, half = ci95(d)
             row[q + "_diff"], row[q + "_diff_ci"] = mean, half
@@ -391,19 +406,20 @@ def _add_intervals(headline: list[dict[str, Any]], per_run: dict[str, dict[int, 
 
 
 def _late(m: dict[str, np.ndarray], fusion_start: int, mp_col: np.ndarray, uploads: Sequence[int] | None) -> np.ndarray:
-    """Metric rows scored in the headline: steps >= fusion_start; the fused map's only at ``uploads`` if given."""
+    """Metric rows scored in the headline: steps >= fusion_start; the fused maps' (``fused``,
+    :data:`OTHERS_MAP`) only at ``uploads`` if given."""
     st = np.asarray(m["step"])
     late = st >= fusion_start
     if uploads is not None:
-        late &= (mp_col != "fused") | np.isin(st, np.asarray(list(uploads), int))
+        late &= ~np.isin(mp_col, ("fused", OTHERS_MAP)) | np.isin(st, np.asarray(list(uploads), int))
     return late
 
 
 def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start: int,
                    uploads: Sequence[int] | None = None) -> list[dict[str, Any]]:
     """Mean GOSPA per (map, type) and position RMSE over steps >= fusion_start, over all seeds (the fused
-    map's GOSPA only over ``uploads`` when given)."""
-    maps = list(names) + ["fused"]
+    maps' GOSPA only over ``uploads`` when given)."""
+    maps = _maps(names, res)
     wall = [float(r.meta.get("wall_time_s", math.nan)) for r in res]
     rows = []
     for mp in maps:
@@ -419,7 +435,7 @@ def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start:
             a = a[np.isfinite(a)]
             row[f"gospa_{ty}"] = float(a.mean()) if a.size else math.nan
         errs = []
-        for r in res:
+        for r in (res if mp != OTHERS_MAP else ()):  # a VS score only: no vehicle state behind it
             vt = r.vehicles
             sel = np.asarray(vt["step"]) >= fusion_start
             if mp != "fused":

@@ -28,6 +28,9 @@ from ..specs.landmarks import LandmarkSpec, mapped_types
 EXTRACTIONS = ("threshold", "vo_ma")
 VA_KEY_RESOLUTION = 1e-3
 """m: VAs whose image sources agree to this are one landmark (facades of several objects on one plane)."""
+VA_RESOLUTION = 1.0
+"""m, the default of ``evaluation.va_resolution``: image sources closer than this count as one VA (two
+parallel facades less than 0.5 m apart; docs/city-slam.md)."""
 
 Seen = dict[str, tuple[int, np.ndarray]]
 """landmark key -> (first step it could be detected, position ``(3,)`` m)."""
@@ -61,12 +64,35 @@ def evaluated_types() -> tuple[LandmarkSpec, ...]:
     return mapped_types()
 
 
-def truth_keys(paths: dict[str, np.ndarray]) -> np.ndarray:
+def resolve_points(xyz: np.ndarray, resolution: float) -> np.ndarray:
+    """Cluster index of each point ``(n, 3)`` (m): points linked by a chain of distances ``< resolution``
+    share one (single linkage), numbered by their first member; ``(n,)`` int."""
+    n = xyz.shape[0]
+    parent = np.arange(n)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    if n and resolution > 0:
+        d2 = np.sum((xyz[:, None, :] - xyz[None, :, :]) ** 2, axis=-1)
+        for i, j in zip(*np.nonzero(np.triu(d2 < resolution * resolution, 1))):
+            a, b = root(int(i)), root(int(j))
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    return np.array([root(i) for i in range(n)], int)
+
+
+def truth_keys(paths: dict[str, np.ndarray], resolution: float = VA_KEY_RESOLUTION) -> np.ndarray:
     """Evaluation identity of each path row's landmark, ``(n,)`` str.
 
     A VA is its image source (the BS mirrored in a plane), so two facades of different buildings
     on one plane are one VA: rows of MIRROR-geometry types are keyed by the image position rounded
-    to :data:`VA_KEY_RESOLUTION`; every other type by its ``landmark_id``.
+    to :data:`VA_KEY_RESOLUTION`; every other type by its ``landmark_id``. ``resolution`` (m,
+    ``evaluation.va_resolution``): image sources closer than it (chains of them, :func:`resolve_points`)
+    are one VA, keyed by the first one's position: the sensor cannot tell them apart.
     """
     ids = np.asarray(paths["landmark_id"]).astype(str)
     typ = np.asarray(paths["type"])
@@ -78,31 +104,36 @@ def truth_keys(paths: dict[str, np.ndarray]) -> np.ndarray:
         if va.size:
             xyz = np.stack([np.asarray(paths[c], float)[va] for c in ("lm_x", "lm_y", "lm_z")], -1)
             q = np.rint(xyz / VA_KEY_RESOLUTION).astype(np.int64)
+            uq, first, inv = np.unique(q, axis=0, return_index=True, return_inverse=True)
+            order = np.argsort(first, kind="stable")  # distinct image sources in order of appearance
+            rep = order[resolve_points(uq[order] * VA_KEY_RESOLUTION, resolution)]
+            q = uq[rep][np.argsort(order)][inv.reshape(-1)]
             out[va] = [f"{spec.name.lower()}@{a},{b},{c}" for a, b, c in q]
     return out.astype(str)
 
 
-def _truth_rows(paths: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+def _truth_rows(paths: dict[str, np.ndarray], resolution: float = VA_KEY_RESOLUTION) -> tuple[np.ndarray, ...]:
     """``step, type, rx (n,)``, evaluation keys ``(n,)`` (:func:`truth_keys`) and landmark positions ``(n, 3)``."""
     xyz = np.stack([np.asarray(paths["lm_x"], float), np.asarray(paths["lm_y"], float),
                     np.asarray(paths["lm_z"], float)], -1)
-    return np.asarray(paths["step"]), np.asarray(paths["type"]), np.asarray(paths["rx"]), truth_keys(paths), xyz
+    return np.asarray(paths["step"]), np.asarray(paths["type"]), np.asarray(paths["rx"]), truth_keys(paths, resolution), xyz
 
 
 def first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
-               sensor: Any) -> dict[int, list[Seen]]:
+               sensor: Any, resolution: float = VA_KEY_RESOLUTION) -> dict[int, list[Seen]]:
     """Static type code -> per vehicle: landmark key -> (first step it could be detected by that vehicle, position).
 
     A landmark counts from the first step it is in the vehicle's paths *and* inside its FOV
     (``fov_detect_prob > 0`` at the true antenna ``positions (steps, n_veh, 3)``): a ray tracer
     reports scatterers at any range, but the sensor (and so the filter) only sees them within
-    ``fov_range``; a landmark the vehicle could never measure is not a missed one.
+    ``fov_range``; a landmark the vehicle could never measure is not a missed one. ``resolution``:
+    the VA resolution of :func:`truth_keys`.
     """
     from ..sim.sensor import fov_detect_prob
 
     static = [s.code for s in evaluated_types() if not s.moving]
     out: dict[int, list[Seen]] = {c: [{} for _ in range(n_veh)] for c in static}
-    step, typ, rx, ids, xyz = _truth_rows(paths)
+    step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
     sel = np.nonzero(np.isin(typ, static) & (step < steps))[0]
     if sel.size:
         u = positions[step[sel], rx[sel]]
@@ -116,14 +147,14 @@ def first_seen(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: 
 
 
 def visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
-                   sensor: Any) -> dict[int, np.ndarray]:
+                   sensor: Any, resolution: float = VA_KEY_RESOLUTION) -> dict[int, np.ndarray]:
     """type code -> ``(steps, n_veh + 1)`` number of distinct landmarks of that type each vehicle could
     detect at each step (in its paths at that step and inside its FOV); the last column counts the
     union over vehicles (the fused map's). Tells forgetting (truth counts a landmark from its first
     sighting on) from never seeing."""
     from ..sim.sensor import fov_detect_prob
 
-    step, typ, rx, ids, xyz = _truth_rows(paths)
+    step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
     out = {}
     for spec in evaluated_types():
         t = spec.code
@@ -138,13 +169,14 @@ def visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positio
     return out
 
 
-def all_static(paths: dict[str, np.ndarray], steps: int) -> dict[int, Seen]:
+def all_static(paths: dict[str, np.ndarray], steps: int, resolution: float = VA_KEY_RESOLUTION) -> dict[int, Seen]:
     """type code -> every static landmark of that type in ``paths`` (steps ``< steps``, any vehicle, in
     its FOV or not), each "seen" at step 0 (``evaluation.truth_set = "all"``: every map is scored
-    against the scene's whole static truth from the start, as the TWC2020 code scores)."""
+    against the scene's whole static truth from the start, as the TWC2020 code scores). ``resolution``:
+    the VA resolution of :func:`truth_keys`."""
     static = [s.code for s in evaluated_types() if not s.moving]
     out: dict[int, Seen] = {c: {} for c in static}
-    step, typ, _, ids, xyz = _truth_rows(paths)
+    step, typ, _, ids, xyz = _truth_rows(paths, resolution)
     for i in np.nonzero(np.isin(typ, static) & (step < steps))[0]:
         out[int(typ[i])].setdefault(ids[i], (0, xyz[i]))
     return out
@@ -205,13 +237,14 @@ class MapScorer:
         steps, n_veh = true.shape[0], true.shape[1]
         self.scn, self.true, self.names, self.n_veh = scn, true, names, n_veh
         pos = true[:steps, :, 0:3]
+        res = float(scn.evaluation.va_resolution)
         if scn.evaluation.truth_set == "all":
-            every = all_static(paths, steps)
+            every = all_static(paths, steps, res)
             self.seen = {t: [every[t]] * n_veh for t in every}
         else:
-            self.seen = first_seen(paths, n_veh, steps, pos, scn.sensor)
+            self.seen = first_seen(paths, n_veh, steps, pos, scn.sensor, res)
         self.seen_all = {t: merge_seen(v) for t, v in self.seen.items()}
-        self.visible = visible_counts(paths, n_veh, steps, pos, scn.sensor)
+        self.visible = visible_counts(paths, n_veh, steps, pos, scn.sensor, res)
         self.types = evaluated_types()
         self.thresholds = {s.code: s.threshold(scn) for s in self.types}
         self.metrics, self.landmarks = Table(), Table()
@@ -235,25 +268,52 @@ class MapScorer:
         return {s.code: (self.true[k, :, 0:3].copy() if s.moving else truth_static(self.seen_all[s.code], k))
                 for s in self.types}
 
+    def others_truth(self, k: int, spec: LandmarkSpec) -> np.ndarray:
+        """``(n, 3)`` true positions of the vehicles that some *other* vehicle could see as a VS of type
+        ``spec`` at step ``k`` (within its FOV radius): the truth of the fused map's other-vehicle part."""
+        pos = self.true[k, :, 0:3]
+        d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        return pos[np.any(d <= spec.fov_radius(self.scn.sensor), axis=1)].reshape(-1, 3)
+
+    def record_others(self, k: int, maps: dict[int, GM]) -> None:
+        """Rows of map ``"fused_others"`` for the moving types (VS): the fused map's Gaussians that are not a
+        vehicle's own upload (label outside every :func:`~mmslam.slam.gm.ego_label`), scored against
+        :meth:`others_truth`: VS mapping of other vehicles, apart from the ego Gaussians of eq. (11).
+        Needs labels (``fusion.average_by_label``); nothing is recorded without them."""
+        from ..core.gm import ego_label
+
+        egos = np.array([ego_label(n) for n in range(self.n_veh)], np.int64)
+        for spec in self.types:
+            g = maps.get(spec.code)
+            if not spec.moving or g is None or g.label is None:
+                continue
+            keep = g.mask & ~np.isin(g.label, egos)
+            self._score(k, "fused_others", spec, GM(g.w, g.m, g.P, keep, g.pd_beta, g.label),
+                        self.others_truth(k, spec), self.n_veh)
+
     def record(self, k: int, name: str, maps: dict[int, GM], truth: dict[int, np.ndarray], col: int) -> None:
         """Score ``maps`` (type code -> averaged map; absent types: no estimates) of map ``name`` at step ``k``;
         ``col``: the vehicle index (``n_veh`` for the fused map) of the visible counts."""
+        for spec in self.types:
+            self._score(k, name, spec, maps.get(spec.code), truth[spec.code], col)
+
+    def _score(self, k: int, name: str, spec: LandmarkSpec, g: GM | None, Y: np.ndarray, col: int) -> None:
+        """One metrics row (and its landmark rows) of map ``name``, type ``spec``: estimates of ``g`` (None:
+        none) against the truth ``Y (n, 3)``."""
         from .gospa import gospa
 
         ev, fp = self.scn.evaluation, self.scn.filter
-        empty3 = np.zeros((0, 3))
-        for spec in self.types:
-            t = spec.code
-            if t in maps:
-                X, wts = estimates_of(maps[t], self.thresholds[t], fp.extraction)
-                card = cardinality(maps[t])
-            else:
-                X, wts, card = empty3, np.zeros(0), 0.0
-            Y = truth[t]
-            g = gospa(Y, X, ev.gospa_c, ev.gospa_p, ev.gospa_alpha)  # (truth, estimates)
-            self.metrics.add(step=k, map=name, type=spec.name, gospa=float(g.d), loc=float(g.loc),
-                             missed=float(g.missed), false=float(g.false), n_est=len(X), n_true=len(Y), card=card,
-                             n_visible=int(self.visible[t][k, col]))
-            for x, wv in zip(X, wts):
-                self.landmarks.add(step=k, map=name, type=spec.name, x=x[0], y=x[1], z=x[2], weight=float(wv))
+        t = spec.code
+        if g is not None:
+            X, wts = estimates_of(g, self.thresholds[t], fp.extraction)
+            card = cardinality(g)
+        else:
+            X, wts, card = np.zeros((0, 3)), np.zeros(0), 0.0
+        d = gospa(Y, X, ev.gospa_c, ev.gospa_p, ev.gospa_alpha)  # (truth, estimates)
+        self.metrics.add(step=k, map=name, type=spec.name, gospa=float(d.d), loc=float(d.loc),
+                         missed=float(d.missed), false=float(d.false), n_est=len(X), n_true=len(Y), card=card,
+                         n_visible=int(self.visible[t][k, col]))
+        for x, wv in zip(X, wts):
+            self.landmarks.add(step=k, map=name, type=spec.name, x=x[0], y=x[1], z=x[2], weight=float(wv))
 

@@ -3,8 +3,9 @@
 Per upload of vehicle ``n`` (every ``fusion.period`` steps from ``fusion.start[n]``) and per map
 type: the BS map components inside the vehicle's accumulated FOV (its positions since its last
 upload, radius :meth:`~mmslam.slam.specs.landmarks.LandmarkSpec.fov_radius`; only if the filter's
-``p_D`` of the type, or with ``filter.pd_model = "beta"`` the Gaussian's own ``E[p_D]``, reaches
-``fusion.gamma_detect``) take part in the type's fusion operator
+``p_D`` of the type, or with ``filter.pd_model = "beta"`` and ``pd_beta_downlink = "keep"`` the Gaussian's
+own ``E[p_D]``, reaches ``fusion.gamma_detect``; with ``pd_beta_downlink = "prior"`` the type's prior mean,
+the uploader's ``p_D`` of a landmark it does not hold) take part in the type's fusion operator
 (AA fusion, eq. 8; VS: ego averaging, eq. 11, and VS fusion, eqs. 16-20, when the variant asks);
 then the type's reduction. Between uploads, variants with ``predict_at_bs`` predict the maps of
 types that have a BS predictor (VS, eq. 15, no birth).
@@ -68,9 +69,12 @@ class FusionCenter:
             ue = avg_maps.get(t, empty((), 0, spec.state_dim))
             # accumulated FOV (paper's footnote): where p_D reached gamma_D since the last upload
             inside = in_accumulated_fov(bs_map.m[..., 0:3], fov_positions, spec.fov_radius(self.scn.sensor))
-            if bs_map.pd_beta is not None:  # each Gaussian's own E[p_D] = s / (s + t) (pd_model beta)
+            if bs_map.pd_beta is not None and self.scn.filter.pd_beta_downlink == "keep":
+                # each Gaussian's own E[p_D] = s / (s + t), the history the vehicles share (pd_model beta)
                 inside &= expected_pd(np.ones(bs_map.w.shape), bs_map.pd_beta) >= gamma
             else:
+                # the uploading vehicle's p_D of a landmark it does not hold: the type's (with a Beta learnt
+                # per vehicle, pd_beta_downlink = prior, its birth prior's mean; docs/city-slam.md)
                 inside &= spec.p_detect(self.scn) >= gamma
             fused, pairs = self.operators[t](bs_map, ue, inside, ctx)
             self.maps[t] = spec.reduce_fused(fused, pairs, self.scn, spec)

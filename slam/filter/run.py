@@ -225,6 +225,7 @@ class CooperativeRun:
         if self.scorer is not None:
             maps = self.center.maps if self.center is not None else {}
             self.scorer.record(k, "fused", maps, self.scorer.fused_truth(k), self.n_veh)
+            self.scorer.record_others(k, maps)
 
     def step(self, k: int) -> list[StepEstimate]:
         """All stages of step ``k``; returns the vehicles' estimates."""

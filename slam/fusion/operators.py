@@ -166,14 +166,19 @@ def _check_dims(bs: GM, ue: GM) -> int:
 
 
 def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
-            with_pairs: bool = False) -> GM | tuple[GM, np.ndarray]:
+            with_pairs: bool = False, weights: str = "equal") -> GM | tuple[GM, np.ndarray]:
     """TWC2020 arithmetic-average fusion ``F_AA`` of the BS map and an uploaded averaged map.
 
     Proximity: ``C[q1, q2] = 1`` iff the MSM distance of the *position* marginals (first three
     dims) is ``< match_threshold``; one-to-one matching among those (module docstring).
     Fusion weights:
 
-    - matched pair: ``beta = 1/2`` for both components;
+    - matched pair: ``beta = 1/2`` for both components; with ``weights = "visibility"`` and a
+      Beta detection model on both sides (``GM.pd_beta``, ``filter.pd_model = "beta"``), the
+      detection-weighted average ``beta_b = pi_b / (pi_b + pi_u)``, ``beta_u = pi_u / (pi_b + pi_u)``,
+      ``pi = E[p_D] = s / (s + t)`` of each member (:func:`visibility_weights`): a vehicle's copy
+      carries information only as far as it could detect the landmark (with one ``p_D`` for both,
+      ``beta = 1/2``, the paper's rule);
     - unmatched uploaded component: ``beta = 1`` (a landmark new to the BS map);
     - unmatched BS component: ``beta = 1/2`` if inside the uploading vehicle's accumulated FOV
       (it should have been seen: a possible false alarm), else ``beta = 1``.
@@ -185,12 +190,16 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
             (see :func:`in_accumulated_fov`); masked slots are ignored.
         match_threshold: MSM threshold (dimensionless).
         with_pairs: also return the matched pairs (see Returns).
+        weights: ``"equal"`` (eq. 8) or ``"visibility"`` (matched pairs weighted by ``E[p_D]``
+            where both maps carry a Beta detection model; equal otherwise).
 
     Returns:
         The union with weights ``beta * w`` (live components only, sorted by weight); with
         ``with_pairs``, ``(union, pairs)`` where ``pairs (n, 2)`` are the union slots of the BS and
         the uploaded member of each matched pair (for :func:`~mmslam.slam.phd.reduction.merge_pairs`).
     """
+    if weights not in ("equal", "visibility"):
+        raise ValueError(f"fusion weights {weights!r}: expected 'equal' or 'visibility'")
     d = _check_dims(bs, ue)
     inside = _check_inside(bs, ue_fov_inside)
     ib, wb, mb, Pb = _live(bs)
@@ -199,11 +208,29 @@ def fuse_aa(bs: GM, ue: GM, ue_fov_inside: np.ndarray, match_threshold: float,
     r, c = _match(dist < match_threshold, dist)
     beta_b = np.where(inside[ib], 0.5, 1.0)
     beta_u = np.ones(wu.shape[0])
-    beta_b[r] = 0.5
-    beta_u[c] = 0.5
+    ab_b, ab_u = _pd_beta(bs, wb.shape[0]), _pd_beta(ue, wu.shape[0])
+    if weights == "visibility" and ab_b is not None and ab_u is not None:
+        beta_b[r], beta_u[c] = visibility_weights(ab_b[r], ab_u[c])
+    else:
+        beta_b[r] = 0.5
+        beta_u[c] = 0.5
     return _union(wb, mb, Pb, beta_b, wu, mu, Pu, beta_u, d, (r, c) if with_pairs else None,
-                  _pd_beta(bs, wb.shape[0]), _pd_beta(ue, wu.shape[0]), _label(bs, wb.shape[0]),
-                  _label(ue, wu.shape[0]))
+                  ab_b, ab_u, _label(bs, wb.shape[0]), _label(ue, wu.shape[0]))
+
+
+def visibility_weights(ab_b: np.ndarray, ab_u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fusion weights of matched pairs by detection: ``beta_i = pi_i / (pi_b + pi_u)``, ``pi = s / (s + t)``.
+
+    The AA fusion of eq. (8) with weights proportional to each member's expected detection
+    probability (its Beta ``(s, t)``, ``(n, 2)`` per side): the FOV rule of eqs. (8) and (16)-(20)
+    (weight 1 to the map that could see a landmark, 0 to one that could not, 1/2 each where both
+    could) with the binary FOV indicator replaced by the learnt ``E[p_D]`` (docs/city-slam.md).
+    Equal ``pi`` give 1/2 each. Returns ``(beta_b (n,), beta_u (n,))``.
+    """
+    pb = ab_b[:, 0] / (ab_b[:, 0] + ab_b[:, 1])
+    pu = ab_u[:, 0] / (ab_u[:, 0] + ab_u[:, 1])
+    tot = pb + pu
+    return pb / tot, pu / tot
 
 
 def _ego_match(m: np.ndarray, P: np.ndarray, ego_mean: np.ndarray, ego_cov: np.ndarray,

@@ -238,10 +238,12 @@ def vs_extent(scn: "Scenario") -> np.ndarray | None:
 
 
 def fuse_aa(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
-    """AA fusion ``F_AA`` (eq. 8, TWC2020): MSM matching with ``fusion.msm_position``."""
+    """AA fusion ``F_AA`` (eq. 8, TWC2020): MSM matching with ``fusion.msm_position``, matched pairs
+    weighted by ``fusion.aa_weights`` (``visibility``: by each member's learnt ``E[p_D]``)."""
     from ..fusion import operators as fm
 
-    return fm.fuse_aa(bs_map, upload, inside, ctx.scn.fusion.msm_position, with_pairs=True)
+    fu = ctx.scn.fusion
+    return fm.fuse_aa(bs_map, upload, inside, fu.msm_position, with_pairs=True, weights=fu.aa_weights)
 
 
 def fuse_vs(bs_map: GM, upload: GM, inside: np.ndarray, ctx: FusionInput) -> tuple[GM, np.ndarray | None]:
