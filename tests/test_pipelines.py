@@ -146,12 +146,13 @@ def test_check_run_args_rejects_bad_numbers(kw: dict, needle: str) -> None:
     assert needle in str(e.value) and "\n" not in str(e.value)
 
 
-def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray) -> Result:
+def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray,
+                 names: tuple[str, str] = ("veh1", "veh2"), extra_maps: tuple[str, ...] = ()) -> Result:
     """A result with given fused-VS GOSPA per step and per-(step, vehicle) position errors."""
     steps = len(gospa)
     st, mp, ty, g = [], [], [], []
     for k in range(steps):
-        for m in ("veh1", "veh2", "fused"):
+        for m in (*names, "fused", *extra_maps):
             for t in ("VA", "SP", "VS"):
                 st.append(k), mp.append(m), ty.append(t), g.append(gospa[k] if (m, t) == ("fused", "VS") else 1.0)
     n = len(st)
@@ -167,9 +168,29 @@ def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray
                 "pos_err": np.asarray(pos_err, float).ravel(), "heading_err": z, "bias_err": z}
     landmarks = {"step": np.zeros(0, np.int32), "map": np.zeros(0, object), "type": np.zeros(0, object),
                  "x": np.zeros(0), "y": np.zeros(0), "z": np.zeros(0), "weight": np.zeros(0)}
-    meta = {"variant": variant, "seed": seed, "particles": 7, "steps": steps, "vehicle_names": ["veh1", "veh2"],
+    meta = {"variant": variant, "seed": seed, "particles": 7, "steps": steps, "vehicle_names": list(names),
             "wall_time_s": 1.0 + seed}
     return Result(vehicles, metrics, landmarks, meta)
+
+
+def test_aggregate_keeps_vehicle_errors_when_names_sort_before_fused_others(tmp_path: Path) -> None:
+    """Vehicle names that sort before 'fused_others' (car_a, car_b: city presets) with a fused_others
+    map: the per-vehicle and pooled position errors are still aggregated (the state loop once tested a
+    map name left over from the metric loop and skipped every run)."""
+    out = tmp_path / "abl"
+    A.start_ablation_dir(out)
+    g = np.array([4.0, 2.0, 0.0])
+    for s in (0, 1):
+        r = _hand_result("proposed", s, g, np.full((3, 2), 3.0 + s), names=("car_a", "car_b"),
+                         extra_maps=("fused_others",))
+        r.save(A.job_dir(out, A.Job("proposed", s)))
+    A.store._write_json(out / A.ABLATION_FILE, {"variants": ["proposed"], "mc": 2, "seed0": 0, "seeds": [0, 1],
+                                                "steps": 3, "scenario": {}, "config_hash": "x",
+                                                "vehicle_names": ["car_a", "car_b"]})
+    s = A.aggregate(out)
+    pos = s.series("proposed", "all", "state", "pos_err")
+    np.testing.assert_allclose(pos["rms"], math.sqrt((9 + 16) / 2))
+    assert s.series("proposed", "car_a", "state", "pos_err")["n"].tolist() == [2, 2, 2]
 
 
 def test_aggregate_means_rms_and_headline_on_known_numbers(tmp_path: Path) -> None:

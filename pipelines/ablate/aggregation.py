@@ -231,7 +231,7 @@ def aggregate(out_dir: str | Path) -> Summary:
         vkeys: list[tuple] = []
         akeys: list[tuple] = []
         vvals: dict[str, list[np.ndarray]] = {q: [] for q in STATE_QUANTITIES}
-        for r in res if mp != OTHERS_MAP else ():
+        for r in res:  # vehicle states: per vehicle and pooled (no map is involved)
             vt = r.vehicles
             idx = np.asarray(vt["vehicle"]).astype(int)
             st = np.asarray(vt["step"]).astype(int).tolist()
