@@ -154,22 +154,13 @@ def compile_for_workers(variants: Iterable[str], progress: bool = True) -> int:
 
 
 def _compile_parallel(todo: Sequence[tuple[str, str]], n: int) -> None:
-    from mmslam.executor import starting_workers, worker_init
+    from mmslam.executor import single_thread_env, starting_workers, worker_init
 
-    threads = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in threads}
-    os.environ.update({k: "1" for k in threads})  # the workers only compile: one BLAS thread each
-    try:
+    with single_thread_env():  # the workers only compile: one BLAS thread each
         ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"), initializer=worker_init,
                                     initargs=(os.getpid(),))
         with starting_workers():  # a Ctrl-C reaches this process only, not a half-started worker
             futs = [ex.submit(_compile_one, k, s) for k, s in todo]
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     try:
         for f in cf.as_completed(futs):
             f.result()
