@@ -45,7 +45,7 @@ from mmslam.scenes.scenario import Scenario, SensorParams
 from . import channel_estimator as ce
 from ..models.dynamics import wrap_angle
 from ..models.measurement import MEAS_DIM, OTHER
-from .sensor import BOLTZMANN_DBM_HZ, Measurements, clock_bias_walk, clutter_intensity
+from .sensor import BOLTZMANN_DBM_HZ, Measurements, clock_bias_walk, clutter_intensity, set_slots
 
 SPEED_OF_LIGHT = ce.SPEED_OF_LIGHT
 GUARD = 4
@@ -262,11 +262,7 @@ def threshold_covariance(scn: Scenario) -> np.ndarray:
 def to_measurements(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int) -> Measurements:
     """Padded :class:`Measurements` of an :func:`estimate_run` result (order: as estimated)."""
     s = np.asarray(est["set"], np.int64)
-    per = np.bincount(s, minlength=steps * n_veh)
-    J = int(per.max(initial=0))
-    start = np.concatenate([[0], np.cumsum(per)[:-1]])
-    slot = np.arange(s.size) - start[s]
-    ks, vs = np.divmod(s, n_veh)
+    J, slot, ks, vs = set_slots(s, steps, n_veh)
     Z = np.zeros((steps, n_veh, J, MEAS_DIM))
     mask = np.zeros((steps, n_veh, J), bool)
     otype = np.full((steps, n_veh, J), -1, np.int8)

@@ -279,6 +279,16 @@ def _used_types(scn: Scenario, include_types: Sequence[int] | None) -> np.ndarra
     return np.array(sorted(types), dtype=int)
 
 
+def set_slots(s_sorted: np.ndarray, steps: int, n_veh: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """Padding of measurement sets: ``s_sorted`` ``(n,)`` set index ``k * n_veh + v`` of each
+    measurement, grouped by set (non-decreasing) -> ``(J, slot (n,), k (n,), v (n,))`` with ``J`` the
+    largest set size and ``slot`` each measurement's place in its set (``Z[k, v, slot]``)."""
+    per_set = np.bincount(s_sorted, minlength=steps * n_veh)
+    start = np.concatenate([[0], np.cumsum(per_set)[:-1]])
+    ks, vs = np.divmod(s_sorted, n_veh)
+    return int(per_set.max(initial=0)), np.arange(s_sorted.size) - start[s_sorted], ks, vs
+
+
 def clock_bias_walk(states: np.ndarray, std: float, rng: np.random.Generator) -> np.ndarray:
     """True states ``(steps, n_veh, 7)``: ``states`` with the clock bias (column 6, m) a random walk
     ``B_k = B_{k-1} + N(0, std^2)`` from ``B_0 = states[0, :, 6]`` (draws ``(steps - 1, n_veh)`` normals)."""
@@ -428,11 +438,7 @@ def simulate_measurements(scn: Scenario, states: np.ndarray, paths: dict[str, np
     keys = rng.random(all_set.size)
     order = np.lexsort((keys, all_set))
     s_sorted = all_set[order]
-    per_set = np.bincount(all_set, minlength=steps * n_veh)
-    J = int(per_set.max(initial=0))
-    start = np.concatenate([[0], np.cumsum(per_set)[:-1]])
-    slot = np.arange(order.size) - start[s_sorted]
-    ks, vs = np.divmod(s_sorted, n_veh)
+    J, slot, ks, vs = set_slots(s_sorted, steps, n_veh)
 
     Z = np.zeros((steps, n_veh, J, MEAS_DIM))
     mask = np.zeros((steps, n_veh, J), bool)
