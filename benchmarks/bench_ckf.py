@@ -65,7 +65,7 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline", first: 
 
 def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]]:
     """Median ns per Gaussian of the compiled batch kernel, per geometry name, and the Gaussian count."""
-    from mmslam.slam.phd.ckf import _CKF_BATCH, MEAS_DIM
+    from mmslam.slam.phd.ckf import _CKF_BATCH, MEAS_DIM, workspace
 
     groups = {"direct": lambda c: c["geometry"] == 0, "mirror": lambda c: c["geometry"] == 1,
               "scatter": lambda c: c["geometry"] == 2, "vs": lambda c: c["m"].shape[1] == 7}
@@ -81,7 +81,7 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
             R = c["R"].reshape(-1, MEAS_DIM, MEAS_DIM)
             args.append((np.ascontiguousarray(c["m"]), np.ascontiguousarray(c["P"]), np.ascontiguousarray(c["states"]),
                          c["bs"], c["extent"], np.ascontiguousarray(c["Z"]), np.ascontiguousarray(R),
-                         np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))))
+                         np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d)), workspace(d)))
         kernel = _CKF_BATCH[sel[0]["geometry"]]
         for a in args[:1]:
             kernel(*a)  # compile / load
