@@ -157,6 +157,61 @@ def _paired_html(summary: Summary) -> str:
             f'<th>95% CI</th><th>verdict</th></tr></thead><tbody>{"".join(rows)}</tbody></table>')
 
 
+def _num(x: Any, nd: int = 2) -> str:
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return "n/a"
+    return f"{f:.{nd}f}" if math.isfinite(f) else "n/a"
+
+
+def _sensor_html(summary: Summary) -> str:
+    """``<table id="measurements">``: per variant (grid arm) its sensor model and the mean number of
+    measurements per vehicle-step by origin (landmark type, OTHER path, clutter / false alarm), with
+    the channel estimator's merged and missed counts; ``<table id="sensor-pairs">``: the paired
+    differences between sensor-model arms (:mod:`mmslam.pipelines.ablate.sensor_models`)."""
+    sm = summary.sensor or {}
+    rows = sm.get("measurements") or []
+    if not rows:
+        return "<p>No measurement counts stored (results from before they were recorded).</p>"
+    cols: list[str] = []
+    for r in rows:
+        for c in (r.get("measurements") or {}):
+            if c not in cols:
+                cols.append(c)
+    est_cols = ("merged", "missed")
+    body = []
+    for r in rows:
+        m, e = r.get("measurements") or {}, r.get("estimator") or {}
+        cells = "".join(f'<td data-col="{html.escape(c)}">{_num(m.get(c))}</td>' for c in cols)
+        cells += "".join(f'<td data-col="est_{c}">{_num(e.get(c)) if e else "-"}</td>' for c in est_cols)
+        body.append(f'<tr data-variant="{html.escape(str(r["variant"]))}" data-model="{html.escape(str(r["model"]))}">'
+                    f'<td>{html.escape(str(r["variant"]))}</td><td>{html.escape(str(r["model"]))}</td>'
+                    f'<td>{r.get("runs", "")}</td>{cells}</tr>')
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "<th>merged (estimator)</th><th>missed (estimator)</th>"
+    out = ('<table id="measurements"><thead><tr><th>variant</th><th>sensor model</th><th>runs</th>'
+           f'{head}</tr></thead><tbody>{"".join(body)}</tbody></table>')
+    pairs = sm.get("pairs") or []
+    if pairs:
+        prow = []
+        for p in pairs:
+            for q, name in (("gospa_VA", "fused VA GOSPA [m]"), ("gospa_VS", "fused VS GOSPA [m]"),
+                            ("pos_rmse", "position RMSE [m]")):
+                ci = p.get(q + "_diff_ci")
+                sig = "significant" if p.get(q + "_sig") else "not significant"
+                prow.append(f'<tr data-variant="{html.escape(str(p["variant"]))}" data-score="{q}">'
+                            f'<td>{html.escape(str(p["variant"]))}</td><td>{html.escape(str(p["reference"]))}</td>'
+                            f'<td>{name}</td><td>{_num(p.get(q))}</td><td>{_num(p.get(q + "_ref"))}</td>'
+                            f'<td>{_num(p.get(q + "_diff"), 3)}</td><td>± {_num(ci, 3)}</td><td>{p.get("n")}</td>'
+                            f'<td style="text-align:left">{sig}</td></tr>')
+        out += ('<h3>Sensor models compared</h3><p>Per seed, the arm minus the same variant\'s arm with the '
+                'reference sensor model (link, else constant); mean and 95% CI over the common seeds.</p>'
+                '<table id="sensor-pairs"><thead><tr><th>arm</th><th>reference</th><th>score</th><th>arm</th>'
+                '<th>reference</th><th>paired difference</th><th>95% CI</th><th>seeds</th><th>verdict</th></tr>'
+                f'</thead><tbody>{"".join(prow)}</tbody></table>')
+    return out
+
+
 def summary_rows(summary: Summary) -> list[dict[str, Any]]:
     """The headline rows (variant, map, :data:`HEADLINE_COLUMNS`), in table order."""
     return list(summary.headline)
@@ -316,6 +371,13 @@ the map (estimated number of vehicles).</p>
 <p>Per run (same seed: same measurements and prior), score of the variant minus score of baseline; mean and 95% CI
 over runs. A difference whose interval contains 0 is reported as not significant.</p>
 {_paired_html(summary)}
+<h2>Measurements</h2>
+<p>What each variant's filter was given: mean number of measurements per vehicle and step by the path it came
+from (evaluation labels, never used by the filter; <i>clutter</i>: false alarms with no originating path). Under
+the <code>estimated</code> sensor model these are the channel estimator's estimates, labelled by the rays in
+their resolution cell; <i>merged</i>: estimates whose cell holds rays of two or more landmarks, <i>missed</i>:
+landmarks of the paths table no estimate is labelled with.</p>
+{_sensor_html(summary)}
 <h2>Variants</h2>
 {_variants_html(spec.get("variants", []))}
 <h2>Figures</h2>

@@ -19,6 +19,8 @@ from mmslam.pipelines.ablate.options import (ALL_VEHICLES, JOBS_DIR, Job, METRIC
                                              SUMMARY_JSON, SUMMARY_PARQUET, TYPES, VARIANTS, arm_label,
                                              is_finished, job_dir, parse_label)
 from mmslam.pipelines.ablate.store import _write_json, read_ablation, remove_stale_temps, temp_path
+from mmslam.pipelines.ablate.sensor_models import measurement_rows, sensor_model, sensor_pairs
+from mmslam.pipelines.ablate.stats import ci95  # noqa: F401  (re-exported)
 
 
 @dataclass
@@ -52,6 +54,9 @@ class Summary:
     reference, quantity (``gospa_VA``, ``gospa_SP``, ``gospa_VS`` of the fused map; ``pos_err``, the
     position error averaged over the vehicles), step, diff (mean over the common seeds of the per-run
     difference), ci (95% Student-t half-width), n (seeds), sig (the CI excludes 0)."""
+    sensor: dict[str, list] = field(default_factory=dict)
+    """``measurements``: :func:`~mmslam.pipelines.ablate.sensor_models.measurement_rows` (what each label's
+    filter was given, per vehicle-step); ``pairs``: :func:`~mmslam.pipelines.ablate.sensor_models.sensor_pairs`."""
 
     def paired_series(self, variant: str, quantity: str) -> dict[str, np.ndarray]:
         """Per-step columns (step, diff, ci, n) of ``variant`` minus its reference for ``quantity``."""
@@ -159,22 +164,6 @@ def load_jobs(out_dir: str | Path, variants: Sequence[str] | None = None,
     return out
 
 
-def ci95(x: np.ndarray) -> tuple[float, float]:
-    """Mean and half-width of its two-sided 95% Student-t confidence interval (NaNs dropped).
-
-    ``n < 2`` gives a NaN half-width (no interval from one run).
-    """
-    from scipy.stats import t as student_t
-
-    a = np.asarray(x, float)
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return math.nan, math.nan
-    if a.size < 2:
-        return float(a.mean()), math.nan
-    return float(a.mean()), float(student_t.ppf(0.975, a.size - 1) * a.std(ddof=1) / math.sqrt(a.size))
-
-
 def _group_stats(keys: list[tuple], values: np.ndarray) -> dict[tuple, tuple[float, float, float, int]]:
     """Key -> (mean, std, rms, n) of the values (NaNs ignored)."""
     acc: dict[tuple, list[float]] = {}
@@ -262,7 +251,9 @@ def aggregate(out_dir: str | Path) -> Summary:
               "fused_headline_steps": "all from fusion_start" if uploads is None else uploads,
               "dt": spec.get("scenario", {}).get("dt"),
               "seeds_found": {v: sorted(j.seed for j in jobs if j.label == v) for v in labels}}
-    summary = Summary(table, headline, config, paired)
+    models = {lab: sensor_model(lab, spec, [jobs[j].meta for j in jobs if j.label == lab]) for lab in labels}
+    sensor = {"measurements": measurement_rows(jobs, labels, spec), "pairs": sensor_pairs(per_run, models)}
+    summary = Summary(table, headline, config, paired, sensor)
     _write_summary(out, summary)
     return summary
 
@@ -473,7 +464,7 @@ def _write_summary(out: Path, s: Summary) -> None:
     paired = {k: [None if isinstance(x, float) and not math.isfinite(x) else x for x in v]
               for k, v in s.paired.items()}
     _write_json(out / SUMMARY_JSON, {"config": s.config, "headline": head, "per_step": per_step,
-                                     "per_step_paired": paired})
+                                     "per_step_paired": paired, "sensor_models": _finite_or_none(s.sensor)})
 
 
 def load_summary(out_dir: str | Path) -> Summary:
@@ -496,4 +487,13 @@ def load_summary(out_dir: str | Path) -> Summary:
     head = [{k: (math.nan if x is None else x) for k, x in r.items()} for r in j["headline"]]
     paired = {k: [math.nan if x is None and k in ("diff", "ci") else x for x in v]
               for k, v in j.get("per_step_paired", {}).items()}
-    return Summary(table, head, j["config"], paired)
+    return Summary(table, head, j["config"], paired, j.get("sensor_models", {}))
+
+
+def _finite_or_none(x: Any) -> Any:
+    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    return None if isinstance(x, float) and not math.isfinite(x) else x

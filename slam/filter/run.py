@@ -257,6 +257,9 @@ class CooperativeRun:
                               "measurement_update": self.measurement_update,
                               "fusion_start": int(min(scn.fusion.start)),
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
+        cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
+        md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
+                                    "per_step_vehicle": counts[:self.steps].tolist()}
         if self.estimator_counts is not None:  # evaluation labels of the estimates (never used by the filter)
             from ..sim.estimated_sensor import COUNT_COLUMNS
 

@@ -37,7 +37,7 @@ from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario, SensorParams
 
 from ..models.dynamics import wrap_angle
-from ..specs.landmarks import is_range_gated, known_codes
+from ..specs.landmarks import is_range_gated, known_codes, landmark_types
 from ..models.measurement import MEAS_DIM, OTHER
 
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
@@ -96,6 +96,20 @@ class Measurements:
     def set(self, step: int, vehicle: int) -> np.ndarray:
         """The measurement set of one vehicle at one step, ``(J_k, 5)`` (live slots only)."""
         return self.z[step, vehicle][self.mask[step, vehicle]]
+
+    def origin_counts(self) -> tuple[list[str], np.ndarray]:
+        """How many measurements each path type gave, per step and vehicle (for evaluation only).
+
+        Returns:
+            ``(columns, counts)``: column names, the registered types then ``OTHER`` then
+            ``clutter`` (false alarms: no originating path), and ``counts (steps, n_veh, len(columns))``
+            int64, the live slots of each origin per (step, vehicle)."""
+        codes = [s.code for s in landmark_types()] + [OTHER, -1]
+        names = [s.name for s in landmark_types()] + ["OTHER", "clutter"]
+        live = np.asarray(self.mask, bool)
+        ot = np.asarray(self.origin_type)
+        counts = np.stack([(live & (ot == c)).sum(axis=-1) for c in codes], axis=-1).astype(np.int64)
+        return names, counts
 
 
 def clutter_intensity(params: SensorParams) -> float:
