@@ -46,7 +46,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmslam.raytrace.schema import INTERACTION_LABELS, PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
+from mmslam.raytrace.schema import (INTERACTION_LABELS, PATH_COLUMNS, ray_numbers, rays_columns, sort_paths,
+                                    tx_position_columns)
 from mmslam.scenes.landmarks import reflecting_faces
 from mmslam.scenes.scenario import Scenario
 from mmslam.model import BS, SP, VA, VS, direction_angles, mirror_point
@@ -279,6 +280,7 @@ class AnalyticSource:
             "aod_az": aod_az[ri, li], "aod_el": aod_el[ri, li],
             "aoa_az": aoa_az[ri, li], "aoa_el": aoa_el[ri, li],
             "power_db": free_space_power_db(toa[ri, li], self.scn.frequency_hz),
+            **tx_position_columns(b, n),
             "bounce_x": bounce[ri, li, 0], "bounce_y": bounce[ri, li, 1], "bounce_z": bounce[ri, li, 2],
             "lm_x": lm[ri, li, 0], "lm_y": lm[ri, li, 1], "lm_z": lm[ri, li, 2],
             "n_paths": np.ones(n, dtype=np.int32),
@@ -294,7 +296,7 @@ class AnalyticSource:
         objs = np.array(["", *self.face_object, *self.sp_ids, *self.vehicle_names[:n_rx]], dtype=object)[li]
         rays = rays_columns(step=step, rx=ri, typ=tp, landmark_id=ids[li], a=a, delay_s=toa[ri, li] / SPEED_OF_LIGHT,
                             angles=angles, doppler_hz=doppler[ri, li], itype=itype[:, None], objects=objs[:, None],
-                            verts=bounce[ri, li][:, None, :], ray=ray)
+                            verts=bounce[ri, li][:, None, :], ray=ray, tx_pos=b)
         cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t))
                 for k, t in PATH_COLUMNS.items()}
         return {"rays": rays, "paths": sort_paths(cols)}

@@ -18,6 +18,15 @@ A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
   ``mmslam`` holds a JSON object with the table name, schema version, scenario (name and
   resolved parameters), source, solver settings, config hash, frame and units conventions.
 
+Schema versions: this mmslam writes :data:`~mmslam.raytrace.schema.SCHEMA_VERSION` (3) and reads
+:data:`~mmslam.raytrace.schema.READABLE_SCHEMA_VERSIONS`. A version-2 cache (no transmitter
+position columns) loads with ``tx_x, tx_y, tx_z`` filled in memory from the manifest's
+``resolved_scenario.bs``; its files are never rewritten, and a resumed or extended version-2
+trace writes its new chunks in version 2 too, so one cache holds one version. The config hash
+does not hold the schema version: the traced content of a version-2 and a version-3 cache of
+one configuration is the same, so a version-3 mmslam keeps using (and extending) the older
+cache instead of re-tracing it.
+
 Every file is written to a temporary name in the same directory and renamed into place
 (:func:`atomic_write_bytes`); the manifest is rewritten (atomically) after each chunk, so a
 killed trace loses at most the chunk in progress. :func:`load_cache` validates everything it
@@ -40,8 +49,9 @@ import pyarrow.parquet as pq
 from mmslam.errors import CacheError, MmslamError
 from mmslam.outputs import atomic_write_bytes
 from mmslam.raytrace.schema import (
-    INTERACTION_LABELS, PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, TABLE_SPECS, TX_LABELS, TYPE_LABELS,
-    VEHICLE_COLUMNS, Col, sort_paths, sort_rays,
+    INTERACTION_LABELS, PATH_COLUMNS, RAY_COLUMNS, READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION, TABLE_SPECS,
+    TX_LABELS, TX_POSITION_COLUMNS, TYPE_LABELS, VEHICLE_COLUMNS, Col, sort_paths, sort_rays, table_columns,
+    tx_position_columns,
 )
 from mmslam.scenes.scenario import Scenario, scenario_from_resolved
 from mmslam.model import BS, OTHER
@@ -106,16 +116,19 @@ def enum_labels(enum: str, vehicle_names: list[str] | tuple[str, ...]) -> tuple[
             "vehicle": tuple(vehicle_names)}[enum]
 
 
-def to_arrow(table: str, cols: dict[str, np.ndarray], meta: dict) -> pa.Table:
-    """One table's columns as a self-describing Arrow table.
+def to_arrow(table: str, cols: dict[str, np.ndarray], meta: dict, version: int = SCHEMA_VERSION) -> pa.Table:
+    """One table's columns as a self-describing Arrow table of schema ``version``.
 
     Enum columns become ``dictionary<int16, string>`` arrays of their labels, every field gets
     ``unit`` and ``doc`` metadata, and ``meta`` (JSON-able; must hold ``vehicle_names``) goes to
     the schema metadata key ``mmslam`` together with the table name, schema version and frame.
+    ``version`` < :data:`SCHEMA_VERSION` (extending an older cache) leaves out the columns later
+    versions added (:func:`~mmslam.raytrace.schema.table_columns`).
     """
     spec: dict[str, Col] = TABLE_SPECS[table]
     fields, arrays = [], []
-    for k, c in spec.items():
+    for k in table_columns(table, version):
+        c = spec[k]
         v = np.asarray(cols[k])
         if c.enum is not None:
             labels = enum_labels(c.enum, meta["vehicle_names"])
@@ -130,15 +143,15 @@ def to_arrow(table: str, cols: dict[str, np.ndarray], meta: dict) -> pa.Table:
             arr = pa.array(v.astype(c.dtype), type=pa.from_numpy_dtype(np.dtype(c.dtype)))
         fields.append(pa.field(k, arr.type, metadata={"unit": c.unit, "doc": c.doc}))
         arrays.append(arr)
-    info = {"table": table, "schema_version": SCHEMA_VERSION, "frame": FRAME_DOC, **meta}
+    info = {"table": table, "schema_version": version, "frame": FRAME_DOC, **meta}
     schema = pa.schema(fields, metadata={"mmslam": json.dumps(info, sort_keys=True, default=str)})
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def table_bytes(table: str, cols: dict[str, np.ndarray], meta: dict) -> bytes:
+def table_bytes(table: str, cols: dict[str, np.ndarray], meta: dict, version: int = SCHEMA_VERSION) -> bytes:
     """Serialise one table's columns to Parquet bytes (deterministic: same input, same bytes)."""
     buf = io.BytesIO()
-    pq.write_table(to_arrow(table, cols, meta), buf, compression="zstd", write_statistics=False)
+    pq.write_table(to_arrow(table, cols, meta, version), buf, compression="zstd", write_statistics=False)
     return buf.getvalue()
 
 
@@ -162,10 +175,11 @@ def file_metadata(m: dict) -> dict:
 
 
 def write_chunk(cache_dir: Path, index: int, step_start: int, tables: dict[str, dict[str, np.ndarray]],
-                meta: dict) -> dict:
+                meta: dict, version: int = SCHEMA_VERSION) -> dict:
     """Write one chunk (``tables``: vehicles, rays, paths columns) atomically; return its manifest entry.
 
-    ``meta``: :func:`file_metadata` of the manifest (must hold ``vehicle_names``).
+    ``meta``: :func:`file_metadata` of the manifest (must hold ``vehicle_names``); ``version``: the
+    cache's schema version (the manifest's ``schema_version``).
     """
     entry: dict[str, Any] = {"index": index, "step_start": step_start,
                              "step_stop": step_start + len(np.unique(tables["vehicles"]["step"])),
@@ -173,7 +187,7 @@ def write_chunk(cache_dir: Path, index: int, step_start: int, tables: dict[str, 
     for table in TABLES:
         cols = tables[table]
         name = f"{table}/part-{index:05d}.parquet"
-        data = table_bytes(table, cols, meta)
+        data = table_bytes(table, cols, meta, version)
         (Path(cache_dir) / table).mkdir(exist_ok=True)
         atomic_write_bytes(Path(cache_dir) / name, data)
         entry["files"][table] = name
@@ -218,7 +232,8 @@ class PathCache:
     def read_rays(self) -> dict[str, np.ndarray]:
         """The ``rays`` table (all chunks, sorted by step, rx, ray; validated), read once and kept."""
         if self._rays is None:
-            parts = [_read_table(self.path / c["files"]["rays"], c["sha256"]["rays"], "rays", self.vehicle_names)
+            parts = [_read_table(self.path / c["files"]["rays"], c["sha256"]["rays"], "rays", self.vehicle_names,
+                                 version=int(self.manifest["schema_version"]), bs=self.scenario.bs_array)
                      for c in self.manifest["chunks"]]
             rays = sort_rays(_concat(parts, RAY_COLUMNS))
             for k in ("delay_s", "a_re", "a_im", "aod_az", "aod_el", "aoa_az", "aoa_el", "doppler_hz"):
@@ -289,11 +304,15 @@ def read_manifest(cache_dir: Path) -> dict:
         raise CacheError(f"{mp}: nested too deeply to be a manifest; {FORCE_HINT}") from None
     if not isinstance(m, dict):
         raise CacheError(f"{mp}: not a JSON object; {FORCE_HINT}")
-    if m.get("schema_version") != SCHEMA_VERSION:
-        old = isinstance(m.get("schema_version"), int) and m["schema_version"] < SCHEMA_VERSION
-        why = " (an older cache: no rays table, gains, Doppler or column metadata)" if old else ""
-        raise CacheError(f"{mp}: schema_version {m.get('schema_version')!r}{why}, this mmslam reads "
-                         f"{SCHEMA_VERSION}; {FORCE_HINT}")
+    v = m.get("schema_version")
+    if not (_is_int(v) and v in READABLE_SCHEMA_VERSIONS):
+        old = _is_int(v) and v < min(READABLE_SCHEMA_VERSIONS)
+        newer = _is_int(v) and v > SCHEMA_VERSION
+        why = (" (an older cache: no rays table, gains, Doppler or column metadata)" if old
+               else " (written by a newer mmslam)" if newer else "")
+        hint = f"upgrade mmslam to read it, or {FORCE_HINT}" if newer else FORCE_HINT
+        raise CacheError(f"{mp}: schema_version {v!r}{why}, this mmslam reads "
+                         f"{' and '.join(map(str, READABLE_SCHEMA_VERSIONS))}; {hint}")
     need = ("scenario", "config_hash", "source", "resolved_scenario", "vehicle_names", "dt",
             "steps_completed", "chunks")
     miss = [k for k in need if k not in m]
@@ -376,9 +395,36 @@ def checked_chunks(m: dict, mp: Path) -> list[dict]:
     return list(m["chunks"])
 
 
-def _read_table(path: Path, expect_sha: str, table: str, vehicle_names: list[str]) -> dict[str, np.ndarray]:
-    """Read and check one Parquet file of ``table``; enum columns back to integer codes."""
+def check_tx_columns(cols: dict[str, np.ndarray], bs: np.ndarray, where: str, hint: str = FORCE_HINT) -> None:
+    """Raise a one-line :class:`CacheError` unless every row's ``tx_x, tx_y, tx_z`` is the BS position.
+
+    Args:
+        cols: ``rays`` or ``paths`` columns (with ``step``, ``rx`` and the transmitter columns).
+        bs: ``(3,)`` the scenario's BS position, m. Every path source writes it as is (float64), so
+            the test is equality; a NaN fails it too.
+        where: the file or source named in the message.
+    """
+    b = np.asarray(bs, np.float64).reshape(3)
+    for j, k in enumerate(TX_POSITION_COLUMNS):
+        bad = cols[k] != b[j]
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise CacheError(f"{where}: column '{k}' is {float(cols[k][i])!r} at step {int(cols['step'][i])} (rx "
+                             f"{int(cols['rx'][i])}), expected the BS position {float(b[j])!r} m of the scenario "
+                             f"(resolved_scenario.bs); {hint}")
+
+
+def _read_table(path: Path, expect_sha: str, table: str, vehicle_names: list[str], *, version: int,
+                bs: np.ndarray) -> dict[str, np.ndarray]:
+    """Read and check one Parquet file of ``table`` in a cache of schema ``version``.
+
+    Enum columns come back as integer codes. The transmitter columns (``rays``, ``paths``) must
+    equal the BS position ``bs`` ``(3,)`` m (:func:`check_tx_columns`); a version-2 file lacks
+    them and gets them filled from ``bs`` (in memory; the file is not touched). The result holds
+    every column of the current schema, in its order.
+    """
     spec: dict[str, Col] = TABLE_SPECS[table]
+    names = table_columns(table, version)
     if not path.is_file():
         raise CacheError(f"{path}: chunk file missing; {FORCE_HINT}")
     data = path.read_bytes()
@@ -389,10 +435,12 @@ def _read_table(path: Path, expect_sha: str, table: str, vehicle_names: list[str
         tbl = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False)
     except Exception as e:  # pyarrow raises several types for corrupt files
         raise CacheError(f"{path}: unreadable Parquet ({e.__class__.__name__}); {FORCE_HINT}") from None
-    if tbl.column_names != list(spec):
-        raise CacheError(f"{path}: columns {tbl.column_names} differ from the schema {list(spec)}; {FORCE_HINT}")
+    if tbl.column_names != names:
+        raise CacheError(f"{path}: columns {tbl.column_names} differ from those of schema version {version} {names}; "
+                         f"{FORCE_HINT}")
     out = {}
-    for k, c in spec.items():
+    for k in names:
+        c = spec[k]
         col = tbl.column(k)
         if c.enum is not None:
             if not pa.types.is_dictionary(col.type):
@@ -418,7 +466,12 @@ def _read_table(path: Path, expect_sha: str, table: str, vehicle_names: list[str
             if arr.dtype != np.dtype(c.dtype):
                 raise CacheError(f"{path}: column '{k}' has dtype {arr.dtype}, expected {c.dtype}; {FORCE_HINT}")
             out[k] = arr
-    return out
+    if TX_POSITION_COLUMNS[0] in spec:
+        if TX_POSITION_COLUMNS[0] in names:
+            check_tx_columns(out, bs, str(path))
+        else:  # an older schema: the BS position of the manifest, the value a version-3 trace writes
+            out.update(tx_position_columns(bs, tbl.num_rows))
+    return {k: out[k] for k in spec}
 
 
 def _concat(parts: list[dict[str, np.ndarray]], schema: dict[str, str]) -> dict[str, np.ndarray]:
@@ -510,10 +563,12 @@ def load_cache(path: str | Path) -> PathCache:
         path: a cache directory, or a root directory holding exactly one cache.
 
     Raises:
-        CacheError: missing directory / manifest, other schema version, missing, truncated or
-            modified chunk files, columns off-schema, non-contiguous steps, or a NaN in a path
-            column where none is allowed (``bounce_*`` only for LOS, ``lm_*`` only for OTHER,
-            ``power_db`` anywhere).
+        CacheError: missing directory / manifest, a schema version other than 2 or 3, missing,
+            truncated or modified chunk files, columns off-schema, non-contiguous steps, a NaN in a
+            path column where none is allowed (``bounce_*`` only for LOS, ``lm_*`` only for OTHER,
+            ``power_db`` anywhere), or a transmitter column other than the scenario's BS.
+
+    A version-2 cache loads with the transmitter columns filled from the manifest's BS.
     """
     d = find_cache_dir(path)
     m = read_manifest(d)
@@ -524,10 +579,11 @@ def load_cache(path: str | Path) -> PathCache:
         raise CacheError(f"{mp}: resolved_scenario invalid ({e}); {FORCE_HINT}") from None
     names = list(m["vehicle_names"])
     n_done = int(m["steps_completed"])
+    how = {"version": int(m["schema_version"]), "bs": scn.bs_array}
     vparts, pparts = [], []
     for c in checked_chunks(m, mp):
-        vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], "vehicles", names))
-        pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], "paths", names))
+        vparts.append(_read_table(d / c["files"]["vehicles"], c["sha256"]["vehicles"], "vehicles", names, **how))
+        pparts.append(_read_table(d / c["files"]["paths"], c["sha256"]["paths"], "paths", names, **how))
         for table, part in (("vehicles", vparts[-1]), ("paths", pparts[-1])):
             st = part["step"]
             if st.size and (st.min() < c["step_start"] or st.max() >= c["step_stop"]):

@@ -253,6 +253,7 @@ def cache_channel_response(cache, *, kind: str, bandwidth_hz: float, n_subcarrie
             **({"tx_array": int(sp.tx_array), "rx_array": int(sp.rx_array),
                 "arrays": "mmslam.arrays: horizontal half-wavelength URAs, Sionna PlanarArray element order; "
                           "BS normal down (yaw 0), vehicle normal up (yaw = heading)"} if arrays else {}),
+            "tx_position_m": [float(x) for x in cache.scenario.bs],
             "cache": str(Path(cache.path).resolve()),
             "scenario": cache.manifest["scenario"], "source": cache.manifest["source"],
             "config_hash": cache.manifest["config_hash"]}

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, ray_numbers, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, empty_paths, ray_numbers, sort_paths, tx_position_columns
 from mmslam.scenes.landmarks import FACES
 from mmslam.scenes.scenario import Scenario
 from mmslam.model import BS, OTHER, SP, VA, VS, mirror_point
@@ -401,6 +401,7 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
         "aod_az": angles[rep, 0], "aod_el": angles[rep, 1],
         "aoa_az": angles[rep, 2], "aoa_el": angles[rep, 3],
         "power_db": power[rep],
+        **tx_position_columns(bs, ng),
         "bounce_x": bounce[:, 0], "bounce_y": bounce[:, 1], "bounce_z": bounce[:, 2],
         "lm_x": lm[rep, 0], "lm_y": lm[rep, 1], "lm_z": lm[rep, 2],
         "n_paths": n_paths.astype(np.int32),

@@ -27,7 +27,7 @@ import numpy as np
 
 from mmslam.raytrace.analytic import SPEED_OF_LIGHT, AnalyticSource, interaction_of
 from mmslam.raytrace.labels import plane_table
-from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths
+from mmslam.raytrace.schema import PATH_COLUMNS, ray_numbers, rays_columns, sort_paths, tx_position_columns
 from mmslam.scenes.geometry import StaticGeometry, static_geometry
 from mmslam.scenes.meshes import car_mesh
 from mmslam.scenes.scenario import Scenario
@@ -157,7 +157,7 @@ class MeshAnalyticSource(AnalyticSource):
                 "landmark_id": np.array([self.planes.ids[i] for i in pl_a], dtype=object),
                 "bounces": np.ones(n, np.int8), "diffuse": np.zeros(n, bool), "toa_m": toa,
                 "aod_az": aod_az, "aod_el": aod_el, "aoa_az": aoa_az, "aoa_el": aoa_el,
-                "power_db": 20.0 * np.log10(np.abs(a)),
+                "power_db": 20.0 * np.log10(np.abs(a)), **tx_position_columns(b, n),
                 "bounce_x": p_a[:, 0], "bounce_y": p_a[:, 1], "bounce_z": p_a[:, 2],
                 "lm_x": img[:, 0], "lm_y": img[:, 1], "lm_z": img[:, 2],
                 "n_paths": np.ones(n, np.int32), "delay_spread_m": np.zeros(n),
@@ -178,6 +178,6 @@ class MeshAnalyticSource(AnalyticSource):
                             delay_s=cols["toa_m"] / SPEED_OF_LIGHT, angles=angles, doppler_hz=cols["doppler_hz"],
                             itype=interaction_of(typ)[:, None],
                             objects=np.asarray(objects, dtype=object)[:, None], verts=verts[:, None, :],
-                            ray=cols["ray"])
+                            ray=cols["ray"], tx_pos=b)
         cols = {k: np.asarray(cols[k], dtype=object if t == "string" else np.dtype(t)) for k, t in PATH_COLUMNS.items()}
         return {"rays": rays, "paths": sort_paths(cols)}

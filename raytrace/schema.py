@@ -14,12 +14,18 @@ The columns, their in-memory dtypes, units and meaning are :data:`VEHICLE_SPEC`,
 :data:`RAY_SPEC` and :data:`PATH_SPEC` (also rendered in ``docs/dataset.md``):
 
 ``vehicles``: one row per step and vehicle (true states).
-``rays``: every traced path (no clustering) with its complex gain, delay, angles, Doppler shift,
-    interactions and vertices, and its label. ``ray`` numbers the rays of one (step, rx) in
-    order of increasing delay.
+``rays``: every traced path (no clustering) with its transmitter position, complex gain, delay,
+    angles, Doppler shift, interactions and vertices, and its label. ``ray`` numbers the rays of
+    one (step, rx) in order of increasing delay.
 ``paths``: one row per step, receiver and resolvable landmark (what the sensor model reads):
     the strongest ray of each (rx, type, landmark_id) cluster, with ``ray`` linking it to ``rays``
     (join on ``step, rx, ray``; all rays of the cluster share ``step, rx, type, landmark_id``).
+
+Schema versions (:data:`SCHEMA_VERSION`, the manifest's ``schema_version``): 2 introduced the
+three self-describing tables; 3 added the transmitter (BS) position ``tx_x, tx_y, tx_z`` to
+``rays`` and ``paths`` (:data:`ADDED_COLUMNS`). The loader reads versions
+:data:`READABLE_SCHEMA_VERSIONS` and fills the columns a cache's version lacks
+(:func:`table_columns`).
 """
 from __future__ import annotations
 
@@ -30,7 +36,8 @@ import numpy as np
 
 from mmslam.model import LandmarkType
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
+"""Schema version this mmslam writes (the manifest's and every file's ``schema_version``)."""
 
 TYPE_LABELS: tuple[str, ...] = tuple(t.name for t in LandmarkType)
 """Landmark type labels; code = index (:class:`mmslam.model.LandmarkType`, BS=0 .. OTHER=4)."""
@@ -61,6 +68,12 @@ class Col:
     doc: str
     enum: str | None = None
 
+
+TX_POSITION_COLUMNS: tuple[str, str, str] = ("tx_x", "tx_y", "tx_z")
+"""The transmitter position columns of ``rays`` and ``paths`` (schema version 3)."""
+
+_TX_POS = {c: Col("float64", "m", f"transmitter (BS antenna) position {c[-1]} (global frame): the scenario's bs, "
+                  "the same on every row (one static BS)") for c in TX_POSITION_COLUMNS}
 
 _ANG = {
     "aod_az": "azimuth of departure at the BS (global frame)",
@@ -100,6 +113,7 @@ RAY_SPEC: dict[str, Col] = {
     "step": Col("int32", "", "time index"),
     "rx": Col("int16", "", "receiving vehicle", "vehicle"),
     "tx": Col("int8", "", "transmitter", "tx"),
+    **_TX_POS,
     "ray": Col("int32", "", "ray number within (step, rx), by increasing delay"),
     "type": Col("int8", "", "landmark type of the ray (BS, VA, SP, VS, OTHER)", "type"),
     "landmark_id": Col("string", "", "landmark id (see paths.landmark_id); OTHER: '+'-joined objects"),
@@ -126,6 +140,7 @@ PATH_SPEC: dict[str, Col] = {
     "toa_m": Col("float64", "m", "delay x c, no clock bias"),
     **{k: Col("float64", "rad", v) for k, v in _ANG.items()},
     "power_db": Col("float64", "dB", "power of the strongest ray of the cluster (NaN if unknown)"),
+    **_TX_POS,
     "bounce_x": Col("float64", "m", "first interaction point x (NaN for LOS)"),
     "bounce_y": Col("float64", "m", "first interaction point y (NaN for LOS)"),
     "bounce_z": Col("float64", "m", "first interaction point z (NaN for LOS)"),
@@ -145,6 +160,28 @@ PATH_COLUMNS: dict[str, str] = {k: c.dtype for k, c in PATH_SPEC.items()}
 
 TABLE_SPECS: dict[str, dict[str, Col]] = {"vehicles": VEHICLE_SPEC, "rays": RAY_SPEC, "paths": PATH_SPEC}
 """Table name -> column spec, in the order the cache writes them."""
+
+ADDED_COLUMNS: dict[int, dict[str, tuple[str, ...]]] = {
+    3: {"rays": TX_POSITION_COLUMNS, "paths": TX_POSITION_COLUMNS},
+}
+"""Schema version -> the columns it added, per table (a cache of an earlier version lacks them)."""
+
+READABLE_SCHEMA_VERSIONS: tuple[int, ...] = (2, 3)
+"""Schema versions :func:`mmslam.raytrace.cache.load_cache` reads (older ones lack what it fills in)."""
+
+
+def table_columns(table: str, version: int = SCHEMA_VERSION) -> list[str]:
+    """The columns of ``table`` in a cache of schema ``version`` (a readable one), in file order."""
+    if version not in READABLE_SCHEMA_VERSIONS:
+        raise ValueError(f"schema version {version}: expected one of {READABLE_SCHEMA_VERSIONS}")
+    later = {c for v, added in ADDED_COLUMNS.items() if v > version for c in added.get(table, ())}
+    return [k for k in TABLE_SPECS[table] if k not in later]
+
+
+def tx_position_columns(bs: np.ndarray | tuple[float, float, float], n: int) -> dict[str, np.ndarray]:
+    """The ``tx_x, tx_y, tx_z`` columns of ``n`` rows: the BS position ``bs`` ``(3,)`` m, float64."""
+    b = np.asarray(bs, np.float64).reshape(3)
+    return {c: np.full(n, b[j]) for j, c in enumerate(TX_POSITION_COLUMNS)}
 
 
 class PathSource(Protocol):
@@ -233,11 +270,13 @@ def ray_numbers(rx: np.ndarray, delay_s: np.ndarray, tiebreak: np.ndarray | None
 
 def rays_columns(*, step: int, rx: np.ndarray, typ: np.ndarray, landmark_id: np.ndarray, a: np.ndarray,
                  delay_s: np.ndarray, angles: np.ndarray, doppler_hz: np.ndarray, itype: np.ndarray,
-                 objects: np.ndarray, verts: np.ndarray, ray: np.ndarray) -> dict[str, np.ndarray]:
+                 objects: np.ndarray, verts: np.ndarray, ray: np.ndarray,
+                 tx_pos: np.ndarray | tuple[float, float, float]) -> dict[str, np.ndarray]:
     """Assemble the ``rays`` table of one step.
 
     Args:
         step: time index.
+        tx_pos: ``(3,)`` transmitter (BS) position, m, global frame.
         rx: ``(n,)`` receiver index. typ: ``(n,)`` type code. landmark_id: ``(n,)`` str.
         a: ``(n,)`` complex path coefficient. delay_s: ``(n,)`` s.
         angles: ``(n, 4)`` ``[aod_az, aod_el, aoa_az, aoa_el]`` rad. doppler_hz: ``(n,)`` Hz.
@@ -265,6 +304,7 @@ def rays_columns(*, step: int, rx: np.ndarray, typ: np.ndarray, landmark_id: np.
         power = 20.0 * np.log10(np.abs(a))
     cols: dict[str, np.ndarray] = {
         "step": np.full(n, step, np.int32), "rx": rx.astype(np.int16), "tx": np.zeros(n, np.int8),
+        **tx_position_columns(tx_pos, n),
         "ray": np.asarray(ray, np.int32), "type": np.asarray(typ, np.int8),
         "landmark_id": np.asarray(landmark_id, dtype=object), "bounces": used.sum(axis=1).astype(np.int8),
         "a_re": a.real.copy(), "a_im": a.imag.copy(), "power_db": power, "delay_s": np.asarray(delay_s, float),

@@ -362,7 +362,7 @@ class SionnaSource:
         objects = np.where(itype != 0, names[np.where(raw["obj"] >= 0, raw["obj"], len(self.index.names))], "")
         rays = rays_columns(step=step, rx=raw["rx"], typ=lab["type"], landmark_id=lab["landmark_id"], a=raw["a"],
                             delay_s=raw["delay_s"], angles=raw["angles"], doppler_hz=raw["doppler_hz"], itype=code,
-                            objects=objects, verts=raw["verts"], ray=ray)
+                            objects=objects, verts=raw["verts"], ray=ray, tx_pos=self.scn.bs_array)
         return {"rays": rays, "paths": paths}
 
 

@@ -7,7 +7,9 @@ it again continues after the last complete chunk; the final table contents equal
 uninterrupted run. A larger ``steps`` extends an existing shorter cache; ``force`` deletes the
 cache directory and traces from scratch. One writer at a time: a lock file
 ``.<cachedir>.lock`` (holding the writer's pid) next to the cache refuses a second live writer;
-the lock of a killed writer is taken over.
+the lock of a killed writer is taken over. An existing cache of an older readable schema version
+(:data:`~mmslam.raytrace.schema.READABLE_SCHEMA_VERSIONS`) is resumed and extended in its own
+version (its new chunks lack the columns later versions added, as its older ones do).
 """
 from __future__ import annotations
 
@@ -27,8 +29,8 @@ from mmslam.errors import (BackendError, CacheError, ConfigError, EnvironmentFai
 from mmslam.outputs import acquire_lock, lock_path, release_lock  # noqa: F401  (lock_path: public)
 from mmslam.raytrace.analytic import AnalyticSource
 from mmslam.raytrace.cache import (
-    FORCE_HINT, MANIFEST, TABLES, cache_dir_for, check_paths_finite, checked_chunks, config_hash, file_metadata,
-    read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
+    FORCE_HINT, MANIFEST, TABLES, cache_dir_for, check_paths_finite, check_tx_columns, checked_chunks, config_hash,
+    file_metadata, read_manifest, remove_temp_files, sha256_file, vehicle_columns, write_chunk, write_manifest,
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
 from mmslam.scenes.geometry import check_bs_position, check_vehicle_overlaps, check_vehicle_poses
@@ -379,13 +381,17 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
             n_rows += len(rays["rx"])
             if bar is not None and executor is not None:
                 bar.update(task, advance=stop - start, rate=n_rows / max(time.perf_counter() - t0, 1e-9))
-            check_paths_finite(paths, f"source '{source.name}' output",
-                               hint="nothing was written for these steps; fix the source")
+            where, hint = f"source '{source.name}' output", "nothing was written for these steps; fix the source"
+            check_paths_finite(paths, where, hint=hint)
+            for cols in (paths, rays):
+                check_tx_columns(cols, scn.bs_array, where, hint=hint)
             tables = {"vehicles": vehicle_columns(states[start:stop], start, scn.dt), "rays": rays, "paths": paths}
             # a chunk is kept only once the manifest on disk names it; Ctrl-C waits for that write,
             # so the "kept" count of the message is the one on disk
             with deferred_sigint():
-                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, {**file_metadata(m), "versions": versions})
+                # an older cache (schema version 2) grows in its own version: one version per cache
+                entry = write_chunk(cache_dir, len(m["chunks"]), start, tables, {**file_metadata(m), "versions": versions},
+                                    version=int(m["schema_version"]))
                 entry["versions"] = versions  # a resumed trace may run under other library versions
                 new = {**m, "chunks": m["chunks"] + [entry], "steps_completed": stop}
                 write_manifest(cache_dir, new)

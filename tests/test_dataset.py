@@ -61,7 +61,7 @@ def test_units_docs_and_settings_in_the_arrow_schema(cache):
         assert sch.field(k).metadata[b"doc"].decode() == col.doc
     f = sorted((d / "paths").glob("*.parquet"))[0]
     meta = json.loads(pq.read_schema(f).metadata[b"mmslam"])
-    assert meta["table"] == "paths" and meta["schema_version"] == 2 and meta["source"] == "analytic"
+    assert meta["table"] == "paths" and meta["schema_version"] == 3 and meta["source"] == "analytic"
     assert meta["scenario"] == "paper" and meta["vehicle_names"] == ["veh1", "veh2"]
     assert meta["settings"]["model_version"] == 2 and meta["resolved_scenario"]["bs"] == list(scn.bs)
     assert "x east" in meta["frame"]
@@ -144,6 +144,7 @@ def test_export_cfr_and_cir_hand_computed(tmp_path, capsys):
     np.testing.assert_allclose(z["axis"], f)
     np.testing.assert_allclose(z["h"][0, 0, 0], want, rtol=1e-5, atol=1e-6 * np.abs(want).max())
     assert json.loads(str(z["meta"]))["bandwidth_hz"] == W and list(z["rx_names"]) == ["car0"]
+    assert json.loads(str(z["meta"]))["tx_position_m"] == [0.0, 0.0, 10.0]  # the BS
     # CIR taps: tap l = sum_i a_i^b sinc(l - W tau_i); 30 m = 10.007 taps at 100 MHz
     h, ax, _, _ = channel_response(r, kind="cir", carrier_hz=fc, bandwidth_hz=W, n_subcarriers=N, n_rx=1)
     ab = a * np.exp(-2j * np.pi * fc * tau)
@@ -194,19 +195,21 @@ def test_rays_columns_fill_every_bounce_slot_and_refuse_too_many():
     v = np.arange(18, dtype=float).reshape(2, 3, 3)
     r = rays_columns(step=3, rx=np.array([1, 0]), typ=np.array([4, 0]), landmark_id=np.array(["w+s", "bs"], object),
                      a=np.array([1e-6 + 1e-6j, 2e-5]), delay_s=np.array([2e-7, 1e-7]), angles=np.zeros((2, 4)),
-                     doppler_hz=np.array([5.0, -1.0]), itype=it, objects=obj, verts=v, ray=np.array([0, 0]))
+                     doppler_hz=np.array([5.0, -1.0]), itype=it, objects=obj, verts=v, ray=np.array([0, 0]),
+                     tx_pos=(1.0, -2.0, 30.0))
     # sorted by (rx, ray): the LOS ray of rx 0 first
     assert r["rx"].tolist() == [0, 1] and r["bounces"].tolist() == [0, 2]
     assert r["bounce1_object"].tolist() == ["", "w"] and r["bounce2_object"].tolist() == ["", "s"]
     assert r["bounce2_type"].tolist() == [0, 2] and r["bounce3_type"].tolist() == [0, 0]
     assert r["bounce2_x"][1] == 3.0 and np.isnan(r["bounce2_x"][0]) and np.isnan(r["bounce3_z"]).all()
     assert r["power_db"][0] == pytest.approx(20 * np.log10(2e-5))
+    assert r["tx_x"].tolist() == [1.0, 1.0] and r["tx_y"].tolist() == [-2.0, -2.0] and r["tx_z"].tolist() == [30.0, 30.0]
     assert r["power_db"][1] == pytest.approx(20 * np.log10(np.sqrt(2) * 1e-6))
     with pytest.raises(ValueError, match="4 interaction slots"):
         rays_columns(step=0, rx=np.array([0]), typ=np.array([4]), landmark_id=np.array(["x"], object),
                      a=np.array([1.0]), delay_s=np.array([1.0]), angles=np.zeros((1, 4)), doppler_hz=np.zeros(1),
                      itype=np.ones((1, 4)), objects=np.full((1, 4), "o", object), verts=np.zeros((1, 4, 3)),
-                     ray=np.zeros(1))
+                     ray=np.zeros(1), tx_pos=np.zeros(3))
 
 
 def test_export_steps_rx_and_sampling_frequency_select_from_the_full_export(cache, tmp_path, capsys):

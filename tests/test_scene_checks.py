@@ -52,7 +52,7 @@ def test_rays_columns_of_a_step_without_any_path():
         r = rays_columns(step=4, rx=np.zeros(0, np.int64), typ=np.zeros(0, np.int8), landmark_id=np.zeros(0, object),
                          a=np.zeros(0, complex), delay_s=np.zeros(0), angles=np.zeros((0, 4)),
                          doppler_hz=np.zeros(0), itype=np.zeros((0, D), np.int64), objects=np.zeros((0, D), object),
-                         verts=np.zeros((0, D, 3)), ray=np.zeros(0, np.int64))
+                         verts=np.zeros((0, D, 3)), ray=np.zeros(0, np.int64), tx_pos=(0.0, 0.0, 10.0))
         assert set(r) == set(RAY_COLUMNS) and all(len(v) == 0 for v in r.values())
 
 

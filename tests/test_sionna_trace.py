@@ -57,6 +57,16 @@ def test_output_columns_and_sorting(traced):
         assert keys == sorted(keys) and len(set(keys)) == n
 
 
+def test_tx_columns_are_the_bs_on_every_row(traced):
+    """Schema version 3: ``tx_x, tx_y, tx_z`` of both tables hold the scenario's BS (Sionna's transmitter)."""
+    scn, states, src, out = traced
+    for k, (_, lab) in out.items():
+        np.testing.assert_array_equal(np.c_[lab["tx_x"], lab["tx_y"], lab["tx_z"]], np.tile(scn.bs, (len(lab["rx"]), 1)))
+    rays = src.trace_tables(STEPS[0], states[STEPS[0]])["rays"]
+    assert len(rays["rx"]) > len(out[STEPS[0]][1]["rx"])  # every ray, more than the labelled paths
+    np.testing.assert_array_equal(np.c_[rays["tx_x"], rays["tx_y"], rays["tx_z"]], np.tile(scn.bs, (len(rays["rx"]), 1)))
+
+
 def test_los_delay_equals_distance(traced):
     scn, states, _, out = traced
     b = scn.bs_array
