@@ -5,7 +5,10 @@ A cache is a directory ``<root>/<scenario>-<source>-<confighash>`` holding
 - ``manifest.json``: ``schema_version``, ``scenario`` (name), ``geometry_hash``, ``config_hash``
   (SHA-256 of geometry hash, source name and source settings), ``source``, ``versions``
   (library versions), ``settings`` (solver settings), ``resolved_scenario``
-  (:meth:`Scenario.to_dict`), ``vehicle_names``, ``dt`` [s], ``steps_completed``,
+  (:meth:`Scenario.to_dict`), ``scenario_settings`` (the parameter tables the scenario's own file
+  sets, or null) and ``settings_defaults`` (the parameter defaults of the mmslam that wrote it): read
+  back, the parameters the scenario left open take this mmslam's defaults
+  (:func:`~mmslam.scenes.scenario.refresh_settings`), ``vehicle_names``, ``dt`` [s], ``steps_completed``,
   ``steps_requested``, ``chunks`` (list of ``{index, step_start, step_stop, files: {vehicles,
   rays, paths}, sha256: {...}, rows: {...}, versions}``, ``step_stop`` exclusive; ``files`` are
   relative paths; ``versions`` = library versions of the run that wrote the chunk);
@@ -53,7 +56,7 @@ from mmslam.raytrace.schema import (
     TX_LABELS, TX_POSITION_COLUMNS, TYPE_LABELS, VEHICLE_COLUMNS, Col, sort_paths, sort_rays, table_columns,
     tx_position_columns,
 )
-from mmslam.scenes.scenario import Scenario, scenario_from_resolved
+from mmslam.scenes.scenario import Scenario, default_settings, refresh_settings, scenario_from_resolved
 from mmslam.model import BS, OTHER
 
 MANIFEST = "manifest.json"
@@ -206,7 +209,8 @@ class PathCache:
         manifest: the parsed ``manifest.json``.
         scenario: the resolved scenario the cache was traced from, with ``steps`` set to the
             number of steps the cache holds (the trace may be shorter or longer than the
-            scenario file's ``steps``).
+            scenario file's ``steps``), and this mmslam's defaults for the parameters its scenario
+            left open (:func:`~mmslam.scenes.scenario.refresh_settings`).
         vehicle_names: receiver / vehicle names (index = ``vehicle`` / ``rx`` column).
         states: ``(steps, n_veh, 7)`` true states ``[x, y, z, heading, speed, turn_rate, bias]``
             (m, m, m, rad, m/s, rad/s, m); ``bias`` is each vehicle's initial clock bias.
@@ -214,6 +218,10 @@ class PathCache:
         paths: ``paths`` table columns (all chunks, sorted by step, rx, type, landmark_id;
             ``landmark_id`` an object array of ``str``).
         steps: number of completed steps.
+        settings_known: whether the manifest records which parameters the scenario set (caches traced
+            before that keep every stored parameter, old defaults included).
+        settings_changed: ``"section.key: old -> new"`` for each parameter now at this mmslam's default
+            instead of the stored one.
 
     Enum columns are integer codes in memory (``rx``/``vehicle``: index into ``vehicle_names``;
     ``type``: BS=0 .. OTHER=4). The ``rays`` table is read on demand by :meth:`read_rays`.
@@ -228,6 +236,23 @@ class PathCache:
     paths: dict[str, np.ndarray]
     steps: int
     _rays: dict[str, np.ndarray] | None = None
+    settings_known: bool = True
+    settings_changed: tuple[str, ...] = ()
+
+    def settings_notice(self) -> str | None:
+        """One line for the user when the settings differ from those stored at trace time, or when the
+        cache cannot tell and its stored settings differ from this mmslam's defaults; else None."""
+        if self.settings_changed:
+            shown = "; ".join(self.settings_changed[:3]) + (" ..." if len(self.settings_changed) > 3 else "")
+            return (f"note: {self.path.name}: {len(self.settings_changed)} setting(s) its scenario leaves open now "
+                    f"follow this mmslam's defaults, not those stored when it was traced: {shown}")
+        if not self.settings_known:
+            stored, now = self.scenario.to_dict(), default_settings()
+            if any(stored.get(s) != now[s] for s in ("filter", "fusion", "evaluation")):
+                return (f"note: {self.path.name} does not record which settings its scenario set (traced by an "
+                        "older mmslam): running with the settings stored then; `mmslam trace` its scenario again "
+                        "(the paths are reused) to take this version's defaults, or give them with --set")
+        return None
 
     def read_rays(self) -> dict[str, np.ndarray]:
         """The ``rays`` table (all chunks, sorted by step, rx, ray; validated), read once and kept."""
@@ -577,6 +602,14 @@ def load_cache(path: str | Path) -> PathCache:
         scn = scenario_from_resolved(m["resolved_scenario"], source=str(mp))
     except MmslamError as e:
         raise CacheError(f"{mp}: resolved_scenario invalid ({e}); {FORCE_HINT}") from None
+    settings_known = isinstance(m.get("settings_defaults"), dict)
+    settings_changed: list[str] = []
+    if settings_known:  # the parameters its scenario left open follow this mmslam's defaults
+        try:
+            scn, settings_changed = refresh_settings(m["resolved_scenario"], m.get("scenario_settings"),
+                                                     m["settings_defaults"], source=str(mp))
+        except MmslamError:  # a recorded table this version reads differently: keep the stored scenario
+            settings_known = False
     names = list(m["vehicle_names"])
     n_done = int(m["steps_completed"])
     how = {"version": int(m["schema_version"]), "bs": scn.bs_array}
@@ -615,4 +648,5 @@ def load_cache(path: str | Path) -> PathCache:
     states[:, :, 6] = np.array([v.initial_state[6] for v in scn.vehicles])[None, :nv]
     scn = dataclasses.replace(scn, steps=max(n_done, 1))
     return PathCache(path=d, manifest=m, scenario=scn, vehicle_names=names, states=states,
-                     vehicles=veh, paths=paths, steps=n_done)
+                     vehicles=veh, paths=paths, steps=n_done, settings_known=settings_known,
+                     settings_changed=tuple(settings_changed))

@@ -34,7 +34,7 @@ from mmslam.raytrace.cache import (
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
 from mmslam.scenes.geometry import check_bs_position, check_vehicle_overlaps, check_vehicle_poses
-from mmslam.scenes.scenario import Scenario
+from mmslam.scenes.scenario import Scenario, default_settings, scenario_settings
 from mmslam.scenes.trajectory import true_trajectories
 
 SourceFactory = Callable[..., PathSource]
@@ -130,6 +130,8 @@ def _new_manifest(scn: Scenario, source: PathSource, steps: int) -> dict:
         "settings": source.settings(),
         "versions": _versions(source),
         "resolved_scenario": scn.to_dict(),
+        "scenario_settings": scenario_settings(scn),
+        "settings_defaults": default_settings(),
         "vehicle_names": scn.vehicle_names,
         "dt": scn.dt,
         "steps_completed": 0,
@@ -327,6 +329,7 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
         m = read_manifest(cache_dir)
         _check_existing(cache_dir, m, scn, source)
         m["resolved_scenario"] = scn.to_dict()  # non-geometry parameters follow the latest run
+        m["scenario_settings"], m["settings_defaults"] = scenario_settings(scn), default_settings()
         m["steps_requested"] = max(n_steps, int(m["steps_completed"]))
     else:
         m = _new_manifest(scn, source, n_steps)

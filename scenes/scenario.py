@@ -972,3 +972,120 @@ def scenario_reference() -> str:
             f" | {_cell(s.doc)} |" for k, (d, s) in GEOMETRY.items()]
     return "\n".join([head, *rows, "", "## Parameters", "", parameter_reference()]).rstrip() + "\n"
 
+
+
+# ====================================================================== settings of a stored scenario
+GEOMETRY_SENSOR_KEYS: tuple[str, ...] = ("fov_range", "vehicle_noise_std", "true_process_noise")
+"""``[sensor]`` keys that shape the traced paths or the truth (:meth:`Scenario.geometry_hash`): a stored
+scenario always keeps them."""
+
+
+def default_settings() -> dict[str, Any]:
+    """This mmslam's defaults of every parameter section, in :meth:`Scenario.to_dict`'s form."""
+    return json.loads(json.dumps({s: dataclasses.asdict(cls()) for s, cls in PARAM_SECTIONS.items()}))
+
+
+def scenario_settings(scn: Scenario) -> dict[str, Any] | None:
+    """The parameter tables (``[sensor]``, ``[filter]``, ``[fusion]``, ``[evaluation]``) as ``scn``'s own
+    file writes them (a preset's or a TOML file's; only the keys it sets), or None when ``scn`` did not
+    come from a readable file (built in memory)."""
+    src = scn.source_file or ""
+    if src.startswith("preset:"):
+        path = preset_path(src[len("preset:"):])
+    elif src and not src.startswith("<"):
+        path = Path(src)
+    else:
+        return None
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    return json.loads(json.dumps({s: data[s] for s in PARAM_SECTIONS if isinstance(data.get(s), dict)}, default=str))
+
+
+def _explicit_keys(tables: dict[str, Any]) -> dict[str, set[str]]:
+    """Dotted keys (:meth:`Scenario.to_dict`'s names, e.g. ``types.VA.p_detect``) each section of a file sets."""
+    out: dict[str, set[str]] = {}
+    for s, t in tables.items():
+        keys: set[str] = set()
+        for k, v in (t.items() if isinstance(t, dict) else ()):
+            if s == "filter" and k == "types" and isinstance(v, dict):
+                keys |= {f"types.{ty}.{kk}" for ty, row in v.items() if isinstance(row, dict) for kk in row}
+            elif s == "filter" and k in TYPE_PARAM_ALIASES:
+                ty, kk = TYPE_PARAM_ALIASES[k]
+                keys.add(f"types.{ty}.{kk}")
+            else:
+                keys.add(k)
+        out[s] = keys
+    return out
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _unflat(f: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in f.items():
+        *head, last = k.split(".")
+        node = out
+        for h in head:
+            node = node.setdefault(h, {})
+        node[last] = v
+    return out
+
+
+def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, trace_defaults: dict[str, Any] | None,
+                     source: str = "the stored scenario") -> tuple[Scenario, list[str]]:
+    """A stored (cached) scenario with this mmslam's defaults where its scenario left a parameter open.
+
+    A cache stores the resolved scenario: every parameter, defaults included, as the mmslam that traced
+    it had them. Read back literally, a newer mmslam would run an old cache with old defaults. Here each
+    parameter of the ``[sensor]``, ``[filter]``, ``[fusion]`` and ``[evaluation]`` sections is taken
+
+    - as stored, if the scenario's file set it (``settings``, :func:`scenario_settings` at trace time), if
+      it is a trace parameter (:data:`GEOMETRY_SENSOR_KEYS`), or if the stored value differs from that
+      mmslam's default (an override made in memory);
+    - else (the stored value is the old default) as this mmslam's default.
+
+    Args:
+        resolved: the stored :meth:`Scenario.to_dict`.
+        settings: the scenario file's own tables at trace time (None: none recorded, e.g. built in memory).
+        trace_defaults: :func:`default_settings` of the mmslam that traced it (None: not recorded: the
+            stored scenario is returned unchanged).
+
+    Returns:
+        ``(scenario, changed)``: ``changed`` lists ``"section.key: old -> new"`` for each parameter that now
+        differs from the stored one. The geometry never changes (checked by its hash; the stored scenario
+        is returned if it would).
+    """
+    base = scenario_from_resolved(resolved, source)
+    if not isinstance(trace_defaults, dict):
+        return base, []
+    explicit = _explicit_keys(settings if isinstance(settings, dict) else {})
+    now = default_settings()
+    data = dict_from_resolved(resolved)
+    changed: list[str] = []
+    missing = object()
+    for s in PARAM_SECTIONS:
+        stored, then = _flat(resolved.get(s) or {}), _flat(trace_defaults.get(s) or {})
+        out = dict(stored)
+        for k, v in _flat(now[s]).items():
+            if k in explicit.get(s, ()) or (s == "sensor" and k in GEOMETRY_SENSOR_KEYS):
+                continue
+            old = stored.get(k, missing)
+            if old is missing or (k in then and old == then[k]):
+                out[k] = v
+                if old is not missing and old != v:
+                    changed.append(f"{s}.{k}: {json.dumps(old)} -> {json.dumps(v)}")
+        data[s] = _unflat(out)
+    scn = scenario_from_dict(data, source)
+    if scn.geometry_hash() != base.geometry_hash():
+        return base, []
+    return dataclasses.replace(scn, source_file=base.source_file), changed
