@@ -31,6 +31,9 @@ def test_twc2020_preset_is_kims_setup() -> None:
     assert s[0, 0] == -s[1, 0] and s[0, 4] / s[0, 5] == pytest.approx(70.73, abs=0.01)
     assert sorted((abs(p.position[0]), abs(p.position[1])) for p in scn.scatterers) == [(65.0, 65.0)] * 4
     assert scn.sensor.p_detect == 1.0 and scn.filter.p_detect_va == 0.9
+    # his filter, not mmslam's city defaults: one fixed P_D, the plain average of the maps, no labels
+    assert scn.filter.pd_model == "fixed"
+    assert (scn.fusion.aa_weights, scn.fusion.average_by_label) == ("equal", False)
     assert scn.filter.prior_std[3] == pytest.approx(np.deg2rad(0.3))
     assert (scn.fusion.start, scn.fusion.period) == ((9, 11), 4)
     assert (scn.evaluation.truth_set, scn.evaluation.fused_steps) == ("all", "uploads")
