@@ -128,14 +128,15 @@ class SensorParams:
     bandwidth_hz: float = param(400e6, "link model: signal bandwidth (noise bandwidth and delay accuracy)", "Hz",
                                 lo=0.0, lo_open=True, hi=1e11)
     noise_figure_db: float = param(9.0, "link model: receiver noise figure", "dB", lo=0.0, hi=40.0)
-    processing_gain_db: float = param(0.0, "link model: coherent integration gain (pilots / snapshots)", "dB",
-                                      lo=0.0, hi=80.0)
+    processing_gain_db: float = param(0.0, "link and estimated models: coherent integration gain beyond one pilot "
+                                      "OFDM symbol (more pilot symbols / snapshots)", "dB", lo=0.0, hi=80.0)
     pfa: float = param(1e-4, "link model: false-alarm probability of the detector per resolution cell", "",
                        lo=0.0, lo_open=True, hi=1.0, hi_open=True)
     tx_array: int = param(8, "link model: BS array elements per axis (AOD accuracy)", "", lo=2, hi=1024)
     rx_array: int = param(4, "link model: vehicle array elements per axis (AOA accuracy)", "", lo=2, hi=1024)
-    est_subcarriers: int = param(256, "estimated model: pilot subcarriers K over the bandwidth (delay window "
-                                 "c K / bandwidth: 192 m at 256 and 400 MHz)", "", lo=8, hi=4096)
+    est_subcarriers: int = param(256, "pilot subcarriers K over the bandwidth, one pilot OFDM symbol (estimated "
+                                 "model: its delay window c K / bandwidth, 192 m at 256 and 400 MHz; link model: "
+                                 "the symbol's integration gain 10 log10 K in the SNR)", "", lo=8, hi=4096)
     est_pfa: float = param(0.01, "estimated model: CFAR false-alarm probability per vehicle and step on noise "
                            "only (the estimator's detection threshold)", "", lo=0.0, lo_open=True, hi=1.0,
                            hi_open=True)

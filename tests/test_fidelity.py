@@ -91,6 +91,29 @@ def test_link_angle_bound_matches_numerical_fisher_information() -> None:
     np.testing.assert_allclose(crb[3:7], got[1:5], rtol=1e-5)
 
 
+def test_link_snr_is_the_energy_of_the_pilot_symbol_the_estimator_receives() -> None:
+    """The link model's SNR of a path equals the received energy of the estimator's noise-free pilots
+    (unit noise variance per sample) for the same path: one OFDM symbol of K subcarriers through both
+    arrays. Before the fix the link SNR was that of one sample, 10 log10 K (24.1 dB at K = 256) lower."""
+    import dataclasses
+
+    from mmslam.scenes.scenario import SensorParams
+    from mmslam.slam.sim.estimated_sensor import PilotModel, received_pilots
+    from mmslam.slam.sim.sensor import LinkBudget
+
+    sp = dataclasses.replace(SensorParams(), tx_gain_dbi=10 * np.log10(64), rx_gain_dbi=10 * np.log10(16))
+    pm = PilotModel.from_sensor(sp, 28e9)
+    g_db = -101.3
+    a = 10 ** (g_db / 20) * np.exp(0.7j)
+    rays = {"delay_s": np.array([3.1e-7]), "a_re": np.array([a.real]), "a_im": np.array([a.imag]),
+            "aod_az": np.array([0.4]), "aod_el": np.array([-0.2]), "aoa_az": np.array([2.0]), "aoa_el": np.array([0.15])}
+    Y, _ = received_pilots(rays, np.array([0]), 0.3, 0.0, pm, None)
+    assert Y.shape == (16, 64, 256)
+    energy_db = 10 * np.log10(np.sum(np.abs(Y) ** 2))
+    assert float(LinkBudget.from_sensor(sp).snr_db(g_db)) == pytest.approx(energy_db, abs=1e-9)
+    assert LinkBudget.from_sensor(sp).subcarriers == sp.est_subcarriers == 256
+
+
 def _paper_paths(scn, steps: int):
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.scenes.trajectory import true_trajectories

@@ -275,9 +275,10 @@ def test_link_budget_crb_scaling_and_hand_values():
     # twice the bandwidth halves the delay std; angles do not care
     s2 = dataclasses.replace(lb, bandwidth_hz=800e6).stds(20.0)
     assert s2[0] == pytest.approx(s[0] / 2) and s2[1] == pytest.approx(s[1])
-    # link budget: noise -173.975 + 10 log10(400e6) + 9 dB = -78.955 dBm; SNR of a -100 dB path
+    # link budget: noise -173.975 + 10 log10(400e6) + 9 dB = -78.955 dBm; SNR of a -100 dB path over one
+    # pilot symbol of 256 subcarriers (+24.08 dB; the per-sample SNR before 2026-11-25, test_fidelity.py)
     assert lb.noise_dbm == pytest.approx(-78.9544, abs=1e-3)
-    assert lb.snr_db(-100.0) == pytest.approx(20 + 18.06 + 12.04 - 100 + 78.9544, abs=1e-3)
+    assert lb.snr_db(-100.0) == pytest.approx(20 + 18.06 + 12.04 - 100 + 78.9544 + 24.0824, abs=1e-3)
 
 
 def test_link_budget_detection_probability_is_marcum_q_and_falls_with_snr():

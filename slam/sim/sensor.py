@@ -131,15 +131,23 @@ def noise_covariance(params: SensorParams) -> np.ndarray:
 class LinkBudget:
     """Power-aware sensor model: link budget, detector and Cramer-Rao accuracy (28 GHz defaults).
 
-    SNR of a path with path gain ``G`` dB (the cache's ``power_db``)::
+    SNR of a path with path gain ``G`` dB (the cache's ``power_db``): the received energy of one pilot
+    OFDM symbol over the noise variance per sample, i.e. the per-sample SNR times the ``K``
+    subcarriers of the symbol (``K = subcarriers``, the scenario's ``sensor.est_subcarriers``: the same
+    pilots the channel estimator of ``sensor.model = "estimated"`` observes)::
 
-        SNR_dB = tx_power_dbm + tx_gain_dbi + rx_gain_dbi + G + processing_gain_db
+        SNR_dB = tx_power_dbm + tx_gain_dbi + rx_gain_dbi + G + 10 log10(K) + processing_gain_db
                  - (-173.975 + 10 log10(bandwidth_hz) + noise_figure_db)
 
     Defaults: 20 dBm transmit power, an 8 x 8 BS array (18.1 dBi = 10 log10 64) and a 4 x 4
-    vehicle array (12.0 dBi), 400 MHz bandwidth, 9 dB noise figure, no processing gain (one
-    snapshot), false-alarm probability 1e-4 per resolution cell. A LOS path at 80 m (-99.5 dB)
-    then has an SNR of about 29 dB, a wall reflection at 200 m about 13 dB.
+    vehicle array (12.0 dBi), 400 MHz bandwidth, 9 dB noise figure, K = 256 (24.1 dB), no further
+    processing gain (one pilot symbol), false-alarm probability 1e-4 per resolution cell. A LOS path
+    at 80 m (-99.5 dB) then has an SNR of about 53 dB, a wall reflection at 200 m about 37 dB, a
+    2 m^2 scatterer 80 m from the BS and 30 m from the car about 16 dB. Until 2026-11-25 the
+    ``10 log10(K)`` term was missing: the SNR was that of one time-domain sample, while the delay bound
+    below (and ``tests/test_fidelity.py``'s numerical Fisher information) needs the energy over all
+    samples; it left every SP and VS path of ``paper`` below the detection threshold (docs/estimator.md
+    section 8).
 
     Detection probability (non-fluctuating path, envelope detector with the threshold set for
     ``pfa``): ``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` (Marcum Q), increasing in SNR, equal to
@@ -168,11 +176,14 @@ class LinkBudget:
     pfa: float = SensorParams.pfa
     tx_array: int = SensorParams.tx_array
     rx_array: int = SensorParams.rx_array
+    subcarriers: int = SensorParams.est_subcarriers
 
     @classmethod
     def from_sensor(cls, params: SensorParams) -> "LinkBudget":
-        """The link budget of a scenario's ``[sensor]`` section (its ``tx_power_dbm`` ... ``rx_array``)."""
-        return cls(**{f.name: getattr(params, f.name) for f in dataclasses.fields(cls)})
+        """The link budget of a scenario's ``[sensor]`` section (its ``tx_power_dbm`` ... ``rx_array``, and
+        ``est_subcarriers`` as ``subcarriers``)."""
+        names = {"subcarriers": "est_subcarriers"}
+        return cls(**{f.name: getattr(params, names.get(f.name, f.name)) for f in dataclasses.fields(cls)})
 
     def __post_init__(self) -> None:
         for k in ("tx_power_dbm", "tx_gain_dbi", "rx_gain_dbi", "noise_figure_db", "processing_gain_db"):
@@ -185,6 +196,8 @@ class LinkBudget:
         for k in ("tx_array", "rx_array"):
             if int(getattr(self, k)) < 2:
                 raise MmslamError(f"link budget {k}={getattr(self, k)!r}: expected at least 2 elements per axis")
+        if int(self.subcarriers) < 1:
+            raise MmslamError(f"link budget subcarriers={self.subcarriers!r}: expected at least 1 subcarrier")
 
     @property
     def noise_dbm(self) -> float:
@@ -192,9 +205,10 @@ class LinkBudget:
         return BOLTZMANN_DBM_HZ + 10.0 * math.log10(self.bandwidth_hz) + self.noise_figure_db
 
     def snr_db(self, path_gain_db: np.ndarray) -> np.ndarray:
-        """SNR (dB) of paths with gains ``path_gain_db`` (dB, e.g. the cache's ``power_db``)."""
+        """SNR (dB) of paths with gains ``path_gain_db`` (dB, e.g. the cache's ``power_db``): one pilot symbol's
+        energy over the noise variance per sample (class docstring)."""
         return (self.tx_power_dbm + self.tx_gain_dbi + self.rx_gain_dbi + np.asarray(path_gain_db, float)
-                + self.processing_gain_db - self.noise_dbm)
+                + 10.0 * math.log10(int(self.subcarriers)) + self.processing_gain_db - self.noise_dbm)
 
     def detect_prob(self, snr_db: np.ndarray) -> np.ndarray:
         """``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` (non-central chi-square, 2 degrees of freedom)."""
