@@ -19,8 +19,13 @@ Rules (``D`` = number of non-empty bounce slots of a path):
 - ``D == 1`` (specular or diffuse) on a scatterer: SP, id its name, landmark its reference point;
 - ``D == 1`` (specular or diffuse) on another vehicle: VS, id that vehicle's name, landmark
   that vehicle's antenna position at this step;
-- anything else (``D >= 2``, a diffuse bounce on a static object, refraction, an unknown
-  object): OTHER, id the ``+``-joined object names, landmark NaN.
+- ``D == 2``, both bounces specular on static planar surfaces (box faces, the ground, XML planes,
+  identified as above) and not the same plane twice: VA of order 2 (``bounces`` = 2), landmark the
+  image of an image (the BS mirrored in the first plane, then in the second), id
+  ``<first>|<second>`` (each as for a single bounce, e.g. ``wall_east:-x|wall_west:+x``);
+- anything else (``D >= 3``, a diffuse bounce on a static object or a car / scatterer in a
+  double bounce, refraction, an unknown object): OTHER, id the ``+``-joined object names,
+  landmark NaN.
 
 Paths sharing (receiver, type, landmark id) are one resolvable landmark: the row keeps the
 strongest path (highest power; ties: shortest TOA) with ``n_paths`` and ``delay_spread_m``
