@@ -36,25 +36,53 @@ def order2(paths: dict) -> np.ndarray:
     return (np.asarray(paths["type"]) == VA) & (np.asarray(paths["bounces"]) == 2)
 
 
-def rescore_va(r, cache, fusion_start: int, drop_order2: bool) -> float:
-    """The run's fused VA GOSPA (mean over steps >= ``fusion_start``) against the truth built from the cache's
-    paths, without the order-2 VA rows if ``drop_order2`` (the stored estimates re-scored)."""
+MAPPED_M = 2.0
+"""m: a true VA counts as mapped at the last step if a fused VA estimate is within this distance."""
+
+
+def _scorer(r, cache, rows: str) -> tuple[MapScorer, int]:
+    """A scorer of the run's truth from the cache's paths: ``rows`` "all", "order1" (order-2 VA rows dropped)
+    or "order2" (the order-2 VA rows only); and the run's step count."""
     scn = with_overrides(cache.scenario, list(r.meta.get("overrides", [])))
     steps = int(np.max(r.metrics["step"])) + 1
     paths = {k: np.asarray(v) for k, v in cache.paths.items()}
     keep = np.asarray(paths["step"]) < steps
-    if drop_order2:
+    if rows == "order1":
         keep &= ~order2(paths)
-    sub = {k: v[keep] for k, v in paths.items()}
-    sc = MapScorer(scn, sub, cache.states[:steps], list(scn.vehicle_names))
+    elif rows == "order2":
+        keep &= order2(paths)
+    return MapScorer(scn, {k: v[keep] for k, v in paths.items()}, cache.states[:steps], list(scn.vehicle_names)), steps
+
+
+def _fused_va(r) -> tuple[np.ndarray, np.ndarray]:
+    """The run's fused VA estimates: positions ``(n, 3)`` and their steps ``(n,)``."""
     L = r.landmarks
-    lm_sel = (np.asarray(L["map"]).astype(str) == "fused") & (np.asarray(L["type"]).astype(str) == "VA")
-    xyz = np.stack([np.asarray(L[c], float) for c in "xyz"], -1)[lm_sel]
-    lst = np.asarray(L["step"])[lm_sel]
-    ev = scn.evaluation
+    sel = (np.asarray(L["map"]).astype(str) == "fused") & (np.asarray(L["type"]).astype(str) == "VA")
+    return np.stack([np.asarray(L[c], float) for c in "xyz"], -1)[sel], np.asarray(L["step"])[sel]
+
+
+def rescore_va(r, cache, fusion_start: int, drop_order2: bool) -> float:
+    """The run's fused VA GOSPA (mean over steps >= ``fusion_start``) against the truth built from the cache's
+    paths, without the order-2 VA rows if ``drop_order2`` (the stored estimates re-scored)."""
+    sc, steps = _scorer(r, cache, "order1" if drop_order2 else "all")
+    xyz, lst = _fused_va(r)
+    ev = sc.scn.evaluation
     d = [gospa(sc.fused_truth(k)[VA], xyz[lst == k], ev.gospa_c, ev.gospa_p, ev.gospa_alpha).d
          for k in range(fusion_start, steps)]
     return float(np.mean(d))
+
+
+def mapped_at_last_step(r, cache, rows: str) -> tuple[float, float]:
+    """(true VAs of ``rows`` ("order1" / "order2") seen by the last step, those with a fused VA estimate
+    within :data:`MAPPED_M`)."""
+    sc, steps = _scorer(r, cache, rows)
+    xyz, lst = _fused_va(r)
+    Y = sc.fused_truth(steps - 1)[VA]
+    X = xyz[lst == steps - 1]
+    if not len(Y) or not len(X):
+        return float(len(Y)), 0.0
+    d = np.linalg.norm(Y[:, None, :] - X[None, :, :], axis=-1)
+    return float(len(Y)), float(np.sum(d.min(axis=1) <= MAPPED_M))
 
 
 def collect(abl: str, variant: str) -> tuple[dict, dict]:
@@ -67,6 +95,12 @@ def collect(abl: str, variant: str) -> tuple[dict, dict]:
         fs = int(r.meta.get("fusion_start", 0))
         m = per_run(r, fs)
         m["gospa_VA_order1_truth"] = rescore_va(r, cache, fs, drop_order2=True)
+        for rows in ("order1", "order2"):
+            m[f"true_VA_{rows}_last"], m[f"mapped_VA_{rows}_last"] = mapped_at_last_step(r, cache, rows)
+        mt = r.metrics
+        sel = ((np.asarray(mt["map"]).astype(str) == "fused") & (np.asarray(mt["type"]).astype(str) == "VA")
+               & (np.asarray(mt["step"]) >= fs))
+        m["n_est_VA"] = float(np.mean(np.asarray(mt["n_est"], float)[sel]))
         check = rescore_va(r, cache, fs, drop_order2=False)
         assert abs(check - m["gospa_VA"]) < 1e-9, (check, m["gospa_VA"])  # the re-scoring reproduces the run's
         arms.setdefault(model, {})[job.seed] = m
@@ -77,7 +111,7 @@ def collect(abl: str, variant: str) -> tuple[dict, dict]:
               "VA order-2 rows per vehicle-step": float(np.sum(order2(p)) / n_vs)}
     est = sorted(Path(cache.path, "estimates").glob(f"*/seed-*-steps-{cache.states.shape[0]}.npz"))
     if est:
-        o2, o1, tot = [], [], []
+        o2, o1, tot, cnt = [], [], [], []
         for f in est:
             d = np.load(f, allow_pickle=True)
             ot, oid = d["origin_type"], np.asarray(d["origin_id"]).astype(str)
@@ -85,9 +119,12 @@ def collect(abl: str, variant: str) -> tuple[dict, dict]:
             two = isva & (np.char.find(oid, "|") >= 0)
             o2.append(two.sum()); o1.append((isva & ~two).sum()); tot.append(len(ot))
             n_vs_est = d["counts"].shape[0] * d["counts"].shape[1]
+            cnt.append(np.asarray(d["counts"], float).reshape(-1, 5).mean(0))
         counts["estimates per vehicle-step"] = float(np.mean(tot) / n_vs_est)
         counts["estimates labelled VA order 1 per vehicle-step"] = float(np.mean(o1) / n_vs_est)
         counts["estimates labelled VA order 2 per vehicle-step"] = float(np.mean(o2) / n_vs_est)
+        for name, v in zip(("estimates", "detected", "merged", "false", "missed"), np.mean(cnt, axis=0)):
+            counts[f"estimator counts: {name}"] = float(v)  # per vehicle-step (estimated_sensor COUNT_COLUMNS)
     return arms, counts
 
 
