@@ -19,8 +19,13 @@ Rules (``D`` = number of non-empty bounce slots of a path):
 - ``D == 1`` (specular or diffuse) on a scatterer: SP, id its name, landmark its reference point;
 - ``D == 1`` (specular or diffuse) on another vehicle: VS, id that vehicle's name, landmark
   that vehicle's antenna position at this step;
-- anything else (``D >= 2``, a diffuse bounce on a static object, refraction, an unknown
-  object): OTHER, id the ``+``-joined object names, landmark NaN.
+- ``D == 2``, both bounces specular on static planar surfaces (box faces, the ground, XML planes,
+  identified as above) and not the same plane twice: VA of order 2 (``bounces`` = 2), landmark the
+  image of an image (the BS mirrored in the first plane, then in the second), id
+  ``<first>|<second>`` (each as for a single bounce, e.g. ``wall_east:-x|wall_west:+x``);
+- anything else (``D >= 3``, a diffuse bounce on a static object or a car / scatterer in a
+  double bounce, refraction, an unknown object): OTHER, id the ``+``-joined object names,
+  landmark NaN.
 
 Paths sharing (receiver, type, landmark id) are one resolvable landmark: the row keeps the
 strongest path (highest power; ties: shortest TOA) with ``n_paths`` and ``delay_spread_m``
@@ -223,6 +228,79 @@ def _box_face(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.argmin(d, axis=1)
 
 
+def _surfaces(index: SceneIndex, o: np.ndarray, kind: np.ndarray, p: np.ndarray,
+              nrm: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The plane of specular bounces on static planar surfaces (one bounce slot of ``m`` paths).
+
+    Args:
+        index: the scene's objects.
+        o, kind: ``(m,)`` object index and kind (building, ground or other static) of each bounce.
+        p: ``(m, 3)`` bounce points, m, global frame.
+        nrm: ``(m, 3)`` hit-triangle normals (used for kind "other static"; may be None otherwise).
+
+    Returns:
+        ``normal (m, 3)`` unit normal (a box face's outward normal; the ground's +z; an XML plane's
+        normal oriented towards the BS), ``point (m, 3)`` a point of the plane (m), ``sub (m, 4)``
+        the sub-key (box / ground: the ``FACES`` index in column 0; plane: the quantized normal and
+        offset, or ``[-1, -1, -1, row]`` for a plane of ``index.planes``) and ``plane_ix (m,)`` the
+        row of ``index.planes`` (-1: none).
+    """
+    m = o.shape[0]
+    normal = np.full((m, 3), np.nan)
+    point = np.full((m, 3), np.nan)
+    sub = np.zeros((m, 4), np.int64)
+    plane_ix = np.full(m, -1, np.int64)
+    box = kind == K_BUILDING
+    if np.any(box):
+        s0 = np.clip(o[box], 0, None)
+        lo, hi = index.box_lo[s0], index.box_hi[s0]
+        f = _box_face(p[box], lo, hi)
+        ax = np.array([FACES[t][0] for t in _FACE_TAGS])[f]
+        sg = np.array([FACES[t][1] for t in _FACE_TAGS])[f]
+        nv = np.zeros((f.size, 3))
+        nv[np.arange(f.size), ax] = sg
+        normal[box] = nv
+        point[box] = np.where(sg[:, None] > 0, hi, lo)
+        sub[box, 0] = f
+    gr = kind == K_GROUND
+    if np.any(gr):
+        normal[gr] = [0.0, 0.0, 1.0]
+        point[gr] = [0.0, 0.0, index.ground_z]
+        sub[gr, 0] = _FACE_TAGS.index("+z")
+    pl = kind == K_STATIC
+    if np.any(pl):
+        bs = index.bs
+        pp = p[pl]
+        ix = np.full(pp.shape[0], -1, np.int64)
+        if index.planes is not None:
+            ix = index.planes.lookup(nrm[pl], pp)
+        known = ix >= 0
+        nn = nrm[pl]
+        nn = nn / np.linalg.norm(nn, axis=1, keepdims=True)
+        sgn = np.where(np.sum((bs - pp) * nn, axis=1) < 0, -1.0, 1.0)
+        nn = nn * sgn[:, None]
+        dd = np.sum(nn * pp, axis=1)
+        qsub = np.concatenate([np.round(nn * _NORMAL_Q), np.round(dd * _OFFSET_Q)[:, None]], axis=1).astype(np.int64)
+        if np.any(known):
+            pk = ix[known]
+            nn[known] = index.planes.normal[pk]
+            dd[known] = index.planes.offset[pk]
+            qsub[known] = [-1, -1, -1, 0]  # table planes are keyed by their row, not by rounding
+            qsub[known, 3] = pk
+        normal[pl] = nn
+        point[pl] = nn * dd[:, None]
+        sub[pl] = qsub
+        plane_ix[pl] = ix
+    return normal, point, sub, plane_ix
+
+
+def _surface_id(index: SceneIndex, o: int, kind: int, sub: np.ndarray, plane_ix: int) -> str:
+    """Landmark id of one planar surface: ``<object>:<face>`` (box, ground) or ``plane(...)``."""
+    if kind == K_STATIC:
+        return index.planes.ids[plane_ix] if plane_ix >= 0 else _plane_id(sub)
+    return f"{index.names[o]}:{_FACE_TAGS[sub[0]]}"
+
+
 def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np.ndarray,
                 verts: np.ndarray, toa_m: np.ndarray, angles: np.ndarray, power_db: np.ndarray,
                 antennas: np.ndarray, normals: np.ndarray | None = None, step: int = 0,
@@ -298,58 +376,45 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
     first_known = o0 >= 0
     typ = np.full(n, OTHER, np.int64)
     typ[depth == 0] = BS
-    is_va_box = single & first_known & (t0 == SPECULAR) & (k0 == K_BUILDING)
-    is_va_ground = single & first_known & (t0 == SPECULAR) & (k0 == K_GROUND)
-    is_va_plane = single & first_known & (t0 == SPECULAR) & (k0 == K_STATIC)
+    # a specular bounce on a static planar surface, per slot: box face, ground, XML plane
+    planar = (obj >= 0) & (itype == SPECULAR) & ((okind == K_BUILDING) | (okind == K_GROUND) | (okind == K_STATIC))
     if nrm is not None:
-        is_va_plane &= np.all(np.isfinite(nrm[:, 0]), axis=1)
+        planar &= (okind != K_STATIC) | np.all(np.isfinite(nrm), axis=2)
     else:
-        is_va_plane[:] = False
+        planar &= okind != K_STATIC
+    is_va1 = single & planar[:, 0]
+    is_va2 = (depth == 2) & planar[:, 0] & (planar[:, 1] if D > 1 else False)
     is_sp = single & first_known & ((t0 == SPECULAR) | (t0 == DIFFUSE)) & (k0 == K_SCATTERER)
     is_vs = single & first_known & ((t0 == SPECULAR) | (t0 == DIFFUSE)) & (k0 == K_VEHICLE)
-    typ[is_va_box | is_va_ground | is_va_plane] = VA
-    typ[is_sp] = SP
-    typ[is_vs] = VS
 
     # ---------------------------------------------------------------- landmarks and sub-keys
     bs = index.bs
     lm = np.full((n, 3), np.nan)
-    sub = np.zeros((n, 4), np.int64)  # face index / quantized plane
+    va_order = np.where(is_va1, 1, np.where(is_va2, 2, 0))  # image order of a VA (0: not a VA)
+    sub = np.zeros((n, 2, 4), np.int64)  # per bounce: face index / quantized plane
+    plane_ix = np.full((n, 2), -1, np.int64)  # per bounce: row of index.planes (-1: none)
+    surf_n = np.full((n, 2, 3), np.nan)  # per bounce: unit normal and a point of its plane
+    surf_p = np.full((n, 2, 3), np.nan)
+    for j in range(min(D, 2)):
+        sel = np.flatnonzero(va_order > j)
+        if sel.size:
+            surf_n[sel, j], surf_p[sel, j], sub[sel, j], plane_ix[sel, j] = _surfaces(
+                index, obj[sel, j], okind[sel, j], verts[sel, j], None if nrm is None else nrm[sel, j])
+    if np.any(is_va2):  # two bounces on one plane: no specular double bounce, OTHER
+        k1, o1 = okind[:, 1], obj[:, 1]
+        same = is_va2 & np.all(sub[:, 0] == sub[:, 1], axis=1) & (
+            ((k0 == K_STATIC) & (k1 == K_STATIC)) | ((k0 != K_STATIC) & (o0 == o1)))
+        is_va2 &= ~same
+        va_order[same] = 0
+    typ[is_va1 | is_va2] = VA
+    typ[is_sp] = SP
+    typ[is_vs] = VS
     lm[typ == BS] = bs
-    if np.any(is_va_box):
-        s0 = np.clip(o0[is_va_box], 0, None)
-        lo, hi = index.box_lo[s0], index.box_hi[s0]
-        f = _box_face(p0[is_va_box], lo, hi)
-        ax = np.array([FACES[t][0] for t in _FACE_TAGS])[f]
-        sg = np.array([FACES[t][1] for t in _FACE_TAGS])[f]
-        nv = np.zeros((f.size, 3))
-        nv[np.arange(f.size), ax] = sg
-        pp = np.where(sg[:, None] > 0, hi, lo)
-        lm[is_va_box] = mirror_point(bs, pp, nv)
-        sub[is_va_box, 0] = f
-    if np.any(is_va_ground):
-        lm[is_va_ground] = mirror_point(bs, np.array([0.0, 0.0, index.ground_z]), np.array([0.0, 0.0, 1.0]))
-        sub[is_va_ground, 0] = _FACE_TAGS.index("+z")
-    plane_ix = np.full(n, -1, np.int64)  # row of index.planes (-1: none)
-    if np.any(is_va_plane):
-        pp = p0[is_va_plane]
-        if index.planes is not None:
-            plane_ix[is_va_plane] = index.planes.lookup(nrm[is_va_plane, 0], pp)
-        known = plane_ix[is_va_plane] >= 0
-        nn = nrm[is_va_plane, 0]
-        nn = nn / np.linalg.norm(nn, axis=1, keepdims=True)
-        sgn = np.where(np.sum((bs - pp) * nn, axis=1) < 0, -1.0, 1.0)
-        nn = nn * sgn[:, None]
-        dd = np.sum(nn * pp, axis=1)
-        qsub = np.concatenate([np.round(nn * _NORMAL_Q), np.round(dd * _OFFSET_Q)[:, None]], axis=1).astype(np.int64)
-        if np.any(known):
-            pk = plane_ix[is_va_plane][known]
-            nn[known] = index.planes.normal[pk]
-            dd[known] = index.planes.offset[pk]
-            qsub[known] = [-1, -1, -1, 0]  # table planes are keyed by their row, not by rounding
-            qsub[known, 3] = pk
-        lm[is_va_plane] = mirror_point(bs, nn * dd[:, None], nn)
-        sub[is_va_plane] = qsub
+    if np.any(is_va1):
+        lm[is_va1] = mirror_point(bs, surf_p[is_va1, 0], surf_n[is_va1, 0])
+    if np.any(is_va2):  # image of an image: the BS mirrored in the first plane, then in the second
+        lm[is_va2] = mirror_point(mirror_point(bs, surf_p[is_va2, 0], surf_n[is_va2, 0]),
+                                  surf_p[is_va2, 1], surf_n[is_va2, 1])
     if np.any(is_sp):
         lm[is_sp] = index.ref[o0[is_sp]]
     if np.any(is_vs):
@@ -357,9 +422,12 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
 
     # ---------------------------------------------------------------- cluster key
     objkey = np.where((typ == OTHER)[:, None], obj, np.where(np.arange(D)[None, :] == 0, obj, -1))
-    objkey = np.where((typ == BS)[:, None] | is_va_plane[:, None], -1, objkey)  # a plane VA is its plane
+    # a VA is its ordered surfaces: a box face / the ground by its object and face, a plane by itself
+    va_obj = np.where((np.arange(D)[None, :] < va_order[:, None]) & (okind != K_STATIC), obj, -1)
+    objkey = np.where((typ == VA)[:, None], va_obj, objkey)
+    objkey = np.where((typ == BS)[:, None], -1, objkey)
     # OTHER paths from an unknown object keep the interaction types apart too
-    key = np.concatenate([rx[:, None], typ[:, None], objkey, sub,
+    key = np.concatenate([rx[:, None], typ[:, None], va_order[:, None], objkey, sub.reshape(n, 8),
                           np.where((typ == OTHER)[:, None], itype, 0)], axis=1)
     uk, first_idx, g = np.unique(key, axis=0, return_index=True, return_inverse=True)
     g = g.reshape(-1)
@@ -379,11 +447,9 @@ def label_paths(index: SceneIndex, *, rx: np.ndarray, obj: np.ndarray, itype: np
         t = typ[r]
         if t == BS:
             ids[j] = "bs"
-        elif t == VA:
-            if is_va_plane[r]:
-                ids[j] = index.planes.ids[plane_ix[r]] if plane_ix[r] >= 0 else _plane_id(sub[r])
-            else:
-                ids[j] = f"{index.names[o0[r]]}:{_FACE_TAGS[sub[r, 0]]}"
+        elif t == VA:  # order 2: '<first surface>|<second surface>'
+            ids[j] = "|".join(_surface_id(index, obj[r, b], okind[r, b], sub[r, b], plane_ix[r, b])
+                              for b in range(va_order[r]))
         elif t in (SP, VS):
             ids[j] = index.names[o0[r]]
         else:

@@ -133,8 +133,9 @@ PATH_SPEC: dict[str, Col] = {
     "step": Col("int32", "", "time index"),
     "rx": Col("int16", "", "receiving vehicle", "vehicle"),
     "type": Col("int8", "", "landmark type (BS, VA, SP, VS, OTHER)", "type"),
-    "landmark_id": Col("string", "", "BS: 'bs'; VA: '<object>:<face>' e.g. 'wall_east:-x'; SP: scatterer "
-                       "name; VS: vehicle name; OTHER: '+'-joined object names of the bounces"),
+    "landmark_id": Col("string", "", "BS: 'bs'; VA: '<object>:<face>' e.g. 'wall_east:-x' or 'plane(...)', "
+                       "order 2 (bounces = 2): '<first>|<second>'; SP: scatterer name; VS: vehicle name; "
+                       "OTHER: '+'-joined object names of the bounces"),
     "bounces": Col("int8", "", "number of interactions (0: line of sight)"),
     "diffuse": Col("bool", "", "any diffuse bounce"),
     "toa_m": Col("float64", "m", "delay x c, no clock bias"),
@@ -144,8 +145,9 @@ PATH_SPEC: dict[str, Col] = {
     "bounce_x": Col("float64", "m", "first interaction point x (NaN for LOS)"),
     "bounce_y": Col("float64", "m", "first interaction point y (NaN for LOS)"),
     "bounce_z": Col("float64", "m", "first interaction point z (NaN for LOS)"),
-    "lm_x": Col("float64", "m", "ground-truth landmark x: BS position, VA image source, SP reference "
-                "point, VS antenna of that vehicle at this step (NaN for OTHER)"),
+    "lm_x": Col("float64", "m", "ground-truth landmark x: BS position, VA image source (order 2: the "
+                "image of the first image in the second plane), SP reference point, VS antenna of that "
+                "vehicle at this step (NaN for OTHER)"),
     "lm_y": Col("float64", "m", "ground-truth landmark y (NaN for OTHER)"),
     "lm_z": Col("float64", "m", "ground-truth landmark z (NaN for OTHER)"),
     "n_paths": Col("int32", "", "rays merged into this row (a diffuse cluster)"),

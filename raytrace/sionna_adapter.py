@@ -239,7 +239,10 @@ class SionnaSource:
                 "los": True, "specular_reflection": True, "diffuse_reflection": True, "refraction": False,
                 "diffraction": False, "synthetic_array": True, "deterministic": True, "antenna": "iso/V",
                 "seed_per_step": "SeedSequence([seed, step])",
-                "merge_external_shapes": self.merged, "va_labels": "plane table"}
+                "merge_external_shapes": self.merged,
+                # depth >= 2: double specular bounces on planes are labelled VA (image of an image);
+                # a new value so that depth-2 caches labelled OTHER before are re-traced
+                "va_labels": "plane table" if self.max_depth < 2 else "plane table, order-2 images"}
 
     def versions(self) -> dict[str, str]:
         """Installed versions of sionna-rt, mitsuba and drjit, and the Mitsuba variant in use."""

@@ -46,6 +46,21 @@ def test_pilots_of_one_ray_give_its_parameters(paper2):
     assert np.all(np.linalg.eigvalsh(cov[0]) > 0)
 
 
+def test_a_link_without_rays_is_a_noise_only_channel(paper2):
+    """A vehicle-step with no traced ray (a car blocked from the BS, e.g. on canyon): the pilots are the
+    full (rx^2, tx^2, K) block, all zero without noise, unit-variance noise with it (crashed before:
+    'cannot reshape array of size 0')."""
+    scn, c = paper2
+    r = c.read_rays()
+    pm = es.PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
+    g = pm.grid
+    none = np.zeros(0, np.int64)
+    Y, t0 = es.received_pilots(r, none, 0.3, 12.0, pm, None)
+    assert Y.shape == (g.rx_array ** 2, g.tx_array ** 2, g.n_subcarriers) and not np.any(Y) and t0 == 0.0
+    Y, _ = es.received_pilots(r, none, 0.3, 12.0, pm, np.random.default_rng(1))
+    assert np.mean(np.abs(Y) ** 2) == pytest.approx(1.0, rel=0.02)
+
+
 def test_estimates_labelled_against_the_rays_and_cached(paper2, tmp_path):
     """The estimates of 2 steps: the LOS of every link found and labelled 'bs' within 5 cm and 0.02 rad of
     the truth; counts consistent (estimates = detected + false); the same seed gives the same estimates,

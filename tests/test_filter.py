@@ -380,6 +380,30 @@ def test_facades_of_two_objects_on_one_plane_are_one_va_in_the_truth():
     assert len(seen[0]) == 1 and len(seen[1]) == 1  # vehicle 0: the two facades are one VA
 
 
+def test_order_two_vas_count_in_the_truth_and_the_visible_counts_like_order_one():
+    """Second-order reflections (issue 24): an order-2 VA row (bounces = 2, landmark the image of an image)
+    is a VA of the truth from the step it is observed, in first_seen and visible_counts alike; the two
+    orders of a wall-ground pair (perpendicular mirrors commute: one image) are one VA."""
+    from mmslam.slam.eval.evaluation import first_seen as _first_seen, truth_keys, visible_counts
+    from mmslam.slam.models.measurement import VA
+
+    scn = load_preset("paper")
+    # BS (0, 0, 40): in x = 100 -> (200, 0, 40); then in z = 0 -> (200, 0, -40), either order
+    paths = {"step": np.array([0, 1, 1, 2]), "rx": np.array([0, 0, 1, 1]), "type": np.full(4, VA),
+             "bounces": np.array([1, 2, 2, 2]),
+             "landmark_id": np.array(["wall:-x", "wall:-x|ground:+z", "ground:+z|wall:-x", "wall:-x|west:+x"]),
+             "lm_x": np.array([200.0, 200.0, 200.0, -400.0]), "lm_y": np.zeros(4),
+             "lm_z": np.array([40.0, -40.0, -40.0, 40.0])}
+    keys = truth_keys(paths)
+    assert keys[1] == keys[2] and len(set(keys)) == 3
+    pos = np.zeros((3, 2, 3))
+    seen = _first_seen(paths, 2, 3, pos, scn.sensor)[VA]
+    assert {k: s for k, (s, _) in seen[0].items()} == {keys[0]: 0, keys[1]: 1}
+    assert {k: s for k, (s, _) in seen[1].items()} == {keys[2]: 1, keys[3]: 2}
+    vis = visible_counts(paths, 2, 3, pos, scn.sensor)[VA]
+    np.testing.assert_array_equal(vis, [[1, 0, 1], [1, 1, 1], [0, 1, 1]])
+
+
 def test_va_truths_closer_than_the_resolution_are_one():
     """evaluation.va_resolution (1 m): the images of two parallel facades 0.4 m apart (0.8 m apart) are one
     VA for the truth, those of facades 0.765 m apart (canyon's, images 1.53 m apart) stay two; a chain

@@ -215,3 +215,106 @@ def test_coplanar_facades_of_two_objects_are_one_va_with_the_exact_image():
         np.testing.assert_allclose([out["lm_x"][0], out["lm_y"][0], out["lm_z"][0]], [-10.0, 0.0, 10.0], atol=1e-12)
         ids.append(str(out["landmark_id"][0]))
     assert ids == ["plane(+1.0000,+0.0000,+0.0000,-5.000)"] * 2
+
+
+# ------------------------------------------------------------------ second-order reflections (issue 24)
+def _canyon_scn():
+    """Two parallel walls x = 20 (face -x of 'east') and x = -20 (face +x of 'west'), ground z = 0, a pole."""
+    return scenario_from_dict({
+        "name": "canyon2", "bs": BS_POS.tolist(), "ground": {"z": 0.0, "extent": 100.0},
+        "buildings": [{"name": "east", "min": [20.0, -50.0, 0.0], "max": [22.0, 50.0, 15.0]},
+                      {"name": "west", "min": [-22.0, -50.0, 0.0], "max": [-20.0, 50.0, 15.0]}],
+        "scatterers": [{"name": "pole", "position": [5.0, 5.0, 2.0], "size": 1.0}],
+        "vehicles": [{"name": "car1", "initial_state": [10.0, 5.0, 1.5, 0.0, 5.0, 0.0, 0.0]},
+                     {"name": "car2", "initial_state": [-10.0, -6.0, 1.5, 0.0, 5.0, 0.0, 0.0]}]}, "<test>")
+
+
+def _direction(a, b) -> tuple[float, float]:
+    d = np.asarray(b, float) - np.asarray(a, float)
+    return float(np.arctan2(d[1], d[0])), float(np.arcsin(d[2] / np.linalg.norm(d)))
+
+
+# BS (0, 0, 10), car1 antenna u = (10, 5, 1.5). East then west: image v1 = (40, 0, 10) (BS in x = 20),
+# v2 = (-80, 0, 10) (v1 in x = -20). The segment u -> v2 crosses x = -20 at t = 1/3: q2 = (-20, 10/3, 13/3);
+# q2 -> v1 crosses x = 20 at s = 2/3: q1 = (20, 10/9, 73/9).
+U1 = np.array([10.0, 5.0, 1.5])
+Q_EW = (np.array([20.0, 10 / 9, 73 / 9]), np.array([-20.0, 10 / 3, 13 / 3]))
+V_EW = np.array([-80.0, 0.0, 10.0])
+
+
+def _two_bounce_row(rx, names, types, q1, q2, u, extra_len=0.0):
+    toa = np.linalg.norm(q1 - BS_POS) + np.linalg.norm(q2 - q1) + np.linalg.norm(u - q2) + extra_len
+    return (rx, [(names[0], types[0], q1), (names[1], types[1], q2)], toa, -100.0), (
+        *_direction(BS_POS, q1), *_direction(u, q2))
+
+
+def test_double_specular_bounce_on_two_walls_is_an_order_two_va_at_the_image_of_the_image():
+    """Hand-computed canyon: BS -> east wall -> west wall -> car. The label is VA, id 'east:-x|west:+x'
+    (first bounce first), 2 bounces, landmark the image of the image (-80, 0, 10); |u - v2| equals the
+    path length and the arrival direction points at v2. The reverse order is another VA (80, 0, 10).
+    A diffuse bounce, a scatterer or a car in the chain stays OTHER (old code: all OTHER)."""
+    idx = SceneIndex.from_scenario(_canyon_scn())
+    # west then east: v1 = (-40, 0, 10), v2 = (80, 0, 10); u -> v2: x = 10 + 70 t = 20 at t = 1/7
+    q2_we = U1 + (np.array([80.0, 0.0, 10.0]) - U1) / 7
+    np.testing.assert_allclose(q2_we, [20.0, 30 / 7, 1.5 + 8.5 / 7])
+    # q2 -> v1 (-40, 0, 10): x = 20 - 60 s = -20 at s = 2/3
+    q1_we = q2_we + (np.array([-40.0, 0.0, 10.0]) - q2_we) * 2 / 3
+    np.testing.assert_allclose(q1_we, [-20.0, 10 / 7, 10 - (8.5 - 8.5 / 7) / 3])
+    ant = np.array([U1, [-10.0, -6.0, 1.5]])
+    specs = [
+        (0, ("east", "west"), (SPECULAR, SPECULAR), *Q_EW),        # VA order 2
+        (0, ("west", "east"), (SPECULAR, SPECULAR), q1_we, q2_we),  # VA order 2, the other image
+        (0, ("east", "west"), (SPECULAR, DIFFUSE), *Q_EW),         # diffuse in the chain: OTHER
+        (0, ("east", "pole"), (SPECULAR, SPECULAR), Q_EW[0], np.array([5.0, 4.6, 2.0])),  # scatterer: OTHER
+        (0, ("east", "car2"), (SPECULAR, SPECULAR), Q_EW[0], np.array([-10.0, -5.5, 1.0])),  # a car: OTHER
+    ]
+    rows, ang = [], []
+    for rx, names, types, q1, q2 in specs:
+        r, a = _two_bounce_row(rx, names, types, q1, q2, ant[rx])
+        rows.append(r)
+        ang.append(a)
+    p = _paths(idx, rows)
+    p["angles"] = np.array(ang)
+    out = label_paths(idx, antennas=ant, **p)
+    by = {str(i): k for k, i in enumerate(out["landmark_id"])}
+    assert set(by) == {"east:-x|west:+x", "west:+x|east:-x", "east+west", "east+pole", "east+car2"}
+    for lid, v2, q in (("east:-x|west:+x", V_EW, Q_EW), ("west:+x|east:-x", np.array([80.0, 0.0, 10.0]), (q1_we, q2_we))):
+        k = by[lid]
+        assert out["type"][k] == VA and out["bounces"][k] == 2 and out["n_paths"][k] == 1
+        lm = np.array([out[c][k] for c in ("lm_x", "lm_y", "lm_z")])
+        np.testing.assert_allclose(lm, v2, atol=1e-12)
+        assert abs(np.linalg.norm(U1 - lm) - out["toa_m"][k]) < 1e-9  # TOA: the image's distance
+        az, el = _direction(U1, lm)  # the arrival direction points at the image of the image
+        assert abs(az - out["aoa_az"][k]) < 1e-12 and abs(el - out["aoa_el"][k]) < 1e-12
+        np.testing.assert_allclose([out["bounce_x"][k], out["bounce_y"][k], out["bounce_z"][k]], q[0])
+    for lid in ("east+west", "east+pole", "east+car2"):
+        assert out["type"][by[lid]] == OTHER and np.isnan(out["lm_x"][by[lid]])
+
+
+def test_double_bounces_with_ground_and_xml_planes_and_one_plane_twice():
+    """Ground then wall and wall then ground are two VAs at the same point (perpendicular mirrors
+    commute), told apart by their ids; two XML planes give 'plane(...)|plane(...)' with the mirrored
+    image; the same plane twice is no specular double bounce (OTHER)."""
+    idx = SceneIndex.from_scenario(_canyon_scn(), extra_static=["facade_a", "facade_b"])
+    rows = [
+        (0, [("ground", SPECULAR, [12.0, 2.0, 0.0]), ("east", SPECULAR, [20.0, 3.0, 1.0])], 40.0, -100.0),
+        (0, [("east", SPECULAR, [20.0, 3.0, 5.0]), ("ground", SPECULAR, [15.0, 4.0, 0.0])], 40.0, -101.0),
+        (1, [("facade_a", SPECULAR, [-5.0, 1.0, 4.0]), ("facade_b", SPECULAR, [0.0, 30.0, 3.0])], 80.0, -110.0),
+        (1, [("facade_a", SPECULAR, [-5.0, 1.0, 4.0]), ("facade_a", SPECULAR, [-5.0, 8.0, 3.0])], 90.0, -120.0),
+    ]
+    p = _paths(idx, rows)
+    nrm = np.full((4, 3, 3), np.nan)
+    nrm[2, 0] = nrm[3, 0] = nrm[3, 1] = [1.0, 0.0, 0.0]   # plane x = -5 (either orientation)
+    nrm[2, 1] = [0.0, 1.0, 0.0]                           # plane y = 30
+    out = label_paths(idx, antennas=np.array([U1, [-10.0, -6.0, 1.5]]), normals=nrm, **p)
+    by = {(int(r), str(i)): k for k, (r, i) in enumerate(zip(out["rx"], out["landmark_id"]))}
+    assert set(by) == {(0, "ground:+z|east:-x"), (0, "east:-x|ground:+z"),
+                       (1, "plane(+1.0000,+0.0000,+0.0000,-5.000)|plane(+0.0000,-1.0000,+0.0000,-30.000)"),
+                       (1, "facade_a+facade_a")}
+    for key in ((0, "ground:+z|east:-x"), (0, "east:-x|ground:+z")):
+        assert out["type"][by[key]] == VA and out["bounces"][by[key]] == 2
+        np.testing.assert_allclose([out[c][by[key]] for c in ("lm_x", "lm_y", "lm_z")], [40.0, 0.0, -10.0])
+    k = by[(1, "plane(+1.0000,+0.0000,+0.0000,-5.000)|plane(+0.0000,-1.0000,+0.0000,-30.000)")]
+    # BS in x = -5: (-10, 0, 10); then in y = 30: (-10, 60, 10)
+    np.testing.assert_allclose([out[c][k] for c in ("lm_x", "lm_y", "lm_z")], [-10.0, 60.0, 10.0], atol=1e-12)
+    assert out["type"][by[(1, "facade_a+facade_a")]] == OTHER

@@ -386,3 +386,59 @@ def test_munich_merged_va_labels_are_exact_planes_of_the_scene(tmp_path):
             seen[lid] = lm
             n_va += 1
     assert n_va >= 5
+
+
+def test_double_wall_bounces_are_order_two_vas_at_the_image_of_the_image(tmp_path):
+    """`paper`'s east and west walls only (x = +-100, parallel), one car between them, max_depth 2
+    (issue 24, second-order reflections): Sionna's two double wall bounces are VAs of order 2 with ids
+    'east|west' and 'west|east'; each landmark is the BS mirrored in the first face, then in the second;
+    |u - v2| equals the traced path length (1e-4 m) and the arrival direction points at v2 (1e-4 rad); the
+    reflection points the label implies (where u -> v2 crosses the second face, then where that point ->
+    v1 crosses the first) lie inside the two faces and are Sionna's bounce vertices (1 mm). The filter's
+    single-mirror model gets the TOA and AOA of v2 right but not the AOD (a model limit, docs/estimator.md)."""
+    from mmslam.raytrace.sionna_adapter import SionnaSource
+    from mmslam.model import mirror_point
+
+    base = load_preset("paper")
+    walls = tuple(b for b in base.buildings if b.name in ("wall_east", "wall_west"))
+    veh = dataclasses.replace(base.vehicles[0], name="car", initial_state=(30.0, 20.0, 0.0, 0.3, 0.0, 0.0, 0.0))
+    scn = dataclasses.replace(base, buildings=walls, scatterers=(), vehicles=(veh,))
+    st = vehicle_trajectories(scn)[0]
+    u = st[0, :3]
+    b = scn.bs_array
+    src = SionnaSource(scn, max_depth=2, samples_per_src=10**6, scene_dir=tmp_path)
+    tabs = src.trace_tables(0, st)
+    lab, rays = tabs["paths"], tabs["rays"]
+    rows = {str(i): k for k, (t, i) in enumerate(zip(lab["type"], lab["landmark_id"])) if t in (BS, VA)}
+    assert set(rows) == {"bs", "wall_east:-x", "wall_west:+x", "wall_east:-x|wall_west:+x", "wall_west:+x|wall_east:-x"}
+    face = {"wall_east:-x": (np.array([100.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])),
+            "wall_west:+x": (np.array([-100.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]))}
+    for lid in ("wall_east:-x|wall_west:+x", "wall_west:+x|wall_east:-x"):
+        k = rows[lid]
+        f1, f2 = (face[s] for s in lid.split("|"))
+        v1 = mirror_point(b, *f1)
+        v2 = mirror_point(v1, *f2)
+        assert lab["bounces"][k] == 2 and lab["n_paths"][k] == 1
+        lm = np.array([lab[c][k] for c in ("lm_x", "lm_y", "lm_z")])
+        np.testing.assert_allclose(lm, v2, atol=1e-9)
+        assert abs(np.linalg.norm(u - lm) - lab["toa_m"][k]) < 1e-4
+        d = _unit(lab["aoa_az"][k], lab["aoa_el"][k])
+        assert np.linalg.norm(d - (lm - u) / np.linalg.norm(lm - u)) < 1e-4
+        # reflection points implied by the label
+        t2 = (f2[0][0] - u[0]) / (v2[0] - u[0])
+        q2 = u + t2 * (v2 - u)
+        t1 = (f1[0][0] - q2[0]) / (v1[0] - q2[0])
+        q1 = q2 + t1 * (v1 - q2)
+        assert 0 < t2 < 1 and 0 < t1 < 1
+        for q in (q1, q2):
+            assert -100.0 <= q[1] <= 100.0 and -5.0 <= q[2] <= 60.0  # inside the face rectangle
+        r = int(np.flatnonzero((rays["rx"] == 0) & (rays["ray"] == lab["ray"][k]))[0])
+        np.testing.assert_allclose([rays[f"bounce1_{c}"][r] for c in "xyz"], q1, atol=1e-3)
+        np.testing.assert_allclose([rays[f"bounce2_{c}"][r] for c in "xyz"], q2, atol=1e-3)
+        g = channel_params(u, lm, Bounce.MIRROR, b)
+        assert abs(g[0] - lab["toa_m"][k]) < 1e-4
+        assert np.all(np.abs(np.angle(np.exp(1j * (g[3:] - [lab["aoa_az"][k], lab["aoa_el"][k]])))) < 1e-4)
+        # the true departure is towards q1; the single-mirror model departs towards the bisector of b, v2
+        aod = _unit(lab["aod_az"][k], lab["aod_el"][k])
+        np.testing.assert_allclose(aod, (q1 - b) / np.linalg.norm(q1 - b), atol=1e-4)
+        assert np.linalg.norm(_unit(g[1], g[2]) - aod) > 1.0

@@ -4,7 +4,9 @@ Truth of a map of type ``t`` at step ``k`` (:class:`MapScorer`):
 
 - static types (VA, SP): every landmark the vehicle could have detected so far, i.e. present in
   its paths *and* inside its FOV at some step ``<= k`` (:func:`first_seen`); the fused map's truth
-  is the union over vehicles;
+  is the union over vehicles; a VA of order 2 (a double specular bounce, ``bounces = 2``, landmark the
+  image of an image: docs/estimator.md) is a VA like one of order 1 (a fixed point the filter can map),
+  keyed by its image position like every VA (:func:`truth_keys`), in the truth and the visible counts alike;
 - moving types (VS): the other vehicles within the FOV radius of the vehicle at step ``k``;
   for the fused map, every vehicle.
 

@@ -90,7 +90,8 @@ def received_pilots(rays: dict[str, np.ndarray], idx: np.ndarray, heading: float
     at, ar = ray_array_responses(rays, idx, g.tx_array, g.rx_array, heading)
     f = (np.arange(g.n_subcarriers) - g.n_subcarriers // 2) * g.spacing_hz
     kern = np.exp(-2j * np.pi * np.outer((toa - t0) / SPEED_OF_LIGHT, f))
-    Y = ((ar[:, :, None] * at[:, None, :]).reshape(idx.size, -1).T @ (a[:, None] * kern)).reshape(
+    Y = ((ar[:, :, None] * at[:, None, :]).reshape(idx.size, g.rx_array ** 2 * g.tx_array ** 2).T
+         @ (a[:, None] * kern)).reshape(
         g.rx_array ** 2, g.tx_array ** 2, g.n_subcarriers)
     if rng is not None:
         Y = Y + (rng.standard_normal(Y.shape) + 1j * rng.standard_normal(Y.shape)) / math.sqrt(2.0)
