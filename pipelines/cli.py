@@ -132,7 +132,8 @@ def register(app: typer.Typer) -> None:
             cache = prepare_cache(scn, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
                                   samples=samples)
             cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
-                                  sets=sets_c, grid=grid, scheduler=scheduler)
+                                  sets=sets_c, grid=grid, scheduler=scheduler, max_depth=max_depth, samples=samples,
+                                  truth=truth)
             run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
                                scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
                                seed0=seed0, sets=sets_c, grid=grid, truth=truth,

@@ -619,6 +619,16 @@ def test_reproduce_command_keeps_the_dask_scheduler() -> None:
     assert "--scheduler" not in A.default_command("paper", ["baseline"], 2, 50, "analytic", Path("out/a"), None)
 
 
+def test_reproduce_command_keeps_the_trace_depth_samples_and_truth() -> None:
+    # before: a --max-depth 2 ablation's report said to re-run it at depth 1 (another trace)
+    cmd = A.default_command("canyon", ["proposed"], 10, 300, "sionna", Path("out/a"), None, max_depth=2,
+                            samples=200000, truth="fixed").split()
+    assert cmd[cmd.index("--max-depth") + 1] == "2" and cmd[cmd.index("--samples") + 1] == "200000"
+    assert cmd[cmd.index("--truth") + 1] == "fixed"
+    plain = A.default_command("canyon", ["proposed"], 10, 300, "sionna", Path("out/a"), None)
+    assert not {"--max-depth", "--samples", "--truth"} & set(plain.split())
+
+
 def test_variants_table_heads_its_descriptions_as_such() -> None:
     from mmslam.pipelines.report import _variants_html
     from mmslam.slam.specs.variants import get_variant

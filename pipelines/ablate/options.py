@@ -199,8 +199,10 @@ def is_finished(out_dir: str | Path, job: Job) -> bool:
 
 def default_command(scenario: str, variants: Sequence[str], mc: int, particles: int, source: str | None,
                     out: Path, steps: int | None, executor: str = "local", seed0: int = 0,
-                    sets: Sequence[str] = (), grid: Sequence[str] = (), scheduler: str | None = None) -> str:
-    """The ``mmslam ablate`` command line that reproduces an ablation (with its ``--scheduler``)."""
+                    sets: Sequence[str] = (), grid: Sequence[str] = (), scheduler: str | None = None,
+                    max_depth: int = 1, samples: int = 1_000_000, truth: str = "per-run") -> str:
+    """The ``mmslam ablate`` command line that reproduces an ablation (with its ``--scheduler``, and the trace's
+    ``--max-depth`` / ``--samples`` and ``--truth`` where they are not the defaults)."""
     import shlex
 
     argv = ["mmslam", "ablate", scenario, "--variants", ",".join(variants), "--mc", str(mc),
@@ -213,6 +215,12 @@ def default_command(scenario: str, variants: Sequence[str], mc: int, particles: 
         argv += ["--set", x]
     for x in grid:
         argv += ["--grid", x]
+    if int(max_depth) != 1:
+        argv += ["--max-depth", str(int(max_depth))]
+    if int(samples) != 1_000_000:
+        argv += ["--samples", str(int(samples))]
+    if truth != "per-run":
+        argv += ["--truth", str(truth)]
     if executor != "local":
         argv += ["--executor", executor]
     if executor != "local" and scheduler:
