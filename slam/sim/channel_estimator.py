@@ -41,6 +41,7 @@ el, aoa az (body), aoa el]`` through the Jacobian of ``z -> w`` (:func:`measurem
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,9 +150,17 @@ _GRAD_IDX = _POW3.copy()  # flat index in a (3,)*5 tensor of the first derivativ
 _HESS_IDX = _POW3[:, None] + _POW3[None, :]  # of the second derivatives (2 on the diagonal)
 
 
+_SCRATCH = threading.local()
+"""Per thread, the four ``(Na, K)`` arrays of :class:`_Residual` and the FFT's buffer, reused by the next
+:func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the system, and their
+page faults cost more than the estimation of a closed-form link (~20 ms of 40 measured)."""
+
+
 class _Residual:
-    """The residual ``r (Na, K)`` of one :func:`nomp` call and its 5-D DFT, split real / imaginary
-    (:mod:`.nomp_kernels`), with the grid's constants."""
+    """The residual ``r = y - sum_m g_m v(w_m) (Na, K)`` of one :func:`nomp` call: the pilots ``y`` split
+    real / imaginary (:mod:`.nomp_kernels`), never modified, and the atoms ``(w_m, g_m)`` so far (every
+    contraction of ``r`` is one of ``y`` less the atoms' closed-form terms); the residual's 5-D DFT,
+    updated by the atoms' DFTs; the grid's constants."""
 
     def __init__(self, Y: np.ndarray, grid: Grid):
         import scipy.fft
@@ -160,10 +169,17 @@ class _Residual:
         self.N = float(grid.size)
         Na, K = grid.size // grid.n_subcarriers, grid.n_subcarriers
         Y2 = np.asarray(Y).reshape(Na, K)
-        self.rr = np.array(Y2.real, float, order="C")
-        self.ri = np.array(Y2.imag, float, order="C") if np.iscomplexobj(Y2) else np.zeros((Na, K))
-        R2 = scipy.fft.fftn(np.asarray(Y2, complex).reshape(grid.shape), workers=1).reshape(Na, K)
-        self.Rr, self.Ri = np.array(R2.real, order="C"), np.array(R2.imag, order="C")
+        ws = getattr(_SCRATCH, "arrays", None)
+        if ws is None or ws[0].shape != (Na, K):
+            ws = _SCRATCH.arrays = (np.empty((Na, K)), np.empty((Na, K)), np.empty((Na, K)), np.empty((Na, K)),
+                                    np.empty(grid.shape, complex))
+        self.rr, self.ri, self.Rr, self.Ri, work = ws
+        np.copyto(self.rr, Y2.real)
+        np.copyto(self.ri, Y2.imag if np.iscomplexobj(Y2) else 0.0)
+        np.copyto(work, Y2.reshape(grid.shape))
+        R2 = scipy.fft.fftn(work, workers=1, overwrite_x=True).reshape(Na, K)
+        np.copyto(self.Rr, R2.real)
+        np.copyto(self.Ri, R2.imag)
         self.dims = np.asarray(grid.shape, np.int64)
         self.offsets = np.asarray(grid.offsets, float)
         self.half = np.pi / np.asarray(grid.shape, float)
@@ -174,6 +190,7 @@ class _Residual:
         m2 = np.array([(x * x).sum() for x in i]) / L
         self.var = m2 - m1 * m1  # per-axis index variance (:func:`fisher_w`)
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
+        self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
         self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
 
     def inv_std(self, g: complex) -> np.ndarray:
@@ -182,7 +199,7 @@ class _Residual:
 
     def contract(self, w: np.ndarray) -> np.ndarray:
         """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``r``)."""
-        return nk.contract(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims)
+        return nk.contract(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims, self.W, self.G)
 
     def cross(self, W: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``(n, 3,)*5``: the same derivatives of ``v(W_k)^H v(w)`` (closed form, separable)."""
@@ -192,25 +209,18 @@ class _Residual:
         """Per axis in turn, the maximum of ``|v(w)^H r|^2`` over 17 values of ``w_d`` within one DFT cell
         either side (the others fixed): brings a grid cell's ``w`` into Newton's basin."""
         return nk.coordinate_search(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims, self.cand,
-                                    sweeps)
-
-    def subtract(self, ws: list[np.ndarray], gs: list[complex]) -> None:
-        """``r -= sum_m g_m v(w_m)``."""
-        a, b = self._factors(ws, dft=False)
-        nk.subtract_atoms(self.rr, self.ri, a, b, np.asarray(gs, complex), False)
+                                    sweeps, self.W, self.G)
 
     def subtract_dft(self, ws: list[np.ndarray], gs: list[complex]) -> tuple[int, float]:
         """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``."""
-        a, b, g = self._none if not ws else (*self._factors(ws, dft=True), np.asarray(gs, complex))
+        a, b, g = self._none if not ws else (*self._factors(ws), np.asarray(gs, complex))
         return nk.subtract_atoms(self.Rr, self.Ri, a, b, g, True)
 
-    def _factors(self, ws: list[np.ndarray], dft: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Antenna ``(n, Na)`` and delay ``(n, K)`` factors of the atoms ``v(w)`` (:func:`atoms`,
-        :func:`_ant_atom`), or of their DFTs."""
+    def _factors(self, ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Antenna ``(n, Na)`` and delay ``(n, K)`` factors of the DFTs of the atoms ``v(w)`` (:func:`atoms`,
+        :func:`_ant_atom`)."""
         W = np.asarray(ws, float)
-        vs = [np.exp(1j * W[:, d, None] * self.idx[d]) for d in range(5)]
-        if dft:
-            vs = [np.fft.fft(v, axis=-1) for v in vs]
+        vs = [np.fft.fft(np.exp(1j * W[:, d, None] * self.idx[d]), axis=-1) for d in range(5)]
         a = vs[0]
         for v in vs[1:4]:
             a = (a[:, :, None] * v[:, None, :]).reshape(len(W), -1)
@@ -291,10 +301,9 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
             add, sub = [w, ws[l]], [g, -gs[l]]
             ws[l], gs[l] = w, g
             Ts[l] = T_fit
-        res.subtract(add, sub)
-        W = np.array(ws)
+        res.W, res.G = np.array(ws), np.array(gs, complex)
         for wa, ga in zip(add, sub):
-            Ts -= ga * res.cross(W, wa)
+            Ts -= ga * res.cross(res.W, wa)
         pending.extend(zip(add, sub))
 
     pending: list[tuple[np.ndarray, complex]] = []

@@ -48,11 +48,14 @@ def _contract_middle(X: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True, fastmath=True)
-def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """``T[p0, .., p4] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(w)^H r`` for ``p_d = 0..2``: ``(3, 3, 3, 3, 3)`` complex.
+def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
+             W: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """``T[p0, .., p4] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(w)^H r`` for ``p_d = 0..2``: ``(3, 3, 3, 3, 3)`` complex,
+    on the residual ``r = y - sum_m G_m v(W_m)`` (``W (L, 5)``, ``G (L,)``).
 
-    One pass over ``r = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once), then the
-    four antenna axes one after the other on the ``(Na, 3)`` result.
+    One pass over ``y = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once), then the
+    four antenna axes one after the other on the ``(Na, 3)`` result; the atoms' terms in closed form
+    (separable, :func:`cross_terms`).
     """
     Na, K = rr.shape
     cr = np.empty(K)
@@ -91,7 +94,47 @@ def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray,
         M //= dims[d]
         X = _contract_middle(X.reshape((M, dims[d], P)), _axis_factors(w[d], offsets[d], dims[d])).reshape(-1)
         P *= 3
-    return X.reshape((3, 3, 3, 3, 3))
+    T = X.reshape((3, 3, 3, 3, 3))
+    s = np.empty((5, 3), np.complex128)
+    for m in range(G.shape[0]):
+        for d in range(5):
+            _axis_sums(W[m, d] - w[d], offsets[d], dims[d], s, d)
+        _add_outer(T, s, -G[m])
+    return T
+
+
+@nb.njit(cache=True)
+def _axis_sums(theta: float, offset: float, n: int, s: np.ndarray, d: int) -> None:
+    """``s[d, p] = sum_i (-j x)^p exp(j theta x)`` for ``p = 0, 1, 2``, ``x = i - offset`` (the phasor by
+    recurrence: ~n eps relative)."""
+    e = complex(math.cos(theta * offset), -math.sin(theta * offset))
+    q = complex(math.cos(theta), math.sin(theta))
+    a0 = 0j
+    a1 = 0j
+    a2 = 0j
+    for i in range(n):
+        x = i - offset
+        a0 += e
+        a1 += complex(0.0, -x) * e
+        a2 += -(x * x) * e
+        e *= q
+    s[d, 0] = a0
+    s[d, 1] = a1
+    s[d, 2] = a2
+
+
+@nb.njit(cache=True)
+def _add_outer(T: np.ndarray, s: np.ndarray, g: complex) -> None:
+    """``T += g s[0] (x) s[1] (x) .. (x) s[4]`` (``T (3,)*5``, ``s (5, 3)``)."""
+    for p0 in range(3):
+        for p1 in range(3):
+            f01 = g * s[0, p0] * s[1, p1]
+            for p2 in range(3):
+                f012 = f01 * s[2, p2]
+                for p3 in range(3):
+                    f0123 = f012 * s[3, p3]
+                    for p4 in range(3):
+                        T[p0, p1, p2, p3, p4] += f0123 * s[4, p4]
 
 
 @nb.njit(cache=True)
@@ -99,32 +142,12 @@ def cross_terms(W: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndar
     """``S[k] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(W_k)^H v(w)`` for ``p_d = 0..2``: ``(n, 3, 3, 3, 3, 3)`` complex,
     ``W (n, 5)``. Separable: per axis ``sum_i (-j x)^p exp(j (w_d - W_kd) x)``, their outer product."""
     n = W.shape[0]
-    out = np.empty((n, 3, 3, 3, 3, 3), np.complex128)
+    out = np.zeros((n, 3, 3, 3, 3, 3), np.complex128)
     s = np.empty((5, 3), np.complex128)
     for k in range(n):
         for d in range(5):
-            a0 = 0j
-            a1 = 0j
-            a2 = 0j
-            for i in range(dims[d]):
-                x = i - offsets[d]
-                ph = (w[d] - W[k, d]) * x
-                e = complex(math.cos(ph), math.sin(ph))
-                a0 += e
-                a1 += complex(0.0, -x) * e
-                a2 += -(x * x) * e
-            s[d, 0] = a0
-            s[d, 1] = a1
-            s[d, 2] = a2
-        for p0 in range(3):
-            for p1 in range(3):
-                f01 = s[0, p0] * s[1, p1]
-                for p2 in range(3):
-                    f012 = f01 * s[2, p2]
-                    for p3 in range(3):
-                        f0123 = f012 * s[3, p3]
-                        for p4 in range(3):
-                            out[k, p0, p1, p2, p3, p4] = f0123 * s[4, p4]
+            _axis_sums(w[d] - W[k, d], offsets[d], dims[d], s, d)
+        _add_outer(out[k], s, 1.0 + 0j)
     return out
 
 
@@ -168,19 +191,32 @@ def subtract_atoms(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, b: np.ndarray,
 
 @nb.njit(cache=True, fastmath=True)
 def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
-                      cand: np.ndarray, sweeps: int) -> np.ndarray:
+                      cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray) -> np.ndarray:
     """Per axis in turn (delay, tx column, tx row, rx column, rx row), ``w_d <- w_d + cand[d, j]`` with ``j``
     the maximum of ``|v(w)^H r|`` over ``j`` (the other axes fixed); ``sweeps`` times. ``cand (5, P)``:
-    offsets within one DFT cell either side. Two passes over ``r`` per sweep (the antenna-contracted
-    delay profile, then the delay-contracted antenna tensor)."""
+    offsets within one DFT cell either side; ``r = y - sum_m G_m v(W_m)`` as in :func:`contract`. Two
+    passes over ``y = rr + j ri`` per sweep (the antenna-contracted delay profile, then the
+    delay-contracted antenna tensor), the atoms' terms added to each."""
     Na, K = rr.shape
+    L0, L1, L2, L3 = dims[0], dims[1], dims[2], dims[3]
+    nmax = np.max(dims)
     w = w0.copy()
-    vs = np.empty((5, np.max(dims)), np.complex128)  # conj(v_d), padded
+    vs = np.empty((5, nmax), np.complex128)  # conj(v_d(w_d)), padded
     for d in range(5):
         for i in range(dims[d]):
             vs[d, i] = complex(math.cos(w[d] * (i - offsets[d])), -math.sin(w[d] * (i - offsets[d])))
-    L1, L2, L3 = dims[1], dims[2], dims[3]
-    x = np.empty(np.max(dims), np.complex128)
+    L = G.shape[0]
+    vm = np.empty((L, 5, nmax), np.complex128)  # the atoms' v_d(W_md)
+    vam = np.empty((L, Na), np.complex128)  # their antenna factors
+    for m in range(L):
+        for d in range(5):
+            for i in range(dims[d]):
+                ph = W[m, d] * (i - offsets[d])
+                vm[m, d, i] = complex(math.cos(ph), math.sin(ph))
+        for a in range(Na):
+            vam[m, a] = (vm[m, 0, a // (L3 * L2 * L1)] * vm[m, 1, (a // (L3 * L2)) % L1]
+                         * vm[m, 2, (a // L3) % L2] * vm[m, 3, a % L3])
+    x = np.empty(nmax, np.complex128)
     A = np.empty(Na, np.complex128)
     for _ in range(sweeps):
         for d in (4, 2, 3, 0, 1):
@@ -189,16 +225,22 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                 xr = np.zeros(K)
                 xi = np.zeros(K)
                 for a in range(Na):
-                    i3 = a % L3
-                    i2 = (a // L3) % L2
-                    i1 = (a // (L3 * L2)) % L1
-                    i0 = a // (L3 * L2 * L1)
-                    c = vs[0, i0] * vs[1, i1] * vs[2, i2] * vs[3, i3]
+                    c = (vs[0, a // (L3 * L2 * L1)] * vs[1, (a // (L3 * L2)) % L1] * vs[2, (a // L3) % L2]
+                         * vs[3, a % L3])
                     for k in range(K):
                         xr[k] += c.real * rr[a, k] - c.imag * ri[a, k]
                         xi[k] += c.real * ri[a, k] + c.imag * rr[a, k]
                 for k in range(K):
                     x[k] = complex(xr[k], xi[k])
+                for m in range(L):
+                    c = G[m]
+                    for e in range(4):
+                        t = 0j
+                        for i in range(dims[e]):
+                            t += vs[e, i] * vm[m, e, i]
+                        c *= t
+                    for k in range(K):
+                        x[k] -= c * vm[m, 4, k]
             else:
                 if d == 2:  # first antenna axis after the delay: A[a] = sum_k r[a, k] conj(vk[k])
                     for a in range(Na):
@@ -208,6 +250,13 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                             sr += rr[a, k] * vs[4, k].real - ri[a, k] * vs[4, k].imag
                             si += ri[a, k] * vs[4, k].real + rr[a, k] * vs[4, k].imag
                         A[a] = complex(sr, si)
+                    for m in range(L):
+                        t = 0j
+                        for k in range(K):
+                            t += vs[4, k] * vm[m, 4, k]
+                        c = G[m] * t
+                        for a in range(Na):
+                            A[a] -= c * vam[m, a]
                 for i in range(n):
                     x[i] = 0j
                 for a in range(Na):
