@@ -26,8 +26,14 @@ positioning, with a CFAR stop:
    ``v^H r`` from one contraction of the residual with ``[v, v', v'']`` per axis);
 3. gain ``g = v^H r / N``; residual ``r -= g v`` (and its DFT by the DFT of the atom);
 4. after each detection, one cyclic pass re-refines every earlier path on ``r + g_l v_l`` (up to three
-   Newton steps each): without it a strong path biased by a later-found neighbour leaves a residual
-   above the threshold (spurious estimates around the line of sight).
+   Newton steps each) whose Newton step there exceeds half its CRB std: without it a strong path
+   biased by a later-found neighbour leaves a residual above the threshold (spurious estimates
+   around the line of sight).
+
+Cost (:func:`nomp`, :mod:`.nomp_kernels`): ``r = Y - sum_l g_l v(w_l)`` is never formed; a
+contraction of ``r`` is one compiled pass over ``Y`` less the atoms' separable closed-form terms, and
+each path keeps its derivative tensor on ``r``, updated in closed form when an atom is added or
+moved, so step 4's test costs no pass; only the DFT of ``r`` (for step 1) is updated per atom.
 
 Paths closer than the resolution (about one DFT cell in every axis: ``c / B`` in range, ``2 / n``
 in each spatial frequency) are one atom to this estimator: they merge into one estimate near their
@@ -182,7 +188,6 @@ class _Residual:
         np.copyto(self.Ri, R2.imag)
         self.dims = np.asarray(grid.shape, np.int64)
         self.offsets = np.asarray(grid.offsets, float)
-        self.half = np.pi / np.asarray(grid.shape, float)
         L = np.asarray(grid.shape, float)  # coordinate-search offsets within one cell either side
         self.cand = np.stack([np.linspace(-2 * np.pi / n, 2 * np.pi / n, 17) for n in L])
         self.idx = i = [np.arange(n) - o for n, o in zip(grid.shape, grid.offsets)]
@@ -191,6 +196,7 @@ class _Residual:
         self.var = m2 - m1 * m1  # per-axis index variance (:func:`fisher_w`)
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
         self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
+        self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
         self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
 
     def inv_std(self, g: complex) -> np.ndarray:
@@ -205,11 +211,17 @@ class _Residual:
         """``(n, 3,)*5``: the same derivatives of ``v(W_k)^H v(w)`` (closed form, separable)."""
         return nk.cross_terms(np.atleast_2d(np.asarray(W, float)), np.asarray(w, float), self.offsets, self.dims)
 
-    def coordinate_search(self, w: np.ndarray, sweeps: int = 2) -> np.ndarray:
-        """Per axis in turn, the maximum of ``|v(w)^H r|^2`` over 17 values of ``w_d`` within one DFT cell
-        either side (the others fixed): brings a grid cell's ``w`` into Newton's basin."""
-        return nk.coordinate_search(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims, self.cand,
-                                    sweeps, self.W, self.G)
+    def coordinate_search(self, j: int, sweeps: int = 2) -> np.ndarray:
+        """From DFT cell ``j`` (flat index), per axis in turn the maximum of ``|v(w)^H r|^2`` over 17 values of
+        ``w_d`` within one DFT cell either side (the others fixed): brings the cell into Newton's basin.
+
+        The first delay profile ``v_ant(w)^H r`` is the inverse delay DFT of the cell's row of the
+        residual's DFT (times the phase of the axes' centres): no pass over ``y``."""
+        w = grid_frequency(np.unravel_index(j, self.grid.shape), self.grid)
+        ja = j // self.grid.n_subcarriers
+        x0 = np.fft.ifft(self.Rr[ja] + 1j * self.Ri[ja]) * np.exp(1j * np.dot(w[:4], self.offsets[:4]))
+        return nk.coordinate_search(self.rr, self.ri, w, self.offsets, self.dims, self.cand, sweeps, self.W,
+                                    self.G, x0)
 
     def subtract_dft(self, ws: list[np.ndarray], gs: list[complex]) -> tuple[int, float]:
         """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``."""
@@ -235,30 +247,18 @@ def _value_grad_hess(T: np.ndarray) -> tuple[complex, np.ndarray, np.ndarray]:
 
 def refine(res: _Residual, w: np.ndarray, iters: int = 8, tol: float = 0.02, g_self: complex = 0j,
            w_self: np.ndarray | None = None, first: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Newton steps on ``S(w) = |v(w)^H (r + g_self v(w_self))|^2`` from ``w``: stops where the Hessian is not
-    negative definite, a step lowers ``S`` (that step undone) or every step is below ``tol`` times the
-    axis' CRB standard deviation at the current gain ``c / N`` (converged far inside the noise); steps
-    limited to half a DFT cell per axis.
+    """Newton steps on ``S(w) = |v(w)^H (r + g_self v(w_self))|^2`` from ``w`` (:func:`.nomp_kernels.refine`):
+    stops where the Hessian is not negative definite, a step lowers ``S`` (that step undone) or every
+    step is below ``tol`` times the axis' CRB standard deviation at the current gain ``c / N``
+    (converged far inside the noise); steps limited to half a DFT cell per axis.
 
     ``first``: :meth:`_Residual.contract` at ``w`` when already known. Returns the final ``w`` and its
     contraction where it was computed on the way (else None)."""
-    w = np.array(w, float)
-    prev_w, prev_S, prev_T = None, -1.0, None
-    for it in range(iters):
-        T = first if it == 0 and first is not None else res.contract(w)
-        c, g, H = _value_grad_hess(T if g_self == 0 else T + g_self * res.cross(w, w if w_self is None else w_self)[0])
-        S = abs(c) ** 2
-        if S < prev_S:
-            return prev_w, prev_T
-        step = newton_step(c, g, H)
-        if step is None:
-            return w, T
-        step = np.clip(step, -res.half, res.half)
-        prev_w, prev_S, prev_T = w, S, T
-        w = w + step
-        if np.all(np.abs(step) * res.inv_std(c / res.N) < tol):
-            break
-    return w, None
+    w = np.asarray(w, float)
+    w, T, known = nk.refine(res.rr, res.ri, w, res.offsets, res.dims, res.W, res.G, int(iters), float(tol),
+                            complex(g_self), w if w_self is None else np.asarray(w_self, float),
+                            res.no_tensor if first is None else first, res.var)
+    return w, (T if known else None)
 
 
 def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
@@ -311,7 +311,7 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
     for _ in range(int(max_paths)):
         if pmax <= t:
             break
-        w = res.coordinate_search(grid_frequency(np.unravel_index(j, grid.shape), grid))
+        w = res.coordinate_search(j)
         w, T_fit = refine(res, w)
         T_fit = res.contract(w) if T_fit is None else T_fit
         replace(len(ws), w, complex(T_fit.flat[0]) / N, T_fit)

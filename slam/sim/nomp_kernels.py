@@ -191,12 +191,13 @@ def subtract_atoms(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, b: np.ndarray,
 
 @nb.njit(cache=True, fastmath=True)
 def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
-                      cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray) -> np.ndarray:
+                      cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """Per axis in turn (delay, tx column, tx row, rx column, rx row), ``w_d <- w_d + cand[d, j]`` with ``j``
     the maximum of ``|v(w)^H r|`` over ``j`` (the other axes fixed); ``sweeps`` times. ``cand (5, P)``:
     offsets within one DFT cell either side; ``r = y - sum_m G_m v(W_m)`` as in :func:`contract`. Two
     passes over ``y = rr + j ri`` per sweep (the antenna-contracted delay profile, then the
-    delay-contracted antenna tensor), the atoms' terms added to each."""
+    delay-contracted antenna tensor), the atoms' terms added to each; ``x0 (K,)``, where not empty, is
+    the first delay profile ``v_ant(w0)^H r`` (read off the residual's DFT when ``w0`` is a cell)."""
     Na, K = rr.shape
     L0, L1, L2, L3 = dims[0], dims[1], dims[2], dims[3]
     nmax = np.max(dims)
@@ -218,10 +219,12 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                          * vm[m, 2, (a // L3) % L2] * vm[m, 3, a % L3])
     x = np.empty(nmax, np.complex128)
     A = np.empty(Na, np.complex128)
-    for _ in range(sweeps):
+    for sweep in range(sweeps):
         for d in (4, 2, 3, 0, 1):
             n = dims[d]
-            if d == 4:  # x[k] = sum_a conj(va[a]) r[a, k]
+            if d == 4 and sweep == 0 and x0.size:
+                x[:K] = x0
+            elif d == 4:  # x[k] = sum_a conj(va[a]) r[a, k]
                 xr = np.zeros(K)
                 xi = np.zeros(K)
                 for a in range(Na):
@@ -319,3 +322,58 @@ def newton_step(c: complex, g: np.ndarray, H: np.ndarray, step: np.ndarray) -> b
             t -= A[k, d] * step[k]
         step[d] = t / A[d, d]
     return True
+
+
+@nb.njit(cache=True)
+def refine(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray, W: np.ndarray,
+           G: np.ndarray, iters: int, tol: float, g_self: complex, w_self: np.ndarray, first: np.ndarray,
+           var: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Newton steps on ``S(w) = |v(w)^H (r + g_self v(w_self))|^2`` from ``w0`` (``r`` as in :func:`contract`):
+    stops where the Hessian of ``S`` is not negative definite, a step lowers ``S`` (that step undone) or
+    every step is below ``tol`` times the axis' CRB standard deviation ``1 / sqrt(2 N |c / N|^2 var_d)``
+    at the current gain (``var``: the axes' index variances); steps limited to half a DFT cell per axis.
+
+    ``first``: :func:`contract` at ``w0`` when known (else an empty array). Returns the final ``w``, its
+    :func:`contract` and True where that was computed on the way (else an unspecified array and False).
+    """
+    N = 1.0
+    for d in range(5):
+        N *= dims[d]
+    w = w0.copy()
+    prev_w = w0.copy()
+    prev_T = np.zeros((3, 3, 3, 3, 3), np.complex128)
+    prev_S = -1.0
+    step = np.empty(5)
+    g = np.empty(5, np.complex128)
+    H = np.empty((5, 5), np.complex128)
+    s = np.empty((5, 3), np.complex128)
+    for it in range(iters):
+        T = first.copy() if it == 0 and first.size else contract(rr, ri, w, offsets, dims, W, G)
+        Tc = T.copy()
+        if g_self != 0:
+            for d in range(5):
+                _axis_sums(w_self[d] - w[d], offsets[d], dims[d], s, d)
+            _add_outer(Tc, s, g_self)
+        t = Tc.reshape(-1)
+        c = t[0]
+        for d in range(5):
+            g[d] = t[3 ** (4 - d)]
+            for e in range(5):
+                H[d, e] = t[3 ** (4 - d) + 3 ** (4 - e)]
+        S = abs(c) ** 2
+        if S < prev_S:
+            return prev_w, prev_T, True
+        if not newton_step(c, g, H, step):
+            return w, T, True
+        prev_w, prev_S, prev_T = w, S, T
+        w = w.copy()
+        small = True
+        a2 = abs(c / N) ** 2
+        for d in range(5):
+            half = math.pi / dims[d]
+            step[d] = min(max(step[d], -half), half)
+            w[d] += step[d]
+            small = small and abs(step[d]) * math.sqrt(2.0 * N * a2 * var[d]) < tol
+        if small:
+            break
+    return w, prev_T, False
