@@ -144,18 +144,6 @@ def grid_frequency(index: tuple[int, ...], grid: Grid) -> np.ndarray:
     return np.where(w > np.pi, w - 2.0 * np.pi, w)
 
 
-def newton_step(c: complex, g: np.ndarray, H: np.ndarray) -> np.ndarray | None:
-    """Newton step on ``S = |c|^2`` from ``c``, its gradient and Hessian; None where ``S``'s Hessian is not
-    negative definite (:func:`.nomp_kernels.newton_step`)."""
-    step = np.empty(len(g))
-    return step if nk.newton_step(complex(c), np.asarray(g, complex), np.asarray(H, complex), step) else None
-
-
-_POW3 = 3 ** np.arange(4, -1, -1)
-_GRAD_IDX = _POW3.copy()  # flat index in a (3,)*5 tensor of the first derivative along each axis
-_HESS_IDX = _POW3[:, None] + _POW3[None, :]  # of the second derivatives (2 on the diagonal)
-
-
 _SCRATCH = threading.local()
 """Per thread, the four ``(Na, K)`` arrays of :class:`_Residual` and the FFT's buffer, reused by the next
 :func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the system, and their
@@ -199,10 +187,6 @@ class _Residual:
         self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
         self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
 
-    def inv_std(self, g: complex) -> np.ndarray:
-        """Per-axis inverse CRB standard deviation of ``w`` at amplitude ``g``: ``sqrt(diag(fisher_w(g)))``."""
-        return np.sqrt(2.0 * self.N * abs(g) ** 2 * self.var)
-
     def contract(self, w: np.ndarray) -> np.ndarray:
         """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``r``)."""
         return nk.contract(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims, self.W, self.G)
@@ -237,12 +221,6 @@ class _Residual:
         for v in vs[1:4]:
             a = (a[:, :, None] * v[:, None, :]).reshape(len(W), -1)
         return a, vs[4]
-
-
-def _value_grad_hess(T: np.ndarray) -> tuple[complex, np.ndarray, np.ndarray]:
-    """``c``, gradient ``(5,)`` and Hessian ``(5, 5)`` of ``v(w)^H r`` from its ``(3,)*5`` derivative tensor."""
-    t = T.reshape(-1)
-    return complex(t[0]), t[_GRAD_IDX], t[_HESS_IDX]
 
 
 def refine(res: _Residual, w: np.ndarray, iters: int = 8, tol: float = 0.02, g_self: complex = 0j,
@@ -320,10 +298,11 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
         # its residual holds about sum (step / std)^2 / 2 <= 1.25 noise variances, far below the CFAR
         # threshold (~17 at the default grid): no spurious detection from it.
         for _ in range(int(cyclic_passes)):
-            for l in range(len(ws) - 1):
-                step = newton_step(*_value_grad_hess(Ts[l] + gs[l] * res.self_term))
-                if step is not None and not np.any(np.abs(step) * res.inv_std(gs[l]) > 0.5):
-                    continue
+            l = -1
+            while True:
+                l = nk.next_mover(Ts, res.G, res.self_term, res.var, N, l + 1, len(ws) - 1, 0.5)
+                if l == len(ws) - 1:
+                    break
                 w_new, T_fit = refine(res, ws[l], iters=3, g_self=gs[l], w_self=ws[l], first=Ts[l])
                 T_fit = res.contract(w_new) if T_fit is None else T_fit
                 g_new = complex(T_fit.flat[0]) / N + gs[l] * complex(res.cross(w_new, ws[l])[0].flat[0]) / N

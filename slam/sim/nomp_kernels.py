@@ -199,7 +199,7 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
     delay-contracted antenna tensor), the atoms' terms added to each; ``x0 (K,)``, where not empty, is
     the first delay profile ``v_ant(w0)^H r`` (read off the residual's DFT when ``w0`` is a cell)."""
     Na, K = rr.shape
-    L0, L1, L2, L3 = dims[0], dims[1], dims[2], dims[3]
+    L1, L2, L3 = dims[1], dims[2], dims[3]
     nmax = np.max(dims)
     w = w0.copy()
     vs = np.empty((5, nmax), np.complex128)  # conj(v_d(w_d)), padded
@@ -325,6 +325,37 @@ def newton_step(c: complex, g: np.ndarray, H: np.ndarray, step: np.ndarray) -> b
 
 
 @nb.njit(cache=True)
+def _value_grad_hess(T: np.ndarray, g: np.ndarray, H: np.ndarray) -> complex:
+    """``v(w)^H r`` from its ``(3,)*5`` derivative tensor; its gradient into ``g (5,)``, Hessian into ``H (5, 5)``."""
+    t = T.reshape(-1)
+    for d in range(5):
+        g[d] = t[3 ** (4 - d)]
+        for e in range(5):
+            H[d, e] = t[3 ** (4 - d) + 3 ** (4 - e)]
+    return t[0]
+
+
+@nb.njit(cache=True)
+def next_mover(Ts: np.ndarray, G: np.ndarray, self_term: np.ndarray, var: np.ndarray, N: float, start: int,
+               stop: int, frac: float) -> int:
+    """The first path ``l`` in ``[start, stop)`` whose Newton step on ``r + G_l v(w_l)`` (tensor ``Ts[l] + G_l
+    self_term``) is undefined or exceeds ``frac`` times its CRB standard deviation ``1 / sqrt(2 N |G_l|^2
+    var_d)`` in some axis; ``stop`` if none."""
+    g = np.empty(5, np.complex128)
+    H = np.empty((5, 5), np.complex128)
+    step = np.empty(5)
+    for l in range(start, stop):
+        c = _value_grad_hess(Ts[l] + G[l] * self_term, g, H)
+        if not newton_step(c, g, H, step):
+            return l
+        a2 = abs(G[l]) ** 2
+        for d in range(5):
+            if abs(step[d]) * math.sqrt(2.0 * N * a2 * var[d]) > frac:
+                return l
+    return stop
+
+
+@nb.njit(cache=True)
 def refine(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray, W: np.ndarray,
            G: np.ndarray, iters: int, tol: float, g_self: complex, w_self: np.ndarray, first: np.ndarray,
            var: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -354,12 +385,7 @@ def refine(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, 
             for d in range(5):
                 _axis_sums(w_self[d] - w[d], offsets[d], dims[d], s, d)
             _add_outer(Tc, s, g_self)
-        t = Tc.reshape(-1)
-        c = t[0]
-        for d in range(5):
-            g[d] = t[3 ** (4 - d)]
-            for e in range(5):
-                H[d, e] = t[3 ** (4 - d) + 3 ** (4 - e)]
+        c = _value_grad_hess(Tc, g, H)
         S = abs(c) ** 2
         if S < prev_S:
             return prev_w, prev_T, True
