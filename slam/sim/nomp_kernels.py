@@ -189,6 +189,10 @@ def subtract_atoms(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, b: np.ndarray,
     return jbest, best
 
 
+AXIS_ORDER = np.array([4, 2, 3, 0, 1])
+"""The coordinate search's axis order: delay, tx column, tx row, rx column, rx row."""
+
+
 @nb.njit(cache=True, fastmath=True)
 def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
                       cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray, x0: np.ndarray) -> np.ndarray:
@@ -219,8 +223,9 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                          * vm[m, 2, (a // L3) % L2] * vm[m, 3, a % L3])
     x = np.empty(nmax, np.complex128)
     A = np.empty(Na, np.complex128)
+    idx = np.empty(4, np.int64)
     for sweep in range(sweeps):
-        for d in (4, 2, 3, 0, 1):
+        for d in AXIS_ORDER:
             n = dims[d]
             if d == 4 and sweep == 0 and x0.size:
                 x[:K] = x0
@@ -263,7 +268,10 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                 for i in range(n):
                     x[i] = 0j
                 for a in range(Na):
-                    idx = (a // (L3 * L2 * L1), (a // (L3 * L2)) % L1, (a // L3) % L2, a % L3)
+                    idx[0] = a // (L3 * L2 * L1)
+                    idx[1] = (a // (L3 * L2)) % L1
+                    idx[2] = (a // L3) % L2
+                    idx[3] = a % L3
                     c = A[a]
                     for e in range(4):
                         if e != d:
