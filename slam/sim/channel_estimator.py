@@ -193,7 +193,10 @@ class _Residual:
 
     def cross(self, W: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``(n, 3,)*5``: the same derivatives of ``v(W_k)^H v(w)`` (closed form, separable)."""
-        return nk.cross_terms(np.atleast_2d(np.asarray(W, float)), np.asarray(w, float), self.offsets, self.dims)
+        W = np.atleast_2d(np.asarray(W, float))
+        S = np.zeros((len(W), 3, 3, 3, 3, 3), complex)
+        nk.add_cross_terms(S, W, np.asarray(w, float), 1.0 + 0j, self.offsets, self.dims)
+        return S
 
     def coordinate_search(self, j: int, sweeps: int = 2) -> np.ndarray:
         """From DFT cell ``j`` (flat index), per axis in turn the maximum of ``|v(w)^H r|^2`` over 17 values of
@@ -245,7 +248,7 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
 
     Each path keeps ``T_l``, the ``(3,)*5`` derivatives of ``v(w_l)^H r`` on the current residual: a
     change of the residual by ``g v(w)`` changes it by the closed-form separable ``g v^(p)(w_l)^H v(w)``
-    (:func:`.nomp_kernels.cross_terms`), so the cyclic refinement decides which earlier paths move, and
+    (:func:`.nomp_kernels.add_cross_terms`), so the cyclic refinement decides which earlier paths move, and
     takes their first Newton step, without touching the residual; only the paths that move cost
     passes over it. The residual's DFT is updated once per detection, by the DFTs of the atoms added
     and removed.
@@ -281,7 +284,7 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
             Ts[l] = T_fit
         res.W, res.G = np.array(ws), np.array(gs, complex)
         for wa, ga in zip(add, sub):
-            Ts -= ga * res.cross(res.W, wa)
+            nk.add_cross_terms(Ts, res.W, wa, -ga, res.offsets, res.dims)
         pending.extend(zip(add, sub))
 
     pending: list[tuple[np.ndarray, complex]] = []

@@ -55,7 +55,7 @@ def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray,
 
     One pass over ``y = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once), then the
     four antenna axes one after the other on the ``(Na, 3)`` result; the atoms' terms in closed form
-    (separable, :func:`cross_terms`).
+    (separable, :func:`add_cross_terms`).
     """
     Na, K = rr.shape
     cr = np.empty(K)
@@ -138,17 +138,16 @@ def _add_outer(T: np.ndarray, s: np.ndarray, g: complex) -> None:
 
 
 @nb.njit(cache=True)
-def cross_terms(W: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """``S[k] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(W_k)^H v(w)`` for ``p_d = 0..2``: ``(n, 3, 3, 3, 3, 3)`` complex,
-    ``W (n, 5)``. Separable: per axis ``sum_i (-j x)^p exp(j (w_d - W_kd) x)``, their outer product."""
-    n = W.shape[0]
-    out = np.zeros((n, 3, 3, 3, 3, 3), np.complex128)
+def add_cross_terms(T: np.ndarray, W: np.ndarray, w: np.ndarray, g: complex, offsets: np.ndarray,
+                    dims: np.ndarray) -> None:
+    """``T[k] += g S_k`` in place for ``k < len(W)``, ``S_k = (d^p0 v_0 (x) .. (x) d^p4 v_4)(W_k)^H v(w)``
+    (``p_d = 0..2``; ``T (n, 3, 3, 3, 3, 3)`` complex, ``W (n, 5)``). Separable: per axis
+    ``sum_i (-j x)^p exp(j (w_d - W_kd) x)``, their outer product."""
     s = np.empty((5, 3), np.complex128)
-    for k in range(n):
+    for k in range(W.shape[0]):
         for d in range(5):
             _axis_sums(w[d] - W[k, d], offsets[d], dims[d], s, d)
-        _add_outer(out[k], s, 1.0 + 0j)
-    return out
+        _add_outer(T[k], s, g)
 
 
 @nb.njit(cache=True, fastmath=True)
@@ -166,16 +165,25 @@ def subtract_atoms(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, b: np.ndarray,
     for i in range(Na):
         xr = Xr[i]
         xi = Xi[i]
-        for m in range(n):  # the row stays in L1 over the n terms
+        m = 0
+        while m < n:  # the row stays in L1 over the n terms; two terms per sweep of it
             c = g[m] * a[m, i]
-            cr = c.real
-            ci = c.imag
-            bmr = br[m]
-            bmi = bi[m]
-            for k in range(K):
-                xr[k] -= cr * bmr[k] - ci * bmi[k]
-            for k in range(K):
-                xi[k] -= cr * bmi[k] + ci * bmr[k]
+            cr, ci = c.real, c.imag
+            bmr, bmi = br[m], bi[m]
+            if m + 1 < n:
+                c2 = g[m + 1] * a[m + 1, i]
+                c2r, c2i = c2.real, c2.imag
+                b2r, b2i = br[m + 1], bi[m + 1]
+                for k in range(K):
+                    xr[k] -= (cr * bmr[k] - ci * bmi[k]) + (c2r * b2r[k] - c2i * b2i[k])
+                for k in range(K):
+                    xi[k] -= (cr * bmi[k] + ci * bmr[k]) + (c2r * b2i[k] + c2i * b2r[k])
+            else:
+                for k in range(K):
+                    xr[k] -= cr * bmr[k] - ci * bmi[k]
+                for k in range(K):
+                    xi[k] -= cr * bmi[k] + ci * bmr[k]
+            m += 2
         if argmax:
             top = -1.0  # the row's maximum first (a vectorised reduction), its index only where it wins
             for k in range(K):
