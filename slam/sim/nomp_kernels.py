@@ -287,12 +287,14 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                     x[idx[d]] += c
             best = -1.0
             jbest = 0
-            for j in range(cand.shape[1]):
+            for j in range(cand.shape[1]):  # |v_d(w_d + cand)^H x|, the phasor by recurrence
+                wc = w[d] + cand[d, j]
+                e = complex(math.cos(wc * offsets[d]), math.sin(wc * offsets[d]))
+                q = complex(math.cos(wc), -math.sin(wc))
                 s = 0j
                 for i in range(n):
-                    t = i - offsets[d]
-                    ph = (w[d] + cand[d, j]) * t
-                    s += complex(math.cos(ph), -math.sin(ph)) * x[i]
+                    s += e * x[i]
+                    e *= q
                 v = abs(s)
                 if v > best:
                     best = v
