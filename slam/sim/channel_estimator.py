@@ -116,14 +116,6 @@ def atoms(w: np.ndarray, grid: Grid, order: int = 0) -> list[np.ndarray]:
     return out
 
 
-def _ant_atom(vs: list[np.ndarray]) -> np.ndarray:
-    """Kronecker product of the four antenna-axis atoms ``(Na,)`` (the 5-D tensor's C order)."""
-    out = vs[0]
-    for v in vs[1:4]:
-        out = np.multiply.outer(out, v)
-    return out.reshape(-1)
-
-
 def _outer(vs: list[np.ndarray]) -> np.ndarray:
     """``v0 (x) v1 (x) .. (x) v4`` as the 5-D tensor."""
     out = vs[0]
@@ -147,7 +139,7 @@ def grid_frequency(index: tuple[int, ...], grid: Grid) -> np.ndarray:
 _SCRATCH = threading.local()
 """Per thread, the four ``(Na, K)`` arrays of :class:`_Residual` and the FFT's buffer, reused by the next
 :func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the system, and their
-page faults cost more than the estimation of a closed-form link (~20 ms of 40 measured)."""
+page faults made the set-up of one call 19 ms instead of 8 ms (measured, default grid)."""
 
 
 class _Residual:
@@ -188,7 +180,7 @@ class _Residual:
         self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
 
     def contract(self, w: np.ndarray) -> np.ndarray:
-        """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``r``)."""
+        """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``y``, the atoms' terms in closed form)."""
         return nk.contract(self.rr, self.ri, np.asarray(w, float), self.offsets, self.dims, self.W, self.G)
 
     def cross(self, W: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -216,8 +208,8 @@ class _Residual:
         return nk.subtract_atoms(self.Rr, self.Ri, a, b, g, True)
 
     def _factors(self, ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Antenna ``(n, Na)`` and delay ``(n, K)`` factors of the DFTs of the atoms ``v(w)`` (:func:`atoms`,
-        :func:`_ant_atom`)."""
+        """Antenna ``(n, Na)`` (the Kronecker product of the four antenna axes, C order) and delay ``(n, K)``
+        factors of the DFTs of the atoms ``v(w)`` (:func:`atoms`)."""
         W = np.asarray(ws, float)
         vs = [np.fft.fft(np.exp(1j * W[:, d, None] * self.idx[d]), axis=-1) for d in range(5)]
         a = vs[0]
