@@ -219,6 +219,7 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
             from mmslam.slam.filter.precompile import compile_for_workers
 
             compile_for_workers({j.variant for j in pending}, progress)
+            _compile_estimator_for_workers(info, sets, {j.arm for j in pending}, progress)
         with open_pool(executor, scheduler, workers, len(pending)) as pool:
             desc = pool.describe
             ran = _drive(pool, pending, out, str(info["cache_dir"]), int(particles),
@@ -226,6 +227,27 @@ def run_ablation(cache_dir: str | Path, out_dir: str | Path, variants: Sequence[
                          truth_file)
     summary = aggregate(out)
     return AblationRun(out, jobs, ran, done, time.perf_counter() - t0, summary, desc)
+
+
+def _compile_estimator_for_workers(info: dict[str, Any], sets: Sequence[str], arms: set[tuple[str, ...]],
+                                   progress: bool) -> None:
+    """Before starting workers on this machine: if some job runs ``sensor.model = "estimated"``, compile the
+    channel estimator's kernels once here (the workers then load them) with a notice when they are not
+    cached yet (:func:`mmslam.slam.sim.estimated_sensor.warm_up_estimator`)."""
+    from mmslam.scenes.scenario import scenario_from_resolved, with_overrides
+
+    base = scenario_from_resolved(info["scenario"])
+    for arm in sorted(arms):
+        scn = with_overrides(base, list(sets) + list(arm))
+        if scn.sensor.model != "estimated":
+            continue
+        from mmslam.slam.sim.estimated_sensor import estimator_kernels_cached, warm_up_estimator
+
+        if not estimator_kernels_cached() and progress:
+            print("compiling the channel estimator's numba kernels once for this install (~20 s of CPU); "
+                  "later runs load them", flush=True)
+        warm_up_estimator(scn.sensor, scn.frequency_hz)
+        return
 
 
 def _drive(pool: Pool, pending: list[Job], out: Path, cache_dir: str, particles: int,

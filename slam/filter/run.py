@@ -342,6 +342,13 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
     from .precompile import ensure_compiled
 
     ensure_compiled([get_variant(variant).name], notice=compile_notice)
+    if scn.sensor.model == "estimated":  # the estimator's kernels too, before the run's clock
+        from ..sim.estimated_sensor import estimator_kernels_cached, warm_up_estimator
+
+        if not estimator_kernels_cached() and compile_notice is not None:
+            compile_notice("compiling the channel estimator's numba kernels once for this install (~20 s of CPU); "
+                           "later runs load them")
+        warm_up_estimator(scn.sensor, scn.frequency_hz)
     est = {"rays": cache.read_rays(), "estimates_dir": cache.path} if scn.sensor.model == "estimated" else {}
     return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
                       seed=seed, steps=steps, include_types=include_types, meta=meta, **est)
