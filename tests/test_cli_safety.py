@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from mmslam.cli import main
+from cli_errors import one_line as _one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 MMSLAM = [sys.executable, "-m", "mmslam"]
@@ -24,14 +25,6 @@ MMSLAM = [sys.executable, "-m", "mmslam"]
 
 def _tree(p: Path) -> dict[str, bytes]:
     return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
-
-
-def _one_error_line(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 def _user_folder(tmp_path: Path) -> Path:

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from mmslam.cli import main
+from cli_errors import one_line
 
 TRACE = ["trace", "paper", "--source", "analytic", "--steps", "2", "--quiet"]
 
@@ -34,14 +35,6 @@ def tree(root: Path) -> dict[str, str]:
             else:
                 out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
-
-
-def one_line(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 @pytest.fixture(scope="module")

@@ -14,16 +14,9 @@ import pytest
 
 from mmslam.cli import main
 from mmslam.raytrace.cache import MANIFEST, load_cache
+from cli_errors import one_line
 
 TRACE = ["trace", "paper", "--source", "analytic", "--steps", "4", "--chunk-steps", "2", "--quiet"]
-
-
-def one_line(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 @pytest.fixture(scope="module")
