@@ -1067,9 +1067,11 @@ def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, 
         is returned if it would).
     """
     base = scenario_from_resolved(resolved, source)
-    if not isinstance(trace_defaults, dict):
-        return base, []
-    explicit = _explicit_keys(settings if isinstance(settings, dict) else {})
+    if not (isinstance(trace_defaults, dict) and all(isinstance(trace_defaults.get(s, {}), dict)
+                                                     for s in PARAM_SECTIONS)):
+        return base, []  # not recorded (or not as this mmslam writes it): the stored scenario as it is
+    explicit = _explicit_keys({k: v for k, v in settings.items() if isinstance(v, dict)}
+                              if isinstance(settings, dict) else {})
     now = default_settings()
     data = dict_from_resolved(resolved)
     changed: list[str] = []

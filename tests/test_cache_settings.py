@@ -72,6 +72,18 @@ def test_without_recorded_defaults_the_stored_scenario_is_used_unchanged() -> No
     assert scn.filter.pd_model == "fixed" and changed == []
 
 
+def test_a_damaged_settings_record_falls_back_to_the_stored_scenario() -> None:
+    c = load_preset("canyon")
+    stored = c.to_dict()
+    stored["filter"]["pd_model"] = "fixed"
+    for defaults, settings in (({"filter": "x"}, {}), (default_settings(), {"filter": 3}), ("x", None)):
+        scn, changed = refresh_settings(stored, settings, defaults)  # no traceback
+        assert isinstance(changed, list)
+        assert scn.filter.pd_model in ("fixed", "beta")
+    scn, changed = refresh_settings(stored, None, {"filter": "x"})
+    assert scn.filter.pd_model == "fixed" and changed == []
+
+
 def _trace(tmp_path: Path) -> Path:
     assert main(["trace", "canyon", "--source", "analytic", "--steps", "3", "--out", str(tmp_path / "c")]) == 0
     (d,) = [p for p in (tmp_path / "c").iterdir() if p.is_dir()]
