@@ -240,6 +240,21 @@ class FilterParams:
         "[horizontal (each axis), vertical]: diag(h^2, h^2, v^2) is added to the scatter point in the VS "
         "likelihood, once (the ego Gaussian F'_AA uploads stays the antenna position); 0: point VS (exact for the analytic "
         "source)", "m", lo=0.0, hi=100.0, length=2)
+    vs_body_model: str = param("auto", "where a VS path bounces in the VS likelihood: ellipsoid (at the specular "
+                               "point of the car body filter.vs_body, oriented along the VS's velocity), point (at "
+                               "the car's antenna: the paper's model, exact for the analytic source's point "
+                               "scatterers) or auto (ellipsoid on a traced source, whose cars are meshes; point on "
+                               "the analytic one); docs/city-slam.md", choices=("auto", "ellipsoid", "point"))
+    vs_body: tuple[float, ...] = param(
+        (4.5, 1.8, 1.5, 0.8), "the car body of a VS under vs_body_model ellipsoid: [length, width, height, depth of "
+        "its centre below the antenna] (the default car of the scenario format)", "m", lo=0.0, hi=100.0, length=4)
+    vs_birth_height: float = param(
+        3.0, "a VS is born only where the path bounced at most this far above or below the receiving antenna, and "
+        "a VS Gaussian within sensor.fov_range whose height leaves that band is removed: a car is on the road (its "
+        "body spans the 1.6 m below its antenna), while a wall reflection off a roof-top BS bounces 3-15 m up, "
+        "between the BS and the street (a specular point a VS would follow along the wall); docs/city-slam.md; "
+        "the paper has no such gate (its presets set 1e4)", "m", lo=0.0, lo_open=True,
+        hi=1e4)
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
                                  "unobserved) or all (every VS Gaussian at every step, the paper read "

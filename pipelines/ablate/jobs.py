@@ -85,7 +85,7 @@ def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int 
     meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
             "cache_path": str(cache.path), "overrides": list(overrides), "truth": "per_run", "truth_seed": int(seed)}
     return run_filter(scn, states, paths, variant=variant, particles=int(particles), seed=int(seed), steps=n,
-                      meta=meta)
+                      meta=meta, source="analytic")  # truth_of_run traces the run's world analytically
 
 
 def _truth_mode(out: Path, info: dict[str, Any], truth: str, truth_scenario: str | Path | None

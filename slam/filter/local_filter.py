@@ -113,6 +113,7 @@ class LocalFilter:
         """type code -> spec of every map this filter keeps"""
         self.types: tuple[int, ...] = tuple(self.specs)
         self._extent = {t: s.extent(scn) for t, s in self.specs.items()}
+        self._body = {t: s.body(scn) for t, s in self.specs.items()}
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
@@ -146,6 +147,8 @@ class LocalFilter:
             return
         for t, sp in self.specs.items():
             self.maps[t] = sp.predict(self.maps[t], births.get(t), self.scn)
+            if sp.survive is not None:
+                self.maps[t] = sp.survive(self.maps[t], self.s, self.scn)
 
     def correct(self, Z: np.ndarray, R_z: np.ndarray | None = None) -> None:
         """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
@@ -164,7 +167,8 @@ class LocalFilter:
         R = self.R if R_z is None or J == 0 else np.asarray(R_z, float).reshape(J, 5, 5)
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
-                                  p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs)
+                                  p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
+                                  self._body)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 

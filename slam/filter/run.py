@@ -46,6 +46,28 @@ VEH_DT = {"step": np.int32, "vehicle": np.int16, "x": float, "y": float, "z": fl
           "true_bias": float, "pos_err": float, "heading_err": float, "bias_err": float}
 
 
+POINT_VS_SOURCES = ("analytic",)
+"""Path sources whose VS paths bounce at the car's antenna point (closed-form point scatterers): under
+``filter.vs_body_model = "auto"`` their runs use the point VS; every other (a ray tracer on car meshes) the
+ellipsoid body."""
+
+
+def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
+    """``filter.vs_body_model = "auto"`` made explicit for a run on paths of ``source`` (a cache's
+    ``source``; None: paths of unknown origin, the point model): ``ellipsoid`` on a traced source (its cars are
+    meshes), ``point`` on :data:`POINT_VS_SOURCES`. Returns the scenario and the model used, with the reason
+    (``Result.meta['vs_body_model']``)."""
+    import dataclasses
+
+    model = scn.filter.vs_body_model
+    if model != "auto":
+        return scn, model
+    model = "point" if source is None or source in POINT_VS_SOURCES else "ellipsoid"
+    why = ("paths of unknown source" if source is None else
+           f"{source} source: {'point scatterers' if model == 'point' else 'car meshes'}")
+    return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
+
+
 def schedule(scn: Scenario, n_veh: int, steps: int) -> list[set[int]]:
     """Per vehicle, the steps at which it uploads to the BS: ``fusion.start[n] + i fusion.period``
     (one ``start`` for all vehicles if ``fusion.start`` has a single entry)."""
@@ -100,10 +122,11 @@ class CooperativeRun:
                  variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
                  steps: int | None = None, include_types: Sequence[int] | None = None, *,
                  measurement_update: bool = True, evaluate: bool = True, rays: dict[str, np.ndarray] | None = None,
-                 estimates_dir: str | Path | None = None) -> None:
+                 estimates_dir: str | Path | None = None, source: str | None = None) -> None:
         from ..sim.sensor import fov_detect_prob, simulate_measurements
 
         self.t0 = time.perf_counter()
+        scn, self.vs_body_model = resolve_vs_body(scn, source)
         retain_freed_memory()  # no page faults per step for the maps' arrays (slam/core/memory.py)
         self.variant = get_variant(variant)
         self.measurement_update = bool(measurement_update and self.variant.measurement_update)
@@ -255,7 +278,7 @@ class CooperativeRun:
                               "vehicle_names": list(scn.vehicle_names),
                               "include_types": [int(t) for t in self.include_types],
                               "measurement_update": self.measurement_update,
-                              "fusion_start": int(min(scn.fusion.start)),
+                              "fusion_start": int(min(scn.fusion.start)), "vs_body_model": self.vs_body_model,
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
         cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
@@ -276,7 +299,8 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
                steps: int | None = None, include_types: Sequence[int] | None = None,
                meta: dict[str, Any] | None = None, *, measurement_update: bool = True,
-               rays: dict[str, np.ndarray] | None = None, estimates_dir: str | Path | None = None) -> Result:
+               rays: dict[str, np.ndarray] | None = None, estimates_dir: str | Path | None = None,
+               source: str | None = None) -> Result:
     """Run cooperative MM-PHD-SLAM on noise-free paths (no cache needed): :meth:`CooperativeRun.run`.
 
     Args:
@@ -294,12 +318,15 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
         measurement_update: False runs dead reckoning (prediction only).
         rays, estimates_dir: the ``rays`` table and where to cache the estimates (``sensor.model =
             "estimated"`` only, :mod:`mmslam.slam.sim.estimated_sensor`).
+        source: the path source (a cache's ``source``: ``sionna``, ``analytic``); decides
+            ``filter.vs_body_model = "auto"`` (:func:`resolve_vs_body`; None: the point VS).
 
     Returns:
         A :class:`~mmslam.slam.filter.result.Result` (tables documented in :mod:`mmslam.slam.filter.result`).
     """
     return CooperativeRun(scn, states, paths, variant, particles, seed, steps, include_types,
-                          measurement_update=measurement_update, rays=rays, estimates_dir=estimates_dir).run(meta)
+                          measurement_update=measurement_update, rays=rays, estimates_dir=estimates_dir,
+                          source=source).run(meta)
 
 
 def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", particles: int | None = None,
@@ -351,4 +378,4 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
         warm_up_estimator(scn.sensor, scn.frequency_hz)
     est = {"rays": cache.read_rays(), "estimates_dir": cache.path} if scn.sensor.model == "estimated" else {}
     return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
-                      seed=seed, steps=steps, include_types=include_types, meta=meta, **est)
+                      seed=seed, steps=steps, include_types=include_types, meta=meta, source=meta["source"], **est)

@@ -234,3 +234,110 @@ def vs_birth_covariance(P_pos: np.ndarray, vel_var: np.ndarray,
     _birth_cov_batch(np.ascontiguousarray(P_pos).reshape(-1, 3, 3), vel_var, float(turn_std),
                      out.reshape(-1, VS_DIM, VS_DIM))
     return out
+
+
+# ---------------------------------------------------------------------------- the car body of a VS
+BODY_POINT = np.zeros(4)
+"""The body model of a point VS (:func:`body_specular_point` returns the antenna position itself)."""
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def body_specular_point(x: tuple[float, float, float], heading: float, b: np.ndarray, u: np.ndarray,
+                        body: np.ndarray) -> tuple[float, float, float]:
+    """Where a path BS -> car body -> receiver bounces off the body of a VS with antenna at ``x``.
+
+    The body is the ellipsoid ``(p - c)^T M^-1 (p - c) = 1`` with centre ``c = x - (0, 0, depth)`` and
+    ``M = R(heading) diag(a^2, b^2, h^2) R(heading)^T``, semi-axes ``(a, b, h) = (length, width,
+    height) / 2`` along the car's forward, left and up axes. A specular bounce leaves the surface where
+    the outward normal bisects the directions to the BS ``b`` and to the receiver ``u``:
+    ``n = (b - c) / |b - c| + (u - c) / |u - c|`` (directions from the centre: both ends are far
+    compared with the body), and the point of the ellipsoid with outward normal ``n`` is
+    ``p = c + M n / sqrt(n^T M n)``. On the traced city scenes this moves the predicted path length of a VS
+    path by 2-3.5 m, onto the traced one (docs/city-slam.md, "Vehicles as extended scatterers").
+
+    Args:
+        x: the VS's antenna position (m, global frame; the VS state's position, as the ego Gaussian).
+        heading: the car's heading (rad; of a VS Gaussian: its mean velocity's direction).
+        b, u: ``(3,)`` BS and receiving-vehicle antenna positions (m).
+        body: ``(4,)`` ``[length, width, height, depth]`` (m): the body's size and its centre's depth
+            below the antenna; length 0: a point VS, ``p = x``.
+
+    Returns:
+        ``p`` (m, global frame).
+    """
+    if body[0] <= 0.0:
+        return x[0], x[1], x[2]
+    c0, c1, c2 = x[0], x[1], x[2] - body[3]
+    db0, db1, db2 = b[0] - c0, b[1] - c1, b[2] - c2
+    du0, du1, du2 = u[0] - c0, u[1] - c1, u[2] - c2
+    nb_ = math.sqrt(db0 * db0 + db1 * db1 + db2 * db2)
+    nu_ = math.sqrt(du0 * du0 + du1 * du1 + du2 * du2)
+    n0 = db0 / nb_ + du0 / nu_
+    n1 = db1 / nb_ + du1 / nu_
+    n2 = db2 / nb_ + du2 / nu_
+    ch, sh = math.cos(heading), math.sin(heading)
+    f, l_ = ch * n0 + sh * n1, -sh * n0 + ch * n1  # n in the car frame (forward, left)
+    a2, w2, h2 = (0.5 * body[0]) ** 2, (0.5 * body[1]) ** 2, (0.5 * body[2]) ** 2
+    mf, ml, mz = a2 * f, w2 * l_, h2 * n2  # M n in the car frame
+    s = math.sqrt(f * mf + l_ * ml + n2 * mz)
+    if not s > 0.0:  # the BS and the receiver on opposite sides through the centre: no bisector
+        return c0, c1, c2
+    return c0 + (ch * mf - sh * ml) / s, c1 + (sh * mf + ch * ml) / s, c2 + mz / s
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def body_centre_offset(p: np.ndarray, b: np.ndarray, u: np.ndarray, body: np.ndarray) -> tuple[float, float, float]:
+    """The antenna position of a car whose body a path bounced off at ``p (3,)`` (m), heading unknown: the
+    inverse of :func:`body_specular_point` for the heading-averaged body, a spheroid of horizontal
+    semi-axis ``r = sqrt((a^2 + b^2) / 2)`` and vertical ``h`` (the normal ``n`` taken at ``p``):
+    ``x = p - M n / sqrt(n^T M n) + (0, 0, depth)``, ``M = diag(r^2, r^2, h^2)``. For a VS birth, whose
+    velocity (so heading) is not known yet. ``body``: as :func:`body_specular_point` (length 0: ``x = p``)."""
+    if body[0] <= 0.0:
+        return p[0], p[1], p[2]
+    db0, db1, db2 = b[0] - p[0], b[1] - p[1], b[2] - p[2]
+    du0, du1, du2 = u[0] - p[0], u[1] - p[1], u[2] - p[2]
+    nb_ = math.sqrt(db0 * db0 + db1 * db1 + db2 * db2)
+    nu_ = math.sqrt(du0 * du0 + du1 * du1 + du2 * du2)
+    n0 = db0 / nb_ + du0 / nu_
+    n1 = db1 / nb_ + du1 / nu_
+    n2 = db2 / nb_ + du2 / nu_
+    r2 = 0.5 * ((0.5 * body[0]) ** 2 + (0.5 * body[1]) ** 2)
+    h2 = (0.5 * body[2]) ** 2
+    s = math.sqrt(r2 * (n0 * n0 + n1 * n1) + h2 * n2 * n2)
+    if not s > 0.0:
+        return p[0], p[1], p[2] + body[3]
+    return p[0] - r2 * n0 / s, p[1] - r2 * n1 / s, p[2] - h2 * n2 / s + body[3]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _specular_batch(x: np.ndarray, heading: np.ndarray, b: np.ndarray, u: np.ndarray, body: np.ndarray,
+                    out: np.ndarray) -> None:
+    for n in range(x.shape[0]):
+        out[n, 0], out[n, 1], out[n, 2] = body_specular_point((x[n, 0], x[n, 1], x[n, 2]), heading[n], b, u[n], body)
+
+
+def body_points(x: np.ndarray, heading: np.ndarray, bs: np.ndarray, u: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """:func:`body_specular_point` over rows: antenna positions ``x (n, 3)``, headings ``(n,)`` (rad), receivers
+    ``u (n, 3)``, one BS ``(3,)`` and body ``(4,)``; returns ``(n, 3)`` bounce points (m)."""
+    x = np.ascontiguousarray(x, float).reshape(-1, 3)
+    out = np.empty_like(x)
+    _specular_batch(x, np.ascontiguousarray(np.broadcast_to(heading, x.shape[:1]), float), np.asarray(bs, float),
+                    np.ascontiguousarray(np.broadcast_to(u, x.shape), float), np.asarray(body, float), out)
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _centre_batch(p: np.ndarray, u: np.ndarray, b: np.ndarray, body: np.ndarray, out: np.ndarray) -> None:
+    for n in range(p.shape[0]):
+        out[n, 0], out[n, 1], out[n, 2] = body_centre_offset(p[n], b, u[n], body)
+
+
+def body_antennas(p: np.ndarray, u: np.ndarray, bs: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """:func:`body_centre_offset` over rows: bounce points ``p (..., 3)`` seen from receivers ``u (..., 3)``
+    (broadcast), one BS ``(3,)`` and body ``(4,)``; returns the antenna positions ``(..., 3)`` (m)."""
+    shape = np.broadcast_shapes(np.shape(p), np.shape(u))
+    pf = np.array(np.broadcast_to(p, shape), float).reshape(-1, 3)  # copies: writable, C-contiguous (one signature)
+    out = np.empty_like(pf)
+    _centre_batch(pf, np.array(np.broadcast_to(u, shape), float).reshape(-1, 3), np.array(bs, float),
+                  np.array(body, float), out)
+    return out.reshape(shape)

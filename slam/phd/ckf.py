@@ -27,6 +27,7 @@ from ..core.jit import batch_kernel
 from ..core.linalg import cholesky, forward_solve, safe_cholesky
 from ..models.measurement import AZIMUTH_COMPONENTS, MEAS_DIM, angle_arguments, body_frame, measure_point, path_vectors, wrap
 from ..core.trig import atan2
+from ..models.vs import BODY_POINT, body_specular_point
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _SIXTH = 1.0 / 6.0  # the cubature weight (a multiplication, not 35 divisions per Gaussian)
@@ -68,16 +69,20 @@ def gaussian_loglik(z: np.ndarray, zhat: np.ndarray, LS: np.ndarray, half_logdet
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
-               extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+               extent: np.ndarray, body: np.ndarray, Z: np.ndarray, R: np.ndarray,
                loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple,
                floor_lik: float = -math.inf, floor_post: float = -math.inf) -> int:
     """CKF update of one landmark Gaussian ``N(m, P)`` seen from one vehicle state ``s``.
 
     The measurement is ``z = h(s, x + e) + n`` (paper eq. (3), :func:`measure_point` with
     ``geometry``), ``n ~ N(0, R)``, ``e ~ N(0, extent)`` the scatter point's offset about the
-    landmark position (an extended landmark such as a car body; zeros for a point landmark).
+    landmark position (an extended landmark such as a car body; zeros for a point landmark). With a
+    ``body`` (a VS), the path bounces at the specular point of the car body,
+    :func:`~mmslam.slam.models.vs.body_specular_point` of the position (the antenna) and the heading of
+    the Gaussian's mean velocity ``atan2(m[4], m[3])``: ``z = h(s, p(x + e)) + n``.
 
-    1. cubature points ``x_k = m_pos +- sqrt(3) L e_k`` (``L L^T = P_pos + extent``), weight 1/6;
+    1. cubature points ``x_k = m_pos +- sqrt(3) L e_k`` (``L L^T = P_pos + extent``), weight 1/6
+       (with a ``body``: ``x_k`` <- its specular point);
     2. ``h(s, x_k)``: :func:`measure_point` split in its parts (:func:`path_vectors`, then the 24
        angles of the 6 points in one loop of :func:`~mmslam.slam.core.trig.atan2`, which vectorises,
        then :func:`body_frame`); ``zhat = mean h(s, x_k)`` (azimuths averaged as deviations from
@@ -99,6 +104,9 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
         m: ``(d,)`` mean, position first (d = 3, or 7 for a VS); P: ``(d, d)`` SPD covariance.
         s: ``(7,)`` vehicle state; b: ``(3,)`` BS position (m).
         extent: ``(3, 3)`` scatter-point covariance (m^2), zeros for a point landmark.
+        body: ``(4,)`` the car body ``[length, width, height, depth]`` (m) of
+            :func:`~mmslam.slam.models.vs.body_specular_point`; zeros (:data:`~mmslam.slam.models.vs.BODY_POINT`)
+            for a point landmark.
         Z: ``(J, 5)`` measurements; R: ``(1, 5, 5)`` one covariance for all, or ``(J, 5, 5)`` one
             per measurement.
         loglik: ``(J,)`` out; m_post: ``(J, d)`` out; P_post: ``(len(R), d, d)`` out
@@ -123,9 +131,12 @@ def ckf_update(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np
     # 1.-2. cubature points r = k (+) and k + 3 (-) through h: path vectors, the 24 angles (az, el of
     # departure, az, el of arrival per point: ya[4 r + i] = atan2(ya, xa)), the body frame
     c = math.sqrt(3.0)
+    heading = math.atan2(m[4], m[3]) if body[0] > 0.0 and d >= 5 else 0.0  # a VS body faces along the velocity
     for r in range(6):
         sign, k = (c, r) if r < 3 else (-c, r - 3)
         xr = (m[0] + sign * L[0, k], m[1] + sign * L[1, k], m[2] + sign * L[2, k])
+        if body[0] > 0.0:
+            xr = body_specular_point(xr, heading, b, s, body)
         toa[r], dep0, dep1, dep2, arr0, arr1, arr2 = path_vectors(geometry, s, xr, b)
         ya[4 * r], xa[4 * r], ya[4 * r + 1], xa[4 * r + 1] = angle_arguments(dep0, dep1, dep2)
         ya[4 * r + 2], xa[4 * r + 2], ya[4 * r + 3], xa[4 * r + 3] = angle_arguments(arr0, arr1, arr2)
@@ -235,11 +246,11 @@ def workspace(d: int) -> tuple:
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _ckf_loop(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.ndarray,
-              extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+              extent: np.ndarray, body: np.ndarray, Z: np.ndarray, R: np.ndarray,
               loglik: np.ndarray, m_post: np.ndarray, P_post: np.ndarray, work: tuple) -> tuple[int, int]:
     """:func:`ckf_update` of every Gaussian ``n``; returns ``(n, code)`` of the first failure or ``(-1, OK)``."""
     for n in range(m.shape[0]):
-        code = ckf_update(geometry, m[n], P[n], s[n], b, extent, Z, R, loglik[n], m_post[n], P_post[n], work)
+        code = ckf_update(geometry, m[n], P[n], s[n], b, extent, body, Z, R, loglik[n], m_post[n], P_post[n], work)
         if code != OK:
             return n, code
     return -1, OK
@@ -252,18 +263,18 @@ def _ckf_loop(geometry: int, m: np.ndarray, P: np.ndarray, s: np.ndarray, b: np.
 # functions it calls (measurement, trig, linalg, the log-likelihood) are left to LLVM: IR-inlining them
 # too made each geometry's kernel take ~20 s instead of ~6 s to compile cold, for 3% of CKF speed.
 @batch_kernel
-def _ckf_batch_direct(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
-    return _ckf_loop(0, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.DIRECT
+def _ckf_batch_direct(m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(0, m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work)  # Bounce.DIRECT
 
 
 @batch_kernel
-def _ckf_batch_mirror(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
-    return _ckf_loop(1, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.MIRROR
+def _ckf_batch_mirror(m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(1, m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work)  # Bounce.MIRROR
 
 
 @batch_kernel
-def _ckf_batch_scatter(m, P, s, b, extent, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
-    return _ckf_loop(2, m, P, s, b, extent, Z, R, loglik, m_post, P_post, work)  # Bounce.SCATTER
+def _ckf_batch_scatter(m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work):  # noqa: ANN001, ANN202
+    return _ckf_loop(2, m, P, s, b, extent, body, Z, R, loglik, m_post, P_post, work)  # Bounce.SCATTER
 
 
 _CKF_BATCH = (_ckf_batch_direct, _ckf_batch_mirror, _ckf_batch_scatter)
@@ -288,8 +299,19 @@ class Innovation:
         return self.P_post[n, j if self.P_post.shape[1] > 1 else 0]
 
 
+def body_array(body: np.ndarray | None) -> np.ndarray:
+    """``(4,)`` float body ``[length, width, height, depth]`` (m) for the kernels; None: a point landmark."""
+    if body is None:
+        return BODY_POINT
+    out = np.ascontiguousarray(body, dtype=float).reshape(-1)
+    if out.shape != (4,):
+        raise ValueError(f"body has shape {np.shape(body)}; expected (4,) [length, width, height, depth] (m)")
+    return out
+
+
 def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs: np.ndarray,
-             Z: np.ndarray, R: np.ndarray, stage: str, extent: np.ndarray | None = None) -> Innovation:
+             Z: np.ndarray, R: np.ndarray, stage: str, extent: np.ndarray | None = None,
+             body: np.ndarray | None = None) -> Innovation:
     """:func:`ckf_update` of Gaussians ``N(m[n], P[n])`` seen from vehicle states ``states[n]``.
 
     Args:
@@ -301,6 +323,7 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
         Z: ``(J, 5)`` measurements; R: ``(5, 5)`` one covariance, or ``(J, 5, 5)`` one per measurement.
         stage: named in errors.
         extent: ``(3, 3)`` scatter-point covariance (m^2), or None for a point landmark.
+        body: ``(4,)`` car body of a VS (:func:`ckf_update`), or None for a point landmark.
 
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance (naming ``stage``).
@@ -326,7 +349,7 @@ def innovate(m: np.ndarray, P: np.ndarray, states: np.ndarray, geometry: int, bs
     m_post = np.empty((n, J, d))
     P_post = np.empty((n, R.shape[0], d, d))
     bad, code = _CKF_BATCH[int(geometry)](m, P, np.ascontiguousarray(states, dtype=float),
-                           np.ascontiguousarray(bs, dtype=float), ext, Z, np.ascontiguousarray(R),
+                           np.ascontiguousarray(bs, dtype=float), ext, body_array(body), Z, np.ascontiguousarray(R),
                            loglik, m_post, P_post, workspace(d))
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {stage}")
@@ -385,11 +408,12 @@ def cubature_points(m: np.ndarray, P: np.ndarray, stage: str = "cubature points"
 
 
 def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, state: np.ndarray, geometry: int,
-                  bs: np.ndarray, extent: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+                  bs: np.ndarray, extent: np.ndarray | None = None,
+                  body: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """CKF update of one Gaussian ``N(m (d,), P (d, d))`` by one measurement ``z (5,)`` seen from ``state (7,)``.
 
     A thin wrapper over :func:`innovate` (tests, single Gaussians): ``(m_post, P_post, log N(z; zhat, S))``.
     """
     inn = innovate(np.asarray(m, float)[None], np.asarray(P, float)[None], np.asarray(state, float)[None],
-                   geometry, bs, np.asarray(z, float)[None], R, "kalman_update", extent)
+                   geometry, bs, np.asarray(z, float)[None], R, "kalman_update", extent, body)
     return inn.m_post[0, 0], inn.P_post[0, 0], float(inn.loglik[0, 0])

@@ -29,7 +29,7 @@ import numpy as np
 from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
-from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, workspace
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
 from .detection import expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _mass_bound_holds, _write_corrected)
@@ -38,7 +38,8 @@ from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_s
 def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
             pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray], p_bs: np.ndarray, log_clutter: float,
             prune: float | None, extents: dict[int, np.ndarray | None], step: int,
-            kinds: Mapping[int, LandmarkKind]) -> tuple[dict[int, GM], np.ndarray]:
+            kinds: Mapping[int, LandmarkKind],
+            bodies: Mapping[int, np.ndarray | None] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -79,6 +80,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         step: time step ``k`` (for messages).
         kinds: type code -> its :class:`~mmslam.slam.models.measurement.LandmarkKind` (e.g. its spec):
             the geometry of its measurement kernel and its name in messages (every key of ``maps``).
+        bodies: type code -> ``(4,)`` car body of :func:`type_terms` or None (point landmark; None: every type).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)``.
@@ -90,7 +92,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
-    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune)
+    bodies = bodies or {}
+    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune, bodies.get(t))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -149,7 +152,7 @@ class TypeCorrection:
 def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
-               prune: float | None = None) -> TypeCorrection:
+               prune: float | None = None, body: np.ndarray | None = None) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -170,6 +173,8 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             Gaussian's own Beta (:func:`mmslam.slam.phd.detection.expected_pd`).
         extent: ``(3, 3)`` scatter-point covariance of an extended landmark (VS: a car body), see
             :func:`mmslam.slam.phd.ckf.ckf_update`; None for point landmarks.
+        body: ``(4,)`` car body ``[length, width, height, depth]`` (m) of a VS, the path bouncing at its
+            specular point (:func:`mmslam.slam.models.vs.body_specular_point`); None for point landmarks.
         log_clutter, prune: with a clutter intensity (``log_clutter > -inf``) and a prune threshold
             ``> 0`` of the corrected components (:func:`corrected_gm`), work whose result cannot
             matter is skipped (:func:`_skip_floors`): a term ``log(p_D w N(z_j))`` below
@@ -218,7 +223,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         raise FloatingPointError(f"non-finite mean or covariance in {name} correction")
     loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
     floor_q, floor_post = _skip_floors(log_clutter, prune)
-    code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext,
+    code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext, body_array(body),
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
                                              loglik, m_post, P_post, floor_q, floor_post, workspace(d))
     if code == BAD_POSITION_COV:

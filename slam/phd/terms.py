@@ -72,7 +72,7 @@ def _all_finite(a: np.ndarray) -> bool:
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray, P: np.ndarray,
-                     states: np.ndarray, b: np.ndarray, extent: np.ndarray, Z: np.ndarray, R: np.ndarray,
+                     states: np.ndarray, b: np.ndarray, extent: np.ndarray, body: np.ndarray, Z: np.ndarray, R: np.ndarray,
                      det_index: np.ndarray, logq: np.ndarray, loglik: np.ndarray, m_post: np.ndarray,
                      P_post: np.ndarray, floor_q: float, floor_post: float, work: tuple) -> int:
     """The CKF loop of :func:`type_terms` (after :func:`_detection_slots`); returns ``OK`` or the
@@ -91,7 +91,7 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
             if n < 0:
                 continue
             lw = math.log(pd[p, q] * w[p, q])
-            code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, Z, R, loglik[n], m_post[n],
+            code = ckf_update(geometry, m[p, q], P[p, q], states[p], b, extent, body, Z, R, loglik[n], m_post[n],
                               P_post[n], work, floor_q - lw, floor_post - lw)
             if code != OK:
                 return code
@@ -101,20 +101,20 @@ def _type_terms_loop(geometry: int, w: np.ndarray, pd: np.ndarray, m: np.ndarray
 
 
 @batch_kernel
-def _type_terms_direct(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
-    return _type_terms_loop(0, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+def _type_terms_direct(w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
+    return _type_terms_loop(0, w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post,
                             fq, fp, work)  # Bounce.DIRECT
 
 
 @batch_kernel
-def _type_terms_mirror(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
-    return _type_terms_loop(1, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+def _type_terms_mirror(w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
+    return _type_terms_loop(1, w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post,
                             fq, fp, work)  # Bounce.MIRROR
 
 
 @batch_kernel
-def _type_terms_scatter(w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
-    return _type_terms_loop(2, w, pd, m, P, states, b, extent, Z, R, det_index, logq, loglik, m_post, P_post,
+def _type_terms_scatter(w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post, fq, fp, work):  # noqa
+    return _type_terms_loop(2, w, pd, m, P, states, b, extent, body, Z, R, det_index, logq, loglik, m_post, P_post,
                             fq, fp, work)  # Bounce.SCATTER
 
 

@@ -46,6 +46,7 @@ from ..phd.birth import birth_from_moments
 from ..core.gm import NO_LABEL, GM, concat, concat_label, concat_pd_beta, ego_label
 from ..phd.gmphd import predict_static
 from ..phd.reduction import merge_pairs, prune_merge
+from .vehicle_body import vs_birth_moments, vs_body, vs_on_road
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmslam.scenes.scenario import Scenario, SensorParams, TypeParams
@@ -58,6 +59,11 @@ PdFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 
 def point_extent(scn: "Scenario") -> None:
     """A point landmark: the measured point is the landmark state's position (no extent)."""
+    return None
+
+
+def point_body(scn: "Scenario") -> None:
+    """A point landmark: a path bounces at the landmark state's position (no body)."""
     return None
 
 
@@ -105,6 +111,10 @@ class LandmarkSpec:
             ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
         extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
             landmark state's position (None: a point).
+        body: ``body(scn) -> (4,) or None``, the body ``[length, width, height, depth]`` (m) at whose
+            specular point a path bounces (:func:`mmslam.slam.models.vs.body_specular_point`; None: a point).
+        survive: ``survive(predicted map, states (P, 7), scn) -> map``: the Gaussians the type's model rules
+            out after a local prediction removed (VS: :func:`vs_on_road`), or None.
         fuse: ``fuse(bs_map, upload, inside (n_bs,), FusionInput) -> (fused, matched pairs)``, the
             type's fusion operator (:data:`FuseFn`).
         fuse_for: ``fuse_for(variant) -> FuseFn``: the operator a variant uses, chosen when the
@@ -130,6 +140,8 @@ class LandmarkSpec:
     predict: Callable[[GM, GM | None, "Scenario"], GM] | None = None
     birth: Callable[..., GM] | None = None
     extent: Callable[["Scenario"], np.ndarray | None] = point_extent
+    body: Callable[["Scenario"], np.ndarray | None] = point_body
+    survive: Callable[[GM, np.ndarray, "Scenario"], GM] | None = None
     fuse: FuseFn | None = None
     fuse_for: Callable[["VariantSpec"], FuseFn] | None = None
     reduce_fused: Callable[[GM, np.ndarray | None, "Scenario", "LandmarkSpec"], GM] | None = None
@@ -229,6 +241,13 @@ def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.nd
     if prior is not None:
         born.pd_beta = np.broadcast_to(np.asarray(prior, float), born.w.shape + (2,)).copy()
     return born
+
+
+def birth_vs(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
+             scn: "Scenario", pd_fn: PdFn) -> GM:
+    """:func:`birth_point` of a VS from :func:`~mmslam.slam.specs.vehicle_body.vs_birth_moments` (births on the
+    road band only, at the antenna behind a bounce on the car body)."""
+    return birth_point(states, vs_birth_moments(states, moments, scn), spec, scn, pd_fn)
 
 
 def vs_extent(scn: "Scenario") -> np.ndarray | None:
@@ -449,7 +468,7 @@ SP_SPEC = LandmarkSpec(
     reduce_fused=reduce_fused_static, learns_pd=True)
 VS_SPEC = LandmarkSpec(
     name="VS", code=int(LandmarkType.VS), geometry=Bounce.SCATTER, state_dim=7, range_gated=True, moving=True,
-    description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_point, extent=vs_extent,
+    description="vehicle scatterer (VS)", predict=predict_vs_map, birth=birth_vs, extent=vs_extent, body=vs_body, survive=vs_on_road,
     fuse=fuse_aa, fuse_for=vs_fusion_operator, reduce_fused=reduce_fused_vs, predict_at_bs=predict_vs_at_bs,
     remove_ego=remove_ego_vs)
 
