@@ -244,8 +244,9 @@ class PathCache:
         cache cannot tell and its stored settings differ from this mmslam's defaults; else None."""
         if self.settings_changed:
             shown = "; ".join(self.settings_changed[:3]) + (" ..." if len(self.settings_changed) > 3 else "")
-            return (f"note: {self.path.name}: {len(self.settings_changed)} setting(s) its scenario leaves open now "
-                    f"follow this mmslam's defaults, not those stored when it was traced: {shown}")
+            return (f"note: {self.path.name}: {len(self.settings_changed)} setting(s) differ from those stored when "
+                    f"it was traced (what its scenario leaves open follows this mmslam's defaults, what its preset "
+                    f"has set since follows the preset): {shown}")
         if not self.settings_known:
             stored, now = self.scenario.to_dict(), default_settings()
             if any(stored.get(s) != now[s] for s in ("filter", "fusion", "evaluation")):
@@ -607,7 +608,8 @@ def load_cache(path: str | Path) -> PathCache:
     if settings_known:  # the parameters its scenario left open follow this mmslam's defaults
         try:
             scn, settings_changed = refresh_settings(m["resolved_scenario"], m.get("scenario_settings"),
-                                                     m["settings_defaults"], source=str(mp))
+                                                     m["settings_defaults"], source=str(mp),
+                                                     preset=m.get("scenario") if isinstance(m.get("scenario"), str) else None)
         except MmslamError:  # a recorded table this version reads differently: keep the stored scenario
             settings_known = False
     names = list(m["vehicle_names"])

@@ -1057,8 +1057,25 @@ def _unflat(f: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def preset_additions(settings: dict[str, Any] | None, name: str | None, geometry: str) -> dict[str, Any] | None:
+    """The recorded parameter tables ``settings`` of a cache whose scenario was the shipped preset ``name``, with
+    the keys that preset has set since (e.g. a parameter added to pin a published configuration): the preset's
+    current tables if the cache's scenario has the preset's geometry (``geometry``: its
+    :meth:`Scenario.geometry_hash`) and every recorded key has the preset's current value (the same preset,
+    less additions); else ``settings`` unchanged (another file of that name, or a preset edited since)."""
+    if not isinstance(settings, dict) or name not in list_presets():
+        return settings
+    preset = load_preset(name)
+    if preset.geometry_hash() != geometry:
+        return settings
+    now = scenario_settings(preset) or {}
+    rec = {(sec, k): v for sec, t in settings.items() if isinstance(t, dict) for k, v in _flat(t).items()}
+    cur = {(sec, k): v for sec, t in now.items() for k, v in _flat(t).items()}
+    return now if all(cur.get(k, rec) == v for k, v in rec.items()) else settings
+
+
 def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, trace_defaults: dict[str, Any] | None,
-                     source: str = "the stored scenario") -> tuple[Scenario, list[str]]:
+                     source: str = "the stored scenario", preset: str | None = None) -> tuple[Scenario, list[str]]:
     """A stored (cached) scenario with this mmslam's defaults where its scenario left a parameter open.
 
     A cache stores the resolved scenario: every parameter, defaults included, as the mmslam that traced
@@ -1075,6 +1092,8 @@ def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, 
         settings: the scenario file's own tables at trace time (None: none recorded, e.g. built in memory).
         trace_defaults: :func:`default_settings` of the mmslam that traced it (None: not recorded: the
             stored scenario is returned unchanged).
+        preset: the stored scenario's name; if it was that shipped preset, the keys the preset has set since
+            take the preset's values (:func:`preset_additions`): a published configuration stays pinned.
 
     Returns:
         ``(scenario, changed)``: ``changed`` lists ``"section.key: old -> new"`` for each parameter that now
@@ -1085,8 +1104,9 @@ def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, 
     if not (isinstance(trace_defaults, dict) and all(isinstance(trace_defaults.get(s, {}), dict)
                                                      for s in PARAM_SECTIONS)):
         return base, []  # not recorded (or not as this mmslam writes it): the stored scenario as it is
-    explicit = _explicit_keys({k: v for k, v in settings.items() if isinstance(v, dict)}
-                              if isinstance(settings, dict) else {})
+    settings = preset_additions(settings, preset, base.geometry_hash())
+    tables = {k: v for k, v in settings.items() if isinstance(v, dict)} if isinstance(settings, dict) else {}
+    explicit = _explicit_keys(tables)
     now = default_settings()
     data = dict_from_resolved(resolved)
     changed: list[str] = []
@@ -1094,7 +1114,12 @@ def refresh_settings(resolved: dict[str, Any], settings: dict[str, Any] | None, 
     for s in PARAM_SECTIONS:
         stored, then = _flat(resolved.get(s) or {}), _flat(trace_defaults.get(s) or {})
         out = dict(stored)
+        own = _flat(tables.get(s, {}))
         for k, v in _flat(now[s]).items():
+            if k in explicit.get(s, ()) and k not in stored and k in own:  # set by its file, unknown when traced
+                out[k] = own[k]
+                changed.append(f"{s}.{k}: (none) -> {json.dumps(own[k])}")
+                continue
             if k in explicit.get(s, ()) or (s == "sensor" and k in GEOMETRY_SENSOR_KEYS):
                 continue
             old = stored.get(k, missing)

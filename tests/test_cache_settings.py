@@ -133,3 +133,33 @@ def test_slam_on_a_cache_that_records_no_settings_says_which_settings_it_runs_wi
     assert "does not record which settings its scenario set" in " ".join(capsys.readouterr().out.split())
     untouched = copy.deepcopy(json.loads((d / "manifest.json").read_text()))
     assert "settings_defaults" not in untouched  # reading a cache never rewrites it
+
+
+def _before_body_keys(p):
+    """``p``'s stored scenario, recorded tables and defaults as an mmslam without ``filter.vs_body_model`` and
+    ``filter.vs_birth_height`` wrote them (the paper preset pins both since)."""
+    new = ("vs_body_model", "vs_birth_height", "vs_body")
+    stored = p.to_dict()
+    rec = scenario_settings(p)
+    old = default_settings()
+    for d in (stored["filter"], rec["filter"], old["filter"]):
+        for k in new:
+            d.pop(k, None)
+    return stored, rec, old
+
+
+def test_a_cache_of_a_preset_takes_the_keys_the_preset_added_since() -> None:
+    """An old cache of `paper` (traced before the preset pinned the paper's point VS): the keys the preset sets
+    now and the cache's record lacks take the preset's values, not the new city defaults; a file of the
+    same name whose tables differ from the preset's keeps the defaults."""
+    stored, rec, old = _before_body_keys(load_preset("paper"))
+    scn, changed = refresh_settings(stored, rec, old, preset="paper")
+    assert scn.filter.vs_body_model == "point" and scn.filter.vs_birth_height == 1e4
+    assert sorted(changed) == ['filter.vs_birth_height: (none) -> 10000.0', 'filter.vs_body_model: (none) -> "point"']
+    scn, _ = refresh_settings(stored, rec, old)  # no preset named: the defaults, as before
+    assert scn.filter.vs_body_model == "auto" and scn.filter.vs_birth_height == 3.0
+    mine = copy.deepcopy(rec)
+    mine["filter"]["r_scale"] = 1.0  # a user's file called "paper" with its own filter table
+    stored["filter"]["r_scale"] = 1.0
+    scn, _ = refresh_settings(stored, mine, old, preset="paper")
+    assert scn.filter.vs_body_model == "auto" and scn.filter.r_scale == 1.0
