@@ -247,7 +247,8 @@ class FilterParams:
                                "the analytic one); docs/city-slam.md", choices=("auto", "ellipsoid", "point"))
     vs_body: tuple[float, ...] = param(
         (4.5, 1.8, 1.5, 0.8), "the car body of a VS under vs_body_model ellipsoid: [length, width, height, depth of "
-        "its centre below the antenna] (the default car of the scenario format)", "m", lo=0.0, hi=100.0, length=4)
+        "its centre below the antenna] (the default car of the scenario format; length 0: a point VS)", "m", lo=0.0,
+        hi=100.0, length=4)
     vs_birth_height: float = param(
         3.0, "a VS is born only where the path bounced at most this far above or below the receiving antenna, and "
         "a VS Gaussian within sensor.fov_range whose height leaves that band is removed: a car is on the road (its "

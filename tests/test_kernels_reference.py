@@ -386,11 +386,24 @@ def test_measurement_kernels_equal_the_textbook_geometry(seed, P_, Q, K, lm_type
     _unchanged(snap, "measure / measure_point / channel_params")
 
 
+CAR = np.array([4.5, 1.8, 1.5, 0.8])  # a VS car body: length, width, height, centre depth below the antenna (m)
+
+
+def ref_h_body(state, lm_type, m, body):
+    """``ref_h`` through the car body's specular point (the body facing along ``m``'s velocity for a VS)."""
+    h = ref_h(state, lm_type)
+    if body is None:
+        return h
+    heading = float(np.arctan2(m[4], m[3])) if m.shape[0] >= 5 else 0.0
+    return lambda x: h(ref_models.body_bounce(x, heading, BS_POS, state[:3], body))
+
+
 @given(seed=seeds, lm_type=st.sampled_from([VA, SP, VS]), cond=st.sampled_from([0.0, 2.0, 4.0]),
-       J=st.sampled_from([0, 1, 2, 3]), extent=st.booleans(), per_meas_R=st.booleans())
-def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, cond, J, extent, per_meas_R):
-    """One Gaussian (3-D, or 7-D VS through the position marginal), optional scatter-point extent,
-    one R or one R per measurement: loglik, posterior means and covariances equal the textbook CKF."""
+       J=st.sampled_from([0, 1, 2, 3]), extent=st.booleans(), per_meas_R=st.booleans(), body=st.booleans())
+def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, cond, J, extent, per_meas_R, body):
+    """One Gaussian (3-D, or 7-D VS through the position marginal), optional scatter-point extent, optional car
+    body (the path through its specular point), one R or one R per measurement: loglik, posterior means and
+    covariances equal the textbook CKF."""
     rng = np.random.default_rng(seed)
     s = rand_states(rng, 1)
     g = rand_landmark_gm(rng, s, lm_type, 1, cond, p_live=1.0)
@@ -399,16 +412,18 @@ def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, 
     Z = rand_Z(rng, s, J)
     R = np.array([rand_R(rng) for _ in range(J)]).reshape(J, 5, 5) if per_meas_R else rand_R(rng)
     E = rand_spd(rng, (), 3, 1.0, 0.1, 1.0) if extent else None
+    B = CAR if body else None
     snap = _snapshot(m, P, s, Z, R)
-    inn = ckf.innovate(m[None], P[None], s, geometry_of(lm_type), BS_POS, Z, R, "test", E)
+    inn = ckf.innovate(m[None], P[None], s, geometry_of(lm_type), BS_POS, Z, R, "test", E, B)
     _unchanged(snap, "innovate")
     assert inn.loglik.shape == (1, J) and inn.m_post.shape == (1, J, d)
     for j in range(J):
-        r = ref_update(m, P, ref_h(s[0], lm_type), Z[j:j + 1], R[j] if per_meas_R else R, E)
+        r = ref_update(m, P, ref_h_body(s[0], lm_type, m, B), Z[j:j + 1], R[j] if per_meas_R else R, E)
         _close_scalar(inn.loglik[0, j:j + 1], r["loglik"], "loglik")
         _close(inn.m_post[0, j], r["m_post"][0], 1, "posterior mean")
         _close(inn.post(np.array([0]), np.array([j]))[0], r["P_post"], 2, "posterior covariance")
-        mk, Pk, llk = ckf.kalman_update(m, P, Z[j], R[j] if per_meas_R else R, s[0], geometry_of(lm_type), BS_POS, E)
+        mk, Pk, llk = ckf.kalman_update(m, P, Z[j], R[j] if per_meas_R else R, s[0], geometry_of(lm_type), BS_POS, E,
+                                        B)
         _close(mk, r["m_post"][0], 1, "kalman_update mean")
         _close(Pk, r["P_post"], 2, "kalman_update covariance")
         _close_scalar(llk, r["loglik"][0], "kalman_update loglik")
@@ -416,12 +431,15 @@ def test_ckf_update_and_kalman_update_equal_the_per_gaussian_ckf(seed, lm_type, 
 
 
 @given(seed=seeds, n=st.sampled_from([0, 1, 2, 5]), J=st.sampled_from([0, 1, 2, 3]), lm_type=st.sampled_from([VA, SP, VS]),
-       cond=st.sampled_from([0.0, 2.0, 4.0]))
-@example(seed=1, n=0, J=2, lm_type=VA, cond=0.0).via("no Gaussian")
-@example(seed=2, n=1, J=0, lm_type=VS, cond=2.0).via("no measurement")
-@example(seed=3, n=1, J=1, lm_type=SP, cond=4.0).via("one of each")
-@example(seed=4, n=5, J=2, lm_type=VS, cond=4.0).via("several Gaussians, several measurements")
-def test_innovate_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond):
+       cond=st.sampled_from([0.0, 2.0, 4.0]), body=st.booleans())
+@example(seed=1, n=0, J=2, lm_type=VA, cond=0.0, body=False).via("no Gaussian")
+@example(seed=2, n=1, J=0, lm_type=VS, cond=2.0, body=False).via("no measurement")
+@example(seed=3, n=1, J=1, lm_type=SP, cond=4.0, body=False).via("one of each")
+@example(seed=4, n=5, J=2, lm_type=VS, cond=4.0, body=False).via("several Gaussians, several measurements")
+@example(seed=5, n=1, J=1, lm_type=VS, cond=2.0, body=True).via("car body, one of each")
+@example(seed=6, n=0, J=1, lm_type=VS, cond=2.0, body=True).via("car body, no Gaussian")
+@example(seed=7, n=2, J=0, lm_type=VS, cond=2.0, body=True).via("car body, no measurement")
+def test_innovate_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond, body):
     rng = np.random.default_rng(seed)
     s = rand_states(rng, max(n, 1))[:n] if n else np.zeros((0, 7))
     g = rand_landmark_gm(rng, s if n else rand_states(rng, 1), lm_type, 1, cond, p_live=1.0)
@@ -430,11 +448,12 @@ def test_innovate_equals_the_per_gaussian_ckf(seed, n, J, lm_type, cond):
     Z = rand_Z(rng, s if n else rand_states(rng, 1), J)
     R = rand_R(rng)
     snap = _snapshot(m, P, s, Z, R)
-    inn = ckf.innovate(m, P, s, geometry_of(lm_type), BS_POS, Z, R, "test")
+    B = CAR if body else None
+    inn = ckf.innovate(m, P, s, geometry_of(lm_type), BS_POS, Z, R, "test", body=B)
     _unchanged(snap, "innovate")
     assert inn.loglik.shape == (n, J) and inn.m_post.shape == (n, J, d) and inn.P_post.shape == (n, 1, d, d)
     for i in range(n):
-        r = ref_update(m[i], P[i], ref_h(s[i], lm_type), Z, R)
+        r = ref_update(m[i], P[i], ref_h_body(s[i], lm_type, m[i], B), Z, R)
         _close_scalar(inn.loglik[i], r["loglik"], "innovate loglik")
         _close(inn.m_post[i], r["m_post"], 1, "innovate posterior mean")
         _close(inn.P_post[i, 0], r["P_post"], 2, "innovate P_post")

@@ -188,3 +188,34 @@ def test_vs_birth_is_placed_at_the_antenna_behind_the_bounce():
         off.append(np.linalg.norm(p - x))
         assert P[0][0, 0] == pytest.approx(0.01 + 0.675 ** 2) and P[0][2, 2] == pytest.approx(0.01)
     assert min(off) > 1.5 and np.mean(err) < 0.5 * np.mean(off)
+
+
+def test_vs_on_road_removes_only_nearby_gaussians_off_the_road_band():
+    """The prediction's road gate (:func:`vs_on_road`), by hand: per particle, a VS Gaussian within
+    ``sensor.fov_range`` (50 m, horizontally) whose antenna height differs from the particle's by more than
+    ``filter.vs_birth_height`` (3 m) is removed (weight 0, mean 0, covariance I); one farther away, one on the
+    band and the dead slots stay as they are; the input map is not written."""
+    from mmslam.slam.core.gm import GM
+    from mmslam.slam.specs.vehicle_body import vs_on_road
+
+    scn = load_preset("street")
+    assert scn.sensor.fov_range == 50.0 and scn.filter.vs_birth_height == 3.0
+    states = np.zeros((2, 7))
+    states[:, 2] = [1.6, 10.0]  # particle 1 is (as if) on a bridge 8.4 m higher
+    m = np.zeros((2, 4, 7))
+    m[:, :, 0:3] = [[20.0, 0.0, 1.2], [10.0, 5.0, 8.0], [80.0, 0.0, 9.0], [5.0, 5.0, 1.6]]
+    w = np.full((2, 4), 0.7)
+    mask = np.array([[True, True, True, False], [True, True, True, True]])
+    g = GM(w, m, np.broadcast_to(np.eye(7) * 2.0, (2, 4, 7, 7)).copy(), mask)
+    before = g.copy()
+    out = vs_on_road(g, states, scn)
+    for a in ("w", "m", "P", "mask"):
+        np.testing.assert_array_equal(getattr(g, a), getattr(before, a))
+    # particle 0 (z 1.6): slot 1 (8 m up, 11 m away) goes; slot 2 (9 m up but 80 m away) stays
+    # particle 1 (z 10): slot 0 (8.8 m below) and slot 3 (8.4 m below) go; slot 1 (2 m below) stays
+    np.testing.assert_array_equal(out.mask, [[True, False, True, False], [False, True, True, False]])
+    gone = mask & ~out.mask
+    assert np.all(out.w[gone] == 0) and np.all(out.m[gone] == 0) and np.all(out.P[gone] == np.eye(7))
+    np.testing.assert_array_equal(out.w[out.mask], w[out.mask])
+    high = with_overrides(scn, ["filter.vs_birth_height=10000"])
+    assert vs_on_road(g, states, high) is g  # no gate: the same map

@@ -48,6 +48,22 @@ def measurement_function(state: np.ndarray, geometry: int, bs: np.ndarray) -> Ca
     return lambda x: measure(state, x[:3], geometry, bs)
 
 
+def body_bounce(x: np.ndarray, heading: float, b: np.ndarray, u: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """Specular point of the ellipsoidal car body (reference of :func:`mmslam.slam.models.vs.body_specular_point`):
+    ``c = x - (0, 0, depth)``, ``M = R diag(a^2, w^2, h^2) R^T`` (``(a, w, h) = body[:3] / 2``, ``R`` the rotation by
+    ``heading`` about z), ``n = (b - c)/|b - c| + (u - c)/|u - c|``, ``p = c + M n / sqrt(n^T M n)``; a point VS
+    (``body[0] <= 0``): ``x``."""
+    x = np.asarray(x, float)
+    if body[0] <= 0:
+        return x.copy()
+    c = x - np.array([0.0, 0.0, body[3]])
+    ch, sh = np.cos(heading), np.sin(heading)
+    Rz = np.array([[ch, -sh, 0.0], [sh, ch, 0.0], [0.0, 0.0, 1.0]])
+    M = Rz @ np.diag((np.asarray(body[:3], float) / 2) ** 2) @ Rz.T
+    n = (b - c) / np.linalg.norm(b - c) + (u - c) / np.linalg.norm(u - c)
+    return c + M @ n / np.sqrt(n @ M @ n)
+
+
 def invert(state: np.ndarray, z: np.ndarray, geometry: int, bs: np.ndarray) -> tuple[np.ndarray, bool]:
     """Textbook inversion of one measurement: the AOA ray from the antenna, at range ``TOA - B``
     (MIRROR: the image source) or where it meets the ellipsoid with foci BS and antenna (SCATTER);
