@@ -142,6 +142,13 @@ class SensorParams:
                            hi_open=True)
     est_max_paths: int = param(20, "estimated model: at most this many estimates per vehicle and step", "",
                                lo=1, hi=200)
+    est_resolve: float = param(2.0, "estimated model: non-maximum suppression radius: an estimate within this "
+                               "many resolution cells, in each of the five axes at once (delay c / bandwidth, "
+                               "each array's spatial frequency 2 / elements), of a stronger kept estimate of the "
+                               "same link is dropped before the filter (0: off). NOMP returns a diffuse cluster "
+                               "around one path as several estimates; the filter's model has at most one "
+                               "measurement per landmark and step (docs/estimator.md, section 3b)", "cells",
+                               lo=0.0, hi=64.0)
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,59 @@ def test_association_merges_and_false_alarms_by_hand():
     np.testing.assert_array_equal(n_lm, [2, 1, 0])
 
 
+def test_non_maximum_suppression_by_hand():
+    """Greedy NMS in cells of every axis at once: a weaker estimate inside a kept one's box goes, one outside
+    it in a single axis stays, one near only a dropped estimate stays, axes wrap; radius 0 keeps all."""
+    grid = ce.Grid(4, 4, 16, 100e6)
+    cell = 2 * np.pi / np.array(grid.shape)  # pi / 2 in the spatial axes (4 elements), 2 pi / 16 in delay
+    a = np.array([0.3, -0.2, 0.1, 0.0, 1.0])
+    off = np.array([[0, 0, 0, 0, 0],            # 0: the strongest
+                    [0.9, 0.9, 0.9, 0.9, 0.9],  # 1: 0.9 cells from 0 in every axis
+                    [0, 0, 0, 0, 1.5],          # 2: 1.5 cells from 0 in delay only
+                    [0, 0, 0, 0, 2.4],          # 3: 2.4 cells from 0, 0.9 from 2
+                    [0, 0, 0, 2.9, 0],          # 4: 2.9 cells in an axis of 4 cells: 1.1 the other way round
+                    [0, 0, 0, 0, 15.5]])        # 5: 15.5 cells in delay (16): 0.5 the other way round
+    w = a + off * cell
+    snr = np.array([30.0, 20.0, 25.0, 10.0, 15.0, 12.0])
+    # radius 1: 0 drops 1 and 5; 2 stays (1.5 cells) and drops 3; 4 stays (1.1 cells)
+    np.testing.assert_array_equal(es.suppress_non_maxima(w, snr, grid, 1.0), [1, 0, 1, 0, 1, 0])
+    # radius 2: 0 drops 1, 2, 4 and 5; 3 is 2.4 cells from 0 and only near the dropped 2: it stays
+    np.testing.assert_array_equal(es.suppress_non_maxima(w, snr, grid, 2.0), [1, 0, 0, 1, 0, 0])
+    assert es.suppress_non_maxima(w, snr, grid, 0.0).all()
+    # only the strengths order them, not the position in the list
+    p = np.array([3, 5, 0, 2, 4, 1])
+    np.testing.assert_array_equal(es.suppress_non_maxima(w[p], snr[p], grid, 2.0), [1, 0, 1, 0, 0, 0])
+
+
+def test_resolve_estimates_recounts_what_the_filter_gets(paper2):
+    """Two links: a VA estimate inside the LOS estimate's main lobe is dropped and its VA becomes missed;
+    two distant estimates of the other link both stay; the input dict is not modified."""
+    scn, _ = paper2
+    grid = es.PilotModel.from_sensor(scn.sensor, scn.frequency_hz).grid
+    t0 = 10.0
+    cell = 2 * np.pi / np.array(grid.shape)
+    w0 = np.array([0.2, -0.3, 0.4, -0.1, -1.0])
+    w = np.array([w0, w0 + 0.5 * cell, w0, w0 + 2.5 * cell * np.array([0, 0, 1, 0, 0])])  # 2.5 BS cells
+    z = ce.measurement_of_w(w, t0, grid)
+    est = {"set": np.array([0, 0, 1, 1]), "z": z, "cov": np.tile(np.eye(5), (4, 1, 1)),
+           "snr_db": np.array([30.0, 20.0, 25.0, 18.0]), "origin_type": np.array([0, 1, 1, -1]),
+           "origin_id": np.array(["bs", "wall", "wall", ""], object),
+           "origin_pos": np.array([[0, 0, 40.0], [1, 2, 3], [1, 2, 3], [np.nan] * 3]),
+           "merged": np.array([True, False, False, False]), "true_states": np.zeros((1, 2, 7)),
+           "counts": np.array([[[2, 2, 1, 0, 0], [2, 1, 0, 1, 3]]])}
+    before = {k: np.array(v, copy=True) for k, v in est.items()}
+    r = es.resolve_estimates(with_overrides(scn, ["sensor.est_resolve=2"]), est, 1, 2)
+    np.testing.assert_array_equal(r["set"], [0, 1, 1])
+    np.testing.assert_array_equal(r["origin_type"], [0, 1, -1])
+    # estimates, detected, merged, false, missed (+1 at link 0: the VA), suppressed
+    np.testing.assert_array_equal(r["counts"], [[[1, 1, 1, 0, 1, 1], [2, 1, 0, 1, 3, 0]]])
+    for k, v in before.items():
+        np.testing.assert_array_equal(np.asarray(est[k]), v)
+    off = es.resolve_estimates(with_overrides(scn, ["sensor.est_resolve=0"]), est, 1, 2)
+    np.testing.assert_array_equal(off["set"], est["set"])
+    np.testing.assert_array_equal(off["counts"][..., :5], est["counts"])
+
+
 def test_filter_runs_on_the_estimates(paper2):
     """run_slam with sensor.model=estimated: a result with the per-step estimator counts in its meta;
     measurements reach the filter (the vehicles' maps are not all empty)."""
@@ -115,7 +168,8 @@ def test_filter_runs_on_the_estimates(paper2):
     _, c = paper2
     r = run_slam(c.path, "proposed", particles=20, seed=1, overrides=["sensor.model=estimated"])
     cnt = np.asarray(r.meta["estimator_counts"]["per_step_vehicle"])
-    assert cnt.shape == (2, 2, 5) and cnt[..., 0].min() >= 1
+    assert cnt.shape == (2, 2, len(es.RESOLVED_COLUMNS)) and cnt[..., 0].min() >= 1
+    assert r.meta["estimator_counts"]["columns"][-1] == "suppressed"
     assert list((c.path / "estimates").rglob("seed-1-steps-2.npz"))
 
 

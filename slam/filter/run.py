@@ -158,13 +158,14 @@ class CooperativeRun:
         s_meas, s_prior, *s_veh = ss.spawn(2 + n_veh)
         self.estimator_counts = None
         if scn.sensor.model == "estimated":  # measurements from the channel estimator (estimated_sensor.py)
-            from ..sim.estimated_sensor import estimated_run, to_measurements
+            from ..sim.estimated_sensor import estimated_run, resolve_estimates, to_measurements
 
             if rays is None:
                 raise MmslamError("sensor.model = \"estimated\" needs the traced rays: run it on a cache "
                                   "(mmslam run / ablate), not on paths alone")
             est = estimated_run(scn, states, {k: np.asarray(v)[np.asarray(rays["step"]) < steps] for k, v in rays.items()},
                                 sub, np.random.default_rng(s_meas), estimates_dir, int(seed))
+            est = resolve_estimates(scn, est, steps, n_veh)  # non-maximum suppression (sensor.est_resolve)
             self.meas = to_measurements(scn, est, steps, n_veh)
             self.estimator_counts = est["counts"]
         else:
@@ -284,9 +285,9 @@ class CooperativeRun:
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
                                     "per_step_vehicle": counts[:self.steps].tolist()}
         if self.estimator_counts is not None:  # evaluation labels of the estimates (never used by the filter)
-            from ..sim.estimated_sensor import COUNT_COLUMNS
+            from ..sim.estimated_sensor import RESOLVED_COLUMNS
 
-            md["estimator_counts"] = {"columns": list(COUNT_COLUMNS),
+            md["estimator_counts"] = {"columns": list(RESOLVED_COLUMNS),
                                       "per_step_vehicle": np.asarray(self.estimator_counts)[:self.steps].tolist()}
         md.update(meta or {})
         md["wall_time_s"] = time.perf_counter() - self.t0

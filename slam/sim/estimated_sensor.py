@@ -20,7 +20,10 @@ Per vehicle and step, from every traced ray of its link (``rays`` table, all typ
 2. **estimator** (:mod:`mmslam.slam.sim.channel_estimator`): NOMP with a CFAR stop at ``est_pfa`` per
    vehicle-step, at most ``est_max_paths`` estimates; each estimate ``z = [t0 + tau (m), AOD az,
    AOD el, AOA az - heading, AOA el]`` with its Fisher-information covariance.
-3. **evaluation labels** (:func:`associate`, never seen by the filter): each estimate is matched to
+3. **non-maximum suppression** (:func:`suppress_non_maxima`, ``est_resolve`` cells, applied to the cached
+   estimates by :func:`resolve_estimates`, so changing it does not re-estimate): of estimates of one link
+   within ``est_resolve`` cells of each other in every axis, only the strongest is kept.
+4. **evaluation labels** (:func:`associate`, never seen by the filter): each estimate is matched to
    the traced rays within one resolution cell in every axis; its label is the landmark of the
    strongest such ray, ``merged`` if rays of two or more landmarks fall in the cell, ``false`` if
    none. A landmark of the ``paths`` table with no estimate labelled with it is ``missed``.
@@ -186,6 +189,9 @@ COUNT_COLUMNS = ("estimates", "detected", "merged", "false", "missed")
 """Per (step, vehicle) evaluation counts: estimates; estimates labelled with a landmark (one label
 each); of those with two or more landmarks in their cell; estimates without any ray in their cell;
 landmarks of the ``paths`` table no estimate is labelled with."""
+RESOLVED_COLUMNS = COUNT_COLUMNS + ("suppressed",)
+"""The counts of :func:`resolve_estimates`: :data:`COUNT_COLUMNS` of the estimates the filter gets (after
+the non-maximum suppression) and the number of estimates it dropped."""
 
 
 def estimate_run(scn: Scenario, states: np.ndarray, rays: dict[str, np.ndarray], paths: dict[str, np.ndarray],
@@ -281,6 +287,76 @@ def estimated_run(scn: Scenario, states: np.ndarray, rays: dict[str, np.ndarray]
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, _npz_bytes(res))
     return res
+
+
+def suppress_non_maxima(w: np.ndarray, snr_db: np.ndarray, grid: ce.Grid, cells: float) -> np.ndarray:
+    """Greedy non-maximum suppression of one link's estimates in the estimator's frequency space.
+
+    In order of decreasing SNR, a kept estimate drops every weaker estimate within ``cells``
+    resolution cells of it in all five axes at once (``|wrap(w_i,d - w_j,d)| <= cells 2 pi / L_d`` for
+    every axis ``d``; a dropped estimate drops nothing). A path's main lobe is two cells wide (null to
+    null) in each axis, so at ``cells = 2`` a kept estimate owns the estimates inside its main lobe:
+    the diffuse rays around a specular path that NOMP fits as separate atoms (docs/estimator.md, 3b).
+
+    Args:
+        w: ``(L, 5)`` estimated frequencies (rad; :func:`~.channel_estimator.w_of_measurement`, any
+            delay origin: only differences enter). snr_db: ``(L,)`` integrated SNRs (dB; any
+            monotone strength). grid: the estimator's grid (axis lengths ``L_d``).
+        cells: suppression radius in cells (<= 0: keep every estimate).
+
+    Returns:
+        ``keep (L,)`` bool. Equal SNRs: the earlier estimate is the stronger.
+    """
+    w, snr_db = np.asarray(w, float).reshape(-1, MEAS_DIM), np.asarray(snr_db, float).reshape(-1)
+    keep = np.ones(snr_db.shape[0], bool)
+    if cells <= 0 or keep.size < 2:
+        return keep
+    cell = 2.0 * np.pi / np.asarray(grid.shape, float)
+    near = np.all(np.abs(wrap_angle(w[:, None, :] - w[None, :, :])) <= cells * cell, axis=-1)  # (L, L)
+    order = np.argsort(-snr_db, kind="stable")
+    for pos, i in enumerate(order):
+        if keep[i]:
+            later = order[pos + 1:]
+            keep[later[near[i, later]]] = False
+    return keep
+
+
+def resolve_estimates(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int
+                      ) -> dict[str, np.ndarray]:
+    """An :func:`estimate_run` result after :func:`suppress_non_maxima` of every link (``sensor.est_resolve``).
+
+    Returns the same dict with the per-estimate arrays of the kept estimates and ``counts (steps, n_veh, 6)``
+    (:data:`RESOLVED_COLUMNS`): the evaluation counts recomputed over the kept estimates (a BS / VA / SP / VS
+    landmark of the ``paths`` table whose every estimate was dropped becomes missed) and the number dropped.
+    The input is not modified.
+    """
+    s = np.asarray(est["set"], np.int64)
+    grid = PilotModel.from_sensor(scn.sensor, scn.frequency_hz).grid
+    keep = np.ones(s.size, bool)
+    z, snr = np.asarray(est["z"], float).reshape(-1, MEAS_DIM), np.asarray(est["snr_db"], float)
+    for u in np.unique(s):
+        i = np.flatnonzero(s == u)
+        keep[i] = suppress_non_maxima(ce.w_of_measurement(z[i], 0.0, grid), snr[i], grid, scn.sensor.est_resolve)
+    per_estimate = ("set", "z", "cov", "snr_db", "origin_type", "origin_id", "origin_pos", "merged")
+    out = {k: (np.asarray(v)[keep] if k in per_estimate else v) for k, v in est.items()}
+    old = np.asarray(est["counts"], np.int64)[:steps]
+    counts = np.zeros((old.shape[0], n_veh, len(RESOLVED_COLUMNS)), np.int64)
+    counts[..., 4] = old[..., 4]  # missed before the suppression
+    otype, oid, merged = np.asarray(est["origin_type"]), np.asarray(est["origin_id"]).astype(str), np.asarray(est["merged"], bool)
+    in_paths = np.isfinite(np.asarray(est["origin_pos"], float).reshape(-1, 3)[:, 0])  # a landmark of the paths table
+    for u in np.unique(s):
+        k, v = divmod(int(u), n_veh)
+        if k >= counts.shape[0]:
+            continue
+        i = np.flatnonzero(s == u)
+        kept = i[keep[i]]
+        found_before = {(otype[j], oid[j]) for j in i[in_paths[i]]}
+        found_after = {(otype[j], oid[j]) for j in kept[in_paths[kept]]}
+        counts[k, v, :4] = (kept.size, int((otype[kept] >= 0).sum()), int(merged[kept].sum()), int((otype[kept] < 0).sum()))
+        counts[k, v, 4] += len(found_before - found_after)
+        counts[k, v, 5] = i.size - kept.size
+    out["counts"] = counts
+    return out
 
 
 def threshold_covariance(scn: Scenario) -> np.ndarray:
