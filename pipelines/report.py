@@ -168,7 +168,8 @@ def _num(x: Any, nd: int = 2) -> str:
 def _sensor_html(summary: Summary) -> str:
     """``<table id="measurements">``: per variant (grid arm) its sensor model and the mean number of
     measurements per vehicle-step by origin (landmark type, OTHER path, clutter / false alarm), with
-    the channel estimator's merged and missed counts; ``<table id="sensor-pairs">``: the paired
+    the channel estimator's merged, missed and suppressed counts (suppressed: dropped by the non-maximum
+    suppression before the filter; "n/a" for runs stored before it); ``<table id="sensor-pairs">``: the paired
     differences between sensor-model arms (:mod:`mmslam.pipelines.ablate.sensor_models`)."""
     sm = summary.sensor or {}
     rows = sm.get("measurements") or []
@@ -179,7 +180,7 @@ def _sensor_html(summary: Summary) -> str:
         for c in (r.get("measurements") or {}):
             if c not in cols:
                 cols.append(c)
-    est_cols = ("merged", "missed")
+    est_cols = ("merged", "missed", "suppressed")
     body = []
     for r in rows:
         m, e = r.get("measurements") or {}, r.get("estimator") or {}
@@ -188,7 +189,8 @@ def _sensor_html(summary: Summary) -> str:
         body.append(f'<tr data-variant="{html.escape(str(r["variant"]))}" data-model="{html.escape(str(r["model"]))}">'
                     f'<td>{html.escape(str(r["variant"]))}</td><td>{html.escape(str(r["model"]))}</td>'
                     f'<td>{r.get("runs", "")}</td>{cells}</tr>')
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "<th>merged (estimator)</th><th>missed (estimator)</th>"
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols) + ("<th>merged (estimator)</th><th>missed (estimator)</th>"
+                                                            "<th>suppressed (estimator)</th>")
     out = ('<table id="measurements"><thead><tr><th>variant</th><th>sensor model</th><th>runs</th>'
            f'{head}</tr></thead><tbody>{"".join(body)}</tbody></table>')
     pairs = sm.get("pairs") or []

@@ -149,6 +149,11 @@ class SensorParams:
                                "around one path as several estimates; the filter's model has at most one "
                                "measurement per landmark and step (docs/estimator.md, section 3b)", "cells",
                                lo=0.0, hi=64.0)
+    est_toa_floor: float = param(0.05, "estimated model: floor of an estimate's TOA standard deviation, added in "
+                                 "quadrature to its Fisher-information value: a component the estimator cannot "
+                                 "resolve (closer than c / bandwidth) shifts the estimate by up to half its excess "
+                                 "delay, e.g. the car roof's reflection of a roof antenna (docs/estimator.md, "
+                                 "section 3c)", "m", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)

@@ -160,6 +160,57 @@ def test_resolve_estimates_recounts_what_the_filter_gets(paper2):
     np.testing.assert_array_equal(off["counts"][..., :5], est["counts"])
 
 
+def test_an_unresolved_roof_reflection_biases_the_toa_far_beyond_its_fisher_std(paper2):
+    """The case behind ``sensor.est_toa_floor``: a path plus a 1 dB weaker copy 5 cm later (a roof
+    reflection; 0.07 delay cells) at 50 dB, on the default grid, no noise: one estimate, its TOA between the
+    two near their power-weighted centre (2.2 cm), i.e. dozens of Fisher standard deviations off the direct
+    path, and within the floor; measurement_variances adds the floor to the TOA alone."""
+    scn, _ = paper2
+    pm = es.PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
+    grid = pm.grid
+    z_direct = np.array([[80.0, 0.3, -0.4, -0.2, 0.5]])
+    t0 = 76.0
+    w_a = ce.w_of_measurement(z_direct, t0, grid)[0]
+    w_b = ce.w_of_measurement(z_direct + np.array([[0.05, 0, 0, 0, 0]]), t0, grid)[0]
+    amp_a = 10 ** (50 / 20) / np.sqrt(grid.size)
+    amp_b = amp_a * 10 ** (-1 / 20)
+    Y = amp_a * ce.atom_tensor(w_a, grid) + amp_b * ce.atom_tensor(w_b, grid)
+    z, cov, snr, _ = es.estimate_link(Y, t0, pm, scn.sensor.est_pfa, 5)
+    assert len(z) == 1
+    centre = 0.05 * amp_b**2 / (amp_a**2 + amp_b**2)  # 2.2 cm after the direct path
+    bias = z[0, 0] - z_direct[0, 0]
+    assert 0.5 * centre < bias < 0.05 and bias > 20 * np.sqrt(cov[0, 0, 0])
+    var = es.measurement_variances(scn, cov)
+    np.testing.assert_allclose(var[0, 0], cov[0, 0, 0] + scn.sensor.est_toa_floor**2, rtol=1e-12)
+    np.testing.assert_array_equal(var[0, 1:], np.diagonal(cov[0])[1:])
+    assert abs(bias) < np.sqrt(var[0, 0])
+
+
+def test_a_path_beyond_the_delay_window_is_estimated_at_its_own_delay(paper2):
+    """A first arrival 3.5 m into the window (its sample 4 = GUARD) and a path 190 m after it, past the
+    191.9 m window's end: the DFT puts it 191.9 m early, before the first arrival; estimate_link gives both
+    at their true TOAs. A path 195 m after the first arrival aliases to after it (6.6 m into the window):
+    not told apart, stays (the documented limit: only the guard interval unwraps). unwrap_delay by hand:
+    only estimates more than one sample before the first arrival move."""
+    scn, _ = paper2
+    pm = es.PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
+    grid, t0 = pm.grid, 40.0
+    dr = C / grid.bandwidth_hz
+    window = grid.n_subcarriers * dr
+    assert window == pytest.approx(191.9, abs=0.1)
+    for excess, want in ((190.0, t0 + 3.5 + 190.0), (195.0, t0 + 3.5 + 195.0 - window)):
+        z_true = np.array([[t0 + 3.5, 0.3, -0.4, -0.2, 0.5], [t0 + 3.5 + excess, -0.8, -0.2, 1.1, 0.1]])
+        w = ce.w_of_measurement(z_true, t0, grid)
+        amp = 10 ** (np.array([40.0, 30.0]) / 20) / np.sqrt(grid.size)
+        Y = amp[0] * ce.atom_tensor(w[0], grid) + amp[1] * ce.atom_tensor(w[1], grid)
+        z, _, _, _ = es.estimate_link(Y, t0, pm, scn.sensor.est_pfa, 5)
+        assert len(z) == 2
+        np.testing.assert_allclose(np.sort(z[:, 0]), np.sort([t0 + 3.5, want]), atol=1e-3)
+    by_hand = es.unwrap_delay(np.array([[t0 + 0.5, 0, 0, 0, 0], [t0 + 2.0, 0, 0, 0, 0], [t0 + 2.4, 0, 0, 0, 0],
+                                        [t0 + 150.0, 0, 0, 0, 0]]), t0, grid)
+    np.testing.assert_allclose(by_hand[:, 0], [t0 + 0.5 + window, t0 + 2.0 + window, t0 + 2.4, t0 + 150.0])
+
+
 def test_filter_runs_on_the_estimates(paper2):
     """run_slam with sensor.model=estimated: a result with the per-step estimator counts in its meta;
     measurements reach the filter (the vehicles' maps are not all empty)."""

@@ -19,10 +19,13 @@ Per vehicle and step, from every traced ray of its link (``rays`` table, all typ
    the caller's generator, one ``(rx, tx, K)`` complex normal block per (step, vehicle) in order.
 2. **estimator** (:mod:`mmslam.slam.sim.channel_estimator`): NOMP with a CFAR stop at ``est_pfa`` per
    vehicle-step, at most ``est_max_paths`` estimates; each estimate ``z = [t0 + tau (m), AOD az,
-   AOD el, AOA az - heading, AOA el]`` with its Fisher-information covariance.
+   AOD el, AOA az - heading, AOA el]`` with its Fisher-information covariance; a delay earlier than the
+   first arrival is unwrapped by one window (:func:`unwrap_delay`).
 3. **non-maximum suppression** (:func:`suppress_non_maxima`, ``est_resolve`` cells, applied to the cached
    estimates by :func:`resolve_estimates`, so changing it does not re-estimate): of estimates of one link
    within ``est_resolve`` cells of each other in every axis, only the strongest is kept.
+   The filter gets each kept estimate's Fisher-information variances, the TOA's with a floor
+   ``est_toa_floor`` (:func:`measurement_variances`).
 4. **evaluation labels** (:func:`associate`, never seen by the filter): each estimate is matched to
    the traced rays within one resolution cell in every axis; its label is the landmark of the
    strongest such ray, ``merged`` if rays of two or more landmarks fall in the cell, ``false`` if
@@ -53,7 +56,7 @@ from .sensor import BOLTZMANN_DBM_HZ, Measurements, clock_bias_walk, clutter_int
 SPEED_OF_LIGHT = ce.SPEED_OF_LIGHT
 GUARD = 4
 """Samples (``1 / B`` each) the receiver's window opens before the first arrival."""
-ESTIMATOR_VERSION = 2
+ESTIMATOR_VERSION = 3
 """Part of the estimates' cache key: bump when the estimator's results change."""
 
 
@@ -101,12 +104,33 @@ def received_pilots(rays: dict[str, np.ndarray], idx: np.ndarray, heading: float
     return Y, t0
 
 
+def unwrap_delay(z: np.ndarray, t0_m: float, grid: ce.Grid) -> np.ndarray:
+    """Estimates ``z (L, 5)`` with the delay aliasing of the DFT window undone (a copy).
+
+    The delay axis is periodic with the window ``W = K c / B`` (192 m at 256 subcarriers and 400 MHz): a
+    path longer than ``t0 + W`` appears ``W`` too early. The receiver opened its window :data:`GUARD`
+    samples before its first arrival, so an estimate more than one sample earlier than that
+    (``z_toa - t0 < (GUARD - 1) c / B``) cannot be a path of this link as it is: it is one from beyond the
+    window's end, and gets ``W`` added. This undoes the aliasing of excess delays in
+    ``[W - tau_1, W - tau_1 + (GUARD - 1) c / B)`` (``tau_1`` the first arrival's delay into the window,
+    ``GUARD`` to ``GUARD + 1`` samples: about the last three samples before ``W``); a longer path
+    aliases to after the first arrival and is not told apart (a larger ``est_subcarriers`` is then needed).
+    On the ``paper`` Sionna trace the far wall's VA (189-193 m of excess delay) was aliased in 5.7 % of the
+    VA estimates, 0.3 % with this (docs/estimator.md, 3d).
+    """
+    z = np.array(z, float, copy=True)
+    dr = SPEED_OF_LIGHT / grid.bandwidth_hz
+    early = z[:, 0] - t0_m < (GUARD - 1) * dr
+    z[early, 0] += grid.n_subcarriers * dr
+    return z
+
+
 def estimate_link(Y: np.ndarray, t0_m: float, pm: PilotModel, pfa: float, max_paths: int
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Estimates of one link: ``z (L, 5)``, covariances ``(L, 5, 5)``, integrated SNR ``|g|^2 N`` (dB)
     ``(L,)`` and the frequencies ``w (L, 5)``."""
     w, g = ce.nomp(Y, pm.grid, pfa, max_paths)
-    z = ce.measurement_of_w(w, t0_m, pm.grid)
+    z = unwrap_delay(ce.measurement_of_w(w, t0_m, pm.grid), t0_m, pm.grid)
     cov = ce.measurement_covariance(z, g, t0_m, pm.grid) if len(g) else np.zeros((0, 5, 5))
     snr = 10.0 * np.log10(np.abs(g) ** 2 * pm.grid.size) if len(g) else np.zeros(0)
     return z, cov, snr, w
@@ -365,7 +389,25 @@ def threshold_covariance(scn: Scenario) -> np.ndarray:
     pm = PilotModel.from_sensor(scn.sensor, scn.frequency_hz)
     g = math.sqrt(ce.cfar_threshold(pm.grid, scn.sensor.est_pfa))
     z = np.array([[50.0, 0.0, -0.35, 0.0, 0.35]])
-    return ce.measurement_covariance(z, np.array([g]), 0.0, pm.grid)[0]
+    cov = ce.measurement_covariance(z, np.array([g]), 0.0, pm.grid)[0]
+    cov[0, 0] += scn.sensor.est_toa_floor ** 2  # as every estimate's (measurement_variances)
+    return cov
+
+
+def measurement_variances(scn: Scenario, cov: np.ndarray) -> np.ndarray:
+    """``(M, 5)`` variances the filter gets for estimates with Fisher-information covariances ``cov (M, 5, 5)``:
+    their diagonals, the TOA's (m^2) plus ``sensor.est_toa_floor^2``.
+
+    The Fisher information bounds the error of an estimate of one isolated path. A second component closer
+    than the delay resolution (``c / B``) is not resolved: the estimate lies near the components'
+    power-weighted centre, a bias of up to half their excess delay that no SNR removes. A roof antenna
+    always has one: the roof's specular reflection, ``2 h sin(el)`` later for an antenna ``h`` above the
+    roof, 1 dB weaker on the ``paper`` trace; measured bias of the line-of-sight estimates: median 2.1 cm
+    (``paper``) and 1.4 cm (``canyon``), against a Fisher standard deviation of 0.4 mm (docs/estimator.md, 3c).
+    """
+    var = np.diagonal(np.asarray(cov, float), axis1=-2, axis2=-1).copy()
+    var[..., 0] += scn.sensor.est_toa_floor ** 2
+    return var
 
 
 def to_measurements(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int) -> Measurements:
@@ -384,7 +426,7 @@ def to_measurements(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh
     otype[ks, vs, slot] = est["origin_type"]
     oid[ks, vs, slot] = est["origin_id"]
     opos[ks, vs, slot] = est["origin_pos"]
-    rvar[ks, vs, slot] = np.diagonal(est["cov"], axis1=1, axis2=2)
+    rvar[ks, vs, slot] = measurement_variances(scn, est["cov"])
     snr[ks, vs, slot] = est["snr_db"]
     return Measurements(Z, mask, otype, oid, opos, np.asarray(est["true_states"], float), clutter_intensity(scn.sensor),
                         threshold_covariance(scn), rvar, snr)
