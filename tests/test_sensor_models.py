@@ -94,6 +94,22 @@ def test_measurement_rows_average_per_vehicle_step_over_runs() -> None:
     assert row["estimator"] == {"estimates": 4.0, "merged": 0.5}
 
 
+def test_measurement_rows_average_runs_that_store_different_columns() -> None:
+    """A resumed ablation: a run stored before the estimator's ``suppressed`` column and one after; each
+    column is averaged over the runs that have it (no crash on the ragged blocks)."""
+    class R:
+        def __init__(self, cols: list, est: list) -> None:
+            self.meta = {"estimator_counts": {"columns": cols, "per_step_vehicle": est}}
+
+    old = ["estimates", "detected", "merged", "false", "missed"]
+    jobs = {A.Job("proposed", 0): R(old, [[[3, 2, 1, 1, 0], [5, 5, 0, 0, 2]]]),
+            A.Job("proposed", 1): R(old + ["suppressed"], [[[1, 1, 0, 0, 1, 2], [2, 2, 0, 0, 1, 6]]])}
+    (row,) = measurement_rows(jobs, ["proposed"], {})
+    assert row["estimator"] == {"estimates": 2.75, "detected": 2.5, "merged": 0.25, "false": 0.25, "missed": 1.0,
+                                "suppressed": 4.0}
+    assert list(row["estimator"]) == old + ["suppressed"]
+
+
 @pytest.mark.slow
 def test_report_shows_measurements_and_the_paired_sensor_models(tmp_path: Path) -> None:
     d = tmp_path / "abl"

@@ -3,7 +3,8 @@
 Every run stores, for evaluation only, how many of its measurements came from each kind of path
 (``Result.meta["measurement_counts"]``: per step and vehicle, the registered types, ``OTHER`` and
 ``clutter``, i.e. false alarms with no originating path) and, under ``sensor.model = "estimated"``, the
-channel estimator's counts (``meta["estimator_counts"]``: estimates, detected, merged, false, missed).
+channel estimator's counts (``meta["estimator_counts"]``: estimates, detected, merged, false, missed,
+suppressed).
 :func:`measurement_rows` averages them per vehicle-step over the runs of each variant (or grid arm);
 :func:`sensor_pairs` gives, for an ablation whose grid varies ``sensor.model``, the paired difference of
 the fused map's scores between an arm and the same variant's reference-model arm (``link``, else
@@ -49,18 +50,25 @@ def sensor_model(label: str, spec: Mapping[str, Any], metas: Sequence[Mapping[st
 
 
 def _mean_counts(metas: Sequence[Mapping[str, Any]], key: str) -> dict[str, float] | None:
-    """Mean per (step, vehicle) of ``meta[key]["per_step_vehicle"]`` over runs, by column; None if no run has it."""
-    cols: list[str] | None = None
-    blocks = []
+    """Mean per (step, vehicle) of ``meta[key]["per_step_vehicle"]`` over runs, by column; None if no run has it.
+
+    Runs may store different columns (a resumed ablation whose older runs predate a column, e.g. the
+    estimator's ``suppressed``): each column is the mean over the (step, vehicle) rows of the runs that
+    have it, in the order first seen."""
+    sums: dict[str, float] = {}
+    rows: dict[str, int] = {}
     for m in metas:
         c = m.get(key)
         if not isinstance(c, Mapping) or "per_step_vehicle" not in c:
             continue
         cols = list(c["columns"])
-        blocks.append(np.asarray(c["per_step_vehicle"], float).reshape(-1, len(cols)))
-    if cols is None:
+        block = np.asarray(c["per_step_vehicle"], float).reshape(-1, len(cols))
+        for j, col in enumerate(cols):
+            sums[col] = sums.get(col, 0.0) + float(block[:, j].sum())
+            rows[col] = rows.get(col, 0) + block.shape[0]
+    if not sums:
         return None
-    return dict(zip(cols, np.concatenate(blocks).mean(axis=0).tolist()))
+    return {col: sums[col] / rows[col] if rows[col] else math.nan for col in sums}
 
 
 def measurement_rows(jobs: Mapping[Job, Any], labels: Sequence[str], spec: Mapping[str, Any]) -> list[dict[str, Any]]:
