@@ -151,9 +151,11 @@ class SensorParams:
                                lo=0.0, hi=64.0)
     est_toa_floor: float = param(0.05, "estimated model: floor of an estimate's TOA standard deviation, added in "
                                  "quadrature to its Fisher-information value: a component the estimator cannot "
-                                 "resolve (closer than c / bandwidth) shifts the estimate by up to half its excess "
-                                 "delay, e.g. the car roof's reflection of a roof antenna (docs/estimator.md, "
-                                 "section 3c)", "m", lo=0.0, hi=100.0)
+                                 "resolve (closer than c / bandwidth) biases the estimate by an amount set by the "
+                                 "two components' relative phase (in phase: about half their gap later; near "
+                                 "anti-phase: earlier than the first by more than the gap), e.g. the car roof's reflection of a roof antenna; "
+                                 "5 cm is about the measured RMS of that error (docs/estimator.md, section 3c)",
+                                 "m", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)
