@@ -319,8 +319,8 @@ def suppress_non_maxima(w: np.ndarray, snr_db: np.ndarray, grid: ce.Grid, cells:
     In order of decreasing SNR, a kept estimate drops every weaker estimate within ``cells``
     resolution cells of it in all five axes at once (``|wrap(w_i,d - w_j,d)| <= cells 2 pi / L_d`` for
     every axis ``d``; a dropped estimate drops nothing). A path's main lobe is two cells wide (null to
-    null) in each axis, so at ``cells = 2`` a kept estimate owns the estimates inside its main lobe:
-    the diffuse rays around a specular path that NOMP fits as separate atoms (docs/estimator.md, 3b).
+    null, +-1 cell) in each axis, so at ``cells = 2`` a kept estimate owns the estimates inside its main
+    lobe and its first sidelobes: the diffuse rays around a specular path that NOMP fits as separate atoms (docs/estimator.md, 3b).
 
     Args:
         w: ``(L, 5)`` estimated frequencies (rad; :func:`~.channel_estimator.w_of_measurement`, any
