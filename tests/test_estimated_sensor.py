@@ -158,6 +158,18 @@ def test_resolve_estimates_recounts_what_the_filter_gets(paper2):
     off = es.resolve_estimates(with_overrides(scn, ["sensor.est_resolve=0"]), est, 1, 2)
     np.testing.assert_array_equal(off["set"], est["set"])
     np.testing.assert_array_equal(off["counts"][..., :5], est["counts"])
+    # an OTHER landmark (no stored position) of link 0's paths whose one estimate is dropped: missed only
+    # when the paths table is given (exact); the VA is missed either way
+    est2 = {k: np.asarray(v).copy() for k, v in est.items()}
+    est2["origin_type"] = np.array([0, 4, 1, -1])
+    est2["origin_id"] = np.array(["bs", "rough", "wall", ""], object)
+    est2["origin_pos"][1] = np.nan
+    paths = {"step": np.array([0, 0, 0, 0]), "rx": np.array([0, 0, 1, 1]), "type": np.array([0, 4, 1, 2]),
+             "landmark_id": np.array(["bs", "rough", "wall", "sp"])}
+    sc2 = with_overrides(scn, ["sensor.est_resolve=2"])
+    assert es.resolve_estimates(sc2, est2, 1, 2)["counts"][0, 0, 4] == 0
+    assert es.resolve_estimates(sc2, est2, 1, 2, paths)["counts"][0, 0, 4] == 1
+    assert es.resolve_estimates(sc2, est, 1, 2, paths)["counts"][0, 0, 4] == 0  # 'wall' is not in link 0's paths
 
 
 def test_an_unresolved_roof_reflection_biases_the_toa_far_beyond_its_fisher_std(paper2):
@@ -183,6 +195,8 @@ def test_an_unresolved_roof_reflection_biases_the_toa_far_beyond_its_fisher_std(
     centre = 0.05 * rho / (1 + rho)  # 2.36 cm after the direct path
     bias = z[0, 0] - z_direct[0, 0]
     assert bias == pytest.approx(centre, rel=0.02) and bias > 20 * np.sqrt(cov[0, 0, 0])
+    thr = es.threshold_covariance(scn)  # the shared R carries the floor too
+    assert thr[0, 0] > scn.sensor.est_toa_floor**2 and thr[0, 0] - scn.sensor.est_toa_floor**2 < 1e-4
     var = es.measurement_variances(scn, cov)
     np.testing.assert_allclose(var[0, 0], cov[0, 0, 0] + scn.sensor.est_toa_floor**2, rtol=1e-12)
     np.testing.assert_array_equal(var[0, 1:], np.diagonal(cov[0])[1:])

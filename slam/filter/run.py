@@ -165,7 +165,7 @@ class CooperativeRun:
                                   "(mmslam run / ablate), not on paths alone")
             est = estimated_run(scn, states, {k: np.asarray(v)[np.asarray(rays["step"]) < steps] for k, v in rays.items()},
                                 sub, np.random.default_rng(s_meas), estimates_dir, int(seed))
-            est = resolve_estimates(scn, est, steps, n_veh)  # non-maximum suppression (sensor.est_resolve)
+            est = resolve_estimates(scn, est, steps, n_veh, sub)  # non-maximum suppression (sensor.est_resolve)
             self.meas = to_measurements(scn, est, steps, n_veh)
             self.estimator_counts = est["counts"]
         else:

@@ -345,14 +345,15 @@ def suppress_non_maxima(w: np.ndarray, snr_db: np.ndarray, grid: ce.Grid, cells:
     return keep
 
 
-def resolve_estimates(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int
-                      ) -> dict[str, np.ndarray]:
+def resolve_estimates(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_veh: int,
+                      paths: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """An :func:`estimate_run` result after :func:`suppress_non_maxima` of every link (``sensor.est_resolve``).
 
     Returns the same dict with the per-estimate arrays of the kept estimates and ``counts (steps, n_veh, 6)``
-    (:data:`RESOLVED_COLUMNS`): the evaluation counts recomputed over the kept estimates (a BS / VA / SP / VS
-    landmark of the ``paths`` table whose every estimate was dropped becomes missed) and the number dropped.
-    The input is not modified.
+    (:data:`RESOLVED_COLUMNS`): the evaluation counts recomputed over the kept estimates and the number
+    dropped. ``missed``: with the run's ``paths`` table, a landmark of it whose every labelled estimate was
+    dropped is added to the cached count (exact, :func:`estimate_run`'s definition); without it, only BS /
+    VA / SP / VS landmarks (those with a stored position) are. The input is not modified.
     """
     s = np.asarray(est["set"], np.int64)
     grid = PilotModel.from_sensor(scn.sensor, scn.frequency_hz).grid
@@ -367,15 +368,22 @@ def resolve_estimates(scn: Scenario, est: dict[str, np.ndarray], steps: int, n_v
     counts = np.zeros((old.shape[0], n_veh, len(RESOLVED_COLUMNS)), np.int64)
     counts[..., 4] = old[..., 4]  # missed before the suppression
     otype, oid, merged = np.asarray(est["origin_type"]), np.asarray(est["origin_id"]).astype(str), np.asarray(est["merged"], bool)
-    in_paths = np.isfinite(np.asarray(est["origin_pos"], float).reshape(-1, 3)[:, 0])  # a landmark of the paths table
+    if paths is not None:  # landmark keys of the paths table per link, as estimate_run's missed count
+        p_key = {}
+        for st_, rx_, ty_, id_ in zip(np.asarray(paths["step"]), np.asarray(paths["rx"]), np.asarray(paths["type"]),
+                                      np.asarray(paths["landmark_id"]).astype(str)):
+            p_key.setdefault(int(st_) * n_veh + int(rx_), set()).add((int(ty_), id_))
+        counted = np.array([(int(t_), i_) in p_key.get(int(u_), ()) for u_, t_, i_ in zip(s, otype, oid)], bool)
+    else:
+        counted = np.isfinite(np.asarray(est["origin_pos"], float).reshape(-1, 3)[:, 0])
     for u in np.unique(s):
         k, v = divmod(int(u), n_veh)
         if k >= counts.shape[0]:
             continue
         i = np.flatnonzero(s == u)
         kept = i[keep[i]]
-        found_before = {(otype[j], oid[j]) for j in i[in_paths[i]]}
-        found_after = {(otype[j], oid[j]) for j in kept[in_paths[kept]]}
+        found_before = {(int(otype[j]), oid[j]) for j in i[counted[i]]}
+        found_after = {(int(otype[j]), oid[j]) for j in kept[counted[kept]]}
         counts[k, v, :4] = (kept.size, int((otype[kept] >= 0).sum()), int(merged[kept].sum()), int((otype[kept] < 0).sum()))
         counts[k, v, 4] += len(found_before - found_after)
         counts[k, v, 5] = i.size - kept.size
