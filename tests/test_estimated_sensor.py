@@ -155,7 +155,7 @@ def test_the_estimators_kernels_are_ready_before_the_run_clock_starts(paper2):
     out = subprocess.run([sys.executable, "-c", _READY_BEFORE_THE_CLOCK, str(c.path)], capture_output=True,
                          text=True, timeout=600, check=True).stdout.splitlines()[-1]
     seen = json.loads(out)
-    called = ("contract", "subtract_atoms", "add_cross_terms", "coordinate_search", "next_mover", "refine")
+    called = ("contract", "update_dft", "add_cross_terms", "coordinate_search", "next_mover", "refine")
     assert all(seen["start"][k] >= 1 for k in called), seen["start"]  # the estimator's entry kernels, ready
     assert seen["end"] == seen["start"]
     assert es.estimator_kernels_cached()

@@ -177,7 +177,18 @@ class _Residual:
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
         self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
         self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
-        self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
+        # the DFT's update log (:func:`.nomp_kernels.update_dft`): atoms' factors and gains, call boundaries,
+        # per row the calls applied, its maximum and a bound of its pending change
+        self.log = getattr(_SCRATCH, "log", None)  # its arrays reused (as the four above), grown as needed
+        if self.log is None or self.log[0].shape[1] != Na or self.log[1].shape[1] != K:
+            self.log = self._new_log(64, Na, K)
+        self.n_log = 0
+        self.calls = [0]
+        nb = -(-K // nk.DFT_BLOCK)
+        self.done = np.zeros((Na, nb), np.int64)
+        self.top = np.full((Na, nb), np.inf)
+        self.arg = np.zeros((Na, nb), np.int64)
+        self.pend = np.zeros((Na, nb))
 
     def contract(self, w: np.ndarray) -> np.ndarray:
         """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``y``, the atoms' terms in closed form)."""
@@ -190,22 +201,47 @@ class _Residual:
         nk.add_cross_terms(S, W, np.asarray(w, float), 1.0 + 0j, self.offsets, self.dims)
         return S
 
-    def coordinate_search(self, j: int, sweeps: int = 2) -> np.ndarray:
+    def coordinate_search(self, j: int, sweeps: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """From DFT cell ``j`` (flat index), per axis in turn the maximum of ``|v(w)^H r|^2`` over 17 values of
         ``w_d`` within one DFT cell either side (the others fixed): brings the cell into Newton's basin.
 
         The first delay profile ``v_ant(w)^H r`` is the inverse delay DFT of the cell's row of the
-        residual's DFT (times the phase of the axes' centres): no pass over ``y``."""
+        residual's DFT (times the phase of the axes' centres): no pass over ``y``. Returns the final ``w``
+        and its :meth:`contract` (from the last sweep's pass: no pass of its own)."""
         w = grid_frequency(np.unravel_index(j, self.grid.shape), self.grid)
         ja = j // self.grid.n_subcarriers
         x0 = np.fft.ifft(self.Rr[ja] + 1j * self.Ri[ja]) * np.exp(1j * np.dot(w[:4], self.offsets[:4]))
         return nk.coordinate_search(self.rr, self.ri, w, self.offsets, self.dims, self.cand, sweeps, self.W,
                                     self.G, x0)
 
-    def subtract_dft(self, ws: list[np.ndarray], gs: list[complex]) -> tuple[int, float]:
-        """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``."""
-        a, b, g = self._none if not ws else (*self._factors(ws), np.asarray(gs, complex))
-        return nk.subtract_atoms(self.Rr, self.Ri, a, b, g, True)
+    def subtract_dft(self, ws: list[np.ndarray], gs: list[complex], second: list[bool]) -> tuple[int, float]:
+        """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``.
+        ``second[m]``: atoms ``m - 1`` and ``m`` are one path's new and old atom. Rows of ``R`` are brought
+        up to date only where they may hold the maximum (:func:`.nomp_kernels.update_dft`); the row of the
+        maximum always is."""
+        n = len(ws)
+        if self.n_log + n > len(self.log[0]):  # grow the log (doubling)
+            log = self._new_log(max(2 * len(self.log[0]), self.n_log + n), *self.log[0].shape[1:], self.log[1].shape[1])
+            for x, y in zip(log, self.log):
+                x[:self.n_log] = y[:self.n_log]
+            self.log = log
+        a, br, bi, g, sec = self.log
+        if n:
+            sl = slice(self.n_log, self.n_log + n)
+            a[sl], b = self._factors(ws)
+            br[sl], bi[sl] = b.real, b.imag
+            g[sl], sec[sl] = gs, second
+        self.n_log += n
+        self.calls.append(self.n_log)
+        return nk.update_dft(self.Rr, self.Ri, a, br, bi, g, sec, np.asarray(self.calls, np.int64), self.done,
+                             self.top, self.arg, self.pend)
+
+    @staticmethod
+    def _new_log(cap: int, Na: int, K: int) -> tuple[np.ndarray, ...]:
+        """Empty log arrays for ``cap`` atoms (:func:`.nomp_kernels.update_dft`), kept for the thread's next call."""
+        _SCRATCH.log = (np.empty((cap, Na), complex), np.empty((cap, K)), np.empty((cap, K)), np.empty(cap, complex),
+                        np.empty(cap, bool))
+        return _SCRATCH.log
 
     def _factors(self, ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Antenna ``(n, Na)`` (the Kronecker product of the four antenna axes, C order) and delay ``(n, K)``
@@ -277,15 +313,15 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
         res.W, res.G = np.array(ws), np.array(gs, complex)
         for wa, ga in zip(add, sub):
             nk.add_cross_terms(Ts, res.W, wa, -ga, res.offsets, res.dims)
-        pending.extend(zip(add, sub))
+        pending.extend(zip(add, sub, [False, True]))
 
-    pending: list[tuple[np.ndarray, complex]] = []
-    j, pmax = res.subtract_dft([], [])
+    pending: list[tuple[np.ndarray, complex, bool]] = []
+    j, pmax = res.subtract_dft([], [], [])
     for _ in range(int(max_paths)):
         if pmax <= t:
             break
-        w = res.coordinate_search(j)
-        w, T_fit = refine(res, w)
+        w, T_fit = res.coordinate_search(j)
+        w, T_fit = refine(res, w, first=T_fit)
         T_fit = res.contract(w) if T_fit is None else T_fit
         replace(len(ws), w, complex(T_fit.flat[0]) / N, T_fit)
         # cyclic refinement (NOMP): every earlier path re-fitted on the residual plus itself (its own
@@ -302,7 +338,7 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
                 T_fit = res.contract(w_new) if T_fit is None else T_fit
                 g_new = complex(T_fit.flat[0]) / N + gs[l] * complex(res.cross(w_new, ws[l])[0].flat[0]) / N
                 replace(l, w_new, g_new, T_fit)
-        j, pmax = res.subtract_dft([p[0] for p in pending], [p[1] for p in pending])
+        j, pmax = res.subtract_dft(*map(list, zip(*pending)))
         pending.clear()
     w_out = np.angle(np.exp(1j * np.array(ws, float).reshape(-1, 5)))  # wrapped to (-pi, pi]
     return w_out, np.array(gs, complex)

@@ -53,20 +53,27 @@ def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray,
     """``T[p0, .., p4] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(w)^H r`` for ``p_d = 0..2``: ``(3, 3, 3, 3, 3)`` complex,
     on the residual ``r = y - sum_m G_m v(W_m)`` (``W (L, 5)``, ``G (L,)``).
 
-    One pass over ``y = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once), then the
-    four antenna axes one after the other on the ``(Na, 3)`` result; the atoms' terms in closed form
-    (separable, :func:`add_cross_terms`).
+    One pass over ``y = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once:
+    :func:`_delay_pass`), then the four antenna axes and the atoms' terms (:func:`_antenna_part`).
     """
+    A = np.empty((rr.shape[0], 3), np.complex128)
+    _delay_pass(rr, ri, w[4], offsets[4], A)
+    return _antenna_part(A, w, offsets, dims, W, G)
+
+
+@nb.njit(cache=True, fastmath=True)
+def _delay_pass(rr: np.ndarray, ri: np.ndarray, w4: float, o4: float, A: np.ndarray) -> None:
+    """``A[a, p] = sum_k y[a, k] conj(d^p v_4 / dw^p)(w4)_k`` for ``p = 0, 1, 2`` into ``A (Na, 3)`` complex: one
+    pass over ``y = rr + j ri (Na, K)``."""
     Na, K = rr.shape
     cr = np.empty(K)
     ci = np.empty(K)
     xs = np.empty(K)
     for k in range(K):
-        x = k - offsets[4]
+        x = k - o4
         xs[k] = x
-        cr[k] = math.cos(w[4] * x)
-        ci[k] = math.sin(w[4] * x)
-    A = np.empty((Na, 3), np.complex128)
+        cr[k] = math.cos(w4 * x)
+        ci[k] = math.sin(w4 * x)
     for a in range(Na):
         s0r = 0.0
         s0i = 0.0
@@ -87,6 +94,14 @@ def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray,
         A[a, 0] = complex(s0r, s0i)
         A[a, 1] = complex(s1i, -s1r)  # (-j) s1
         A[a, 2] = complex(-s2r, -s2i)  # (-j)^2 s2
+
+
+@nb.njit(cache=True)
+def _antenna_part(A: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndarray, W: np.ndarray,
+                  G: np.ndarray) -> np.ndarray:
+    """:func:`contract` from the delay pass ``A (Na, 3)`` of ``y``: the four antenna axes one after the other,
+    less the atoms' terms in closed form (separable, :func:`add_cross_terms`)."""
+    Na = A.shape[0]
     X = A.reshape(Na * 3)
     P = 3
     M = Na
@@ -150,51 +165,127 @@ def add_cross_terms(T: np.ndarray, W: np.ndarray, w: np.ndarray, g: complex, off
         _add_outer(T[k], s, g)
 
 
+DFT_BLOCK = 32
+"""Subcarriers per block of a row of the residual's DFT (:func:`update_dft`'s unit of update)."""
+
+
 @nb.njit(cache=True, fastmath=True)
-def subtract_atoms(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, b: np.ndarray, g: np.ndarray,
-                   argmax: bool) -> tuple[int, float]:
-    """``X -= sum_m g_m a_m b_m^T`` in place (``X = Xr + j Xi (Na, K)``, ``a (n, Na)``, ``b (n, K)``, ``g (n,)``
-    complex; ``n`` may be 0); with ``argmax``, the flat index and value of ``max |X|^2`` after the
-    update (else ``(0, -1)``). One pass."""
+def update_dft(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi: np.ndarray, g: np.ndarray,
+               second: np.ndarray, calls: np.ndarray, done: np.ndarray, top: np.ndarray, arg: np.ndarray,
+               pend: np.ndarray) -> tuple[int, float]:
+    """``X -= sum_m g_m a_m b_m^T`` for the atoms of the latest call, applied only where needed to find
+    ``max |X|^2`` (``X = Xr + j Xi (Na, K)``); returns the flat index and value of that maximum of the
+    updated ``X``. Rows are cut into blocks of :data:`DFT_BLOCK` subcarriers (``nb`` per row).
+
+    The log: ``a (n, Na)`` complex, ``b = br + j bi (n, K)``, ``g (n,)``: every atom subtracted so far, in
+    order; call ``c`` subtracts atoms ``calls[c]:calls[c + 1]`` (``calls (C + 1,)``, the latest call last);
+    ``second[m]``: atoms ``m - 1`` and ``m`` are one path's move (new and old atom), bounded together.
+    Per block ``(i, q)`` (arrays ``(Na, nb)``): ``done`` calls applied, ``top`` / ``arg`` the block's
+    ``max |X|^2`` and its subcarrier as held, ``pend`` a bound of the change of any of its entries by the
+    calls not applied. A block is brought up to date (its pending calls applied in order, two atoms per
+    sweep: the same operations as updating every entry at every call) only where ``(sqrt(top) +
+    pend)^2`` reaches the largest value found so far (rows in decreasing order of their largest such
+    bound); every other block is below the maximum. Bounds: per atom ``|g a_i b_k| <= |g a_i| max_q |b|``
+    (``max_q``: over the block); per move ``g1 a1 b1 + g2 a2 b2 = (g1 a1 + g2 a2) b1 + g2 a2 (b2 - b1)``,
+    small where the path moved little.
+    """
     Na, K = Xr.shape
-    n = g.shape[0]
-    br = np.ascontiguousarray(b.real)
-    bi = np.ascontiguousarray(b.imag)
+    nb = done.shape[1]
+    C = calls.shape[0] - 1
+    m0, m1 = calls[C - 1], calls[C]
+    bm = np.zeros((m1 - m0, nb))  # per block max |b_m|; for the second atom of a move max |b_m - b_(m-1)|
+    for m in range(m0, m1):
+        for q in range(nb):
+            t = 0.0
+            for k in range(q * DFT_BLOCK, min(K, (q + 1) * DFT_BLOCK)):
+                dr, di = br[m, k], bi[m, k]
+                if second[m]:
+                    dr, di = dr - br[m - 1, k], di - bi[m - 1, k]
+                t = max(t, dr * dr + di * di)
+            bm[m - m0, q] = math.sqrt(t) * (1.0 + 1e-9)  # and the rounding of these sums
+    bound = np.empty((Na, nb))
+    rowb = np.empty(Na)
+    for i in range(Na):
+        m = m0
+        while m < m1:
+            c2 = g[m] * a[m, i]
+            if m + 1 < m1 and second[m + 1]:
+                c1 = c2 + g[m + 1] * a[m + 1, i]
+                c2 = g[m + 1] * a[m + 1, i]
+                f1 = math.sqrt(c1.real * c1.real + c1.imag * c1.imag)
+                f2 = math.sqrt(c2.real * c2.real + c2.imag * c2.imag)
+                for q in range(nb):
+                    pend[i, q] += f1 * bm[m - m0, q] + f2 * bm[m + 1 - m0, q]
+                m += 2
+            else:
+                f1 = math.sqrt(c2.real * c2.real + c2.imag * c2.imag)
+                for q in range(nb):
+                    pend[i, q] += f1 * bm[m - m0, q]
+                m += 1
+        rowb[i] = 0.0
+        for q in range(nb):
+            pq = pend[i, q] * (1.0 + 1e-9)  # the rounding of the bound's sums
+            bound[i, q] = (math.sqrt(top[i, q]) + pq) ** 2 * (1.0 + 1e-9) if pq > 0.0 else top[i, q]
+            rowb[i] = max(rowb[i], bound[i, q])
     best = -1.0
     jbest = 0
-    for i in range(Na):
-        xr = Xr[i]
-        xi = Xi[i]
-        m = 0
-        while m < n:  # the row stays in L1 over the n terms; two terms per sweep of it
-            c = g[m] * a[m, i]
-            cr, ci = c.real, c.imag
-            bmr, bmi = br[m], bi[m]
-            if m + 1 < n:
+    for i in np.argsort(-rowb):
+        if rowb[i] < best:
+            break
+        for q in range(nb):
+            if bound[i, q] < best:
+                continue
+            if done[i, q] < C:
+                _update_block(Xr, Xi, a, br, bi, g, calls, done, top, arg, pend, i, q)
+            j = i * K + arg[i, q]
+            if top[i, q] > best or (top[i, q] == best and j < jbest):
+                best = top[i, q]
+                jbest = j
+    i = jbest // K
+    for q in range(nb):  # the maximum's whole row (the coordinate search reads it)
+        if done[i, q] < C:
+            _update_block(Xr, Xi, a, br, bi, g, calls, done, top, arg, pend, i, q)
+    return jbest, best
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _update_block(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi: np.ndarray, g: np.ndarray,
+                  calls: np.ndarray, done: np.ndarray, top: np.ndarray, arg: np.ndarray, pend: np.ndarray, i: int,
+                  q: int) -> None:
+    """Block ``(i, q)`` of :func:`update_dft` brought up to date: its pending calls applied in order, its
+    maximum and where."""
+    K = Xr.shape[1]
+    C = calls.shape[0] - 1
+    k0, k1 = q * DFT_BLOCK, min(K, (q + 1) * DFT_BLOCK)
+    xr = Xr[i]
+    xi = Xi[i]
+    for c in range(done[i, q], C):
+        m = calls[c]
+        while m < calls[c + 1]:  # two atoms per sweep of the block
+            c1 = g[m] * a[m, i]
+            cr, ci = c1.real, c1.imag
+            if m + 1 < calls[c + 1]:
                 c2 = g[m + 1] * a[m + 1, i]
                 c2r, c2i = c2.real, c2.imag
-                b2r, b2i = br[m + 1], bi[m + 1]
-                for k in range(K):
-                    xr[k] -= (cr * bmr[k] - ci * bmi[k]) + (c2r * b2r[k] - c2i * b2i[k])
-                for k in range(K):
-                    xi[k] -= (cr * bmi[k] + ci * bmr[k]) + (c2r * b2i[k] + c2i * b2r[k])
+                for k in range(k0, k1):
+                    xr[k] -= (cr * br[m, k] - ci * bi[m, k]) + (c2r * br[m + 1, k] - c2i * bi[m + 1, k])
+                for k in range(k0, k1):
+                    xi[k] -= (cr * bi[m, k] + ci * br[m, k]) + (c2r * bi[m + 1, k] + c2i * br[m + 1, k])
             else:
-                for k in range(K):
-                    xr[k] -= cr * bmr[k] - ci * bmi[k]
-                for k in range(K):
-                    xi[k] -= cr * bmi[k] + ci * bmr[k]
+                for k in range(k0, k1):
+                    xr[k] -= cr * br[m, k] - ci * bi[m, k]
+                for k in range(k0, k1):
+                    xi[k] -= cr * bi[m, k] + ci * br[m, k]
             m += 2
-        if argmax:
-            top = -1.0  # the row's maximum first (a vectorised reduction), its index only where it wins
-            for k in range(K):
-                top = max(top, xr[k] * xr[k] + xi[k] * xi[k])
-            if top > best:
-                for k in range(K):
-                    p = xr[k] * xr[k] + xi[k] * xi[k]
-                    if p > best:
-                        best = p
-                        jbest = i * K + k
-    return jbest, best
+    done[i, q] = C
+    pend[i, q] = 0.0
+    t = -1.0  # the block's maximum and its first index
+    for k in range(k0, k1):
+        pk = xr[k] * xr[k] + xi[k] * xi[k]
+        if pk > t:
+            t = pk
+            arg[i, q] = k
+    top[i, q] = t
 
 
 AXIS_ORDER = np.array([4, 2, 3, 0, 1])
@@ -203,13 +294,18 @@ AXIS_ORDER = np.array([4, 2, 3, 0, 1])
 
 @nb.njit(cache=True, fastmath=True)
 def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
-                      cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray, x0: np.ndarray) -> np.ndarray:
+                      cand: np.ndarray, sweeps: int, W: np.ndarray, G: np.ndarray,
+                      x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per axis in turn (delay, tx column, tx row, rx column, rx row), ``w_d <- w_d + cand[d, j]`` with ``j``
     the maximum of ``|v(w)^H r|`` over ``j`` (the other axes fixed); ``sweeps`` times. ``cand (5, P)``:
     offsets within one DFT cell either side; ``r = y - sum_m G_m v(W_m)`` as in :func:`contract`. Two
     passes over ``y = rr + j ri`` per sweep (the antenna-contracted delay profile, then the
     delay-contracted antenna tensor), the atoms' terms added to each; ``x0 (K,)``, where not empty, is
-    the first delay profile ``v_ant(w0)^H r`` (read off the residual's DFT when ``w0`` is a cell)."""
+    the first delay profile ``v_ant(w0)^H r`` (read off the residual's DFT when ``w0`` is a cell).
+
+    Returns the final ``w`` and its :func:`contract` (``sweeps >= 1``): the last sweep's delay-contracted
+    pass is :func:`contract`'s at the final delay (the delay axis is searched first), so only the antenna
+    axes are left."""
     Na, K = rr.shape
     L1, L2, L3 = dims[1], dims[2], dims[3]
     nmax = np.max(dims)
@@ -218,20 +314,29 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
     for d in range(5):
         for i in range(dims[d]):
             vs[d, i] = complex(math.cos(w[d] * (i - offsets[d])), -math.sin(w[d] * (i - offsets[d])))
+    ix = np.empty((Na, 4), np.int64)  # antenna pair a -> its index on each antenna axis (C order)
+    a = 0
+    for i0 in range(dims[0]):
+        for i1 in range(L1):
+            for i2 in range(L2):
+                for i3 in range(L3):
+                    ix[a, 0], ix[a, 1], ix[a, 2], ix[a, 3] = i0, i1, i2, i3
+                    a += 1
     L = G.shape[0]
     vm = np.empty((L, 5, nmax), np.complex128)  # the atoms' v_d(W_md)
     vam = np.empty((L, Na), np.complex128)  # their antenna factors
     for m in range(L):
-        for d in range(5):
+        for d in range(5):  # the phasor by recurrence (~n eps; they only steer the search)
+            e = complex(math.cos(W[m, d] * offsets[d]), -math.sin(W[m, d] * offsets[d]))
+            q = complex(math.cos(W[m, d]), math.sin(W[m, d]))
             for i in range(dims[d]):
-                ph = W[m, d] * (i - offsets[d])
-                vm[m, d, i] = complex(math.cos(ph), math.sin(ph))
+                vm[m, d, i] = e
+                e *= q
         for a in range(Na):
-            vam[m, a] = (vm[m, 0, a // (L3 * L2 * L1)] * vm[m, 1, (a // (L3 * L2)) % L1]
-                         * vm[m, 2, (a // L3) % L2] * vm[m, 3, a % L3])
+            vam[m, a] = vm[m, 0, ix[a, 0]] * vm[m, 1, ix[a, 1]] * vm[m, 2, ix[a, 2]] * vm[m, 3, ix[a, 3]]
     x = np.empty(nmax, np.complex128)
     A = np.empty(Na, np.complex128)
-    idx = np.empty(4, np.int64)
+    A3 = np.empty((Na, 3), np.complex128)
     for sweep in range(sweeps):
         for d in AXIS_ORDER:
             n = dims[d]
@@ -241,8 +346,7 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                 xr = np.zeros(K)
                 xi = np.zeros(K)
                 for a in range(Na):
-                    c = (vs[0, a // (L3 * L2 * L1)] * vs[1, (a // (L3 * L2)) % L1] * vs[2, (a // L3) % L2]
-                         * vs[3, a % L3])
+                    c = vs[0, ix[a, 0]] * vs[1, ix[a, 1]] * vs[2, ix[a, 2]] * vs[3, ix[a, 3]]
                     for k in range(K):
                         xr[k] += c.real * rr[a, k] - c.imag * ri[a, k]
                         xi[k] += c.real * ri[a, k] + c.imag * rr[a, k]
@@ -258,7 +362,11 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                     for k in range(K):
                         x[k] -= c * vm[m, 4, k]
             else:
-                if d == 2:  # first antenna axis after the delay: A[a] = sum_k r[a, k] conj(vk[k])
+                if d == 2 and sweep == sweeps - 1:  # the delay is final: its three orders, for the result's T
+                    _delay_pass(rr, ri, w[4], offsets[4], A3)
+                    for a in range(Na):
+                        A[a] = A3[a, 0]
+                elif d == 2:  # first antenna axis after the delay: A[a] = sum_k r[a, k] conj(vk[k])
                     for a in range(Na):
                         sr = 0.0
                         si = 0.0
@@ -266,6 +374,7 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                             sr += rr[a, k] * vs[4, k].real - ri[a, k] * vs[4, k].imag
                             si += ri[a, k] * vs[4, k].real + rr[a, k] * vs[4, k].imag
                         A[a] = complex(sr, si)
+                if d == 2:
                     for m in range(L):
                         t = 0j
                         for k in range(K):
@@ -276,15 +385,11 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                 for i in range(n):
                     x[i] = 0j
                 for a in range(Na):
-                    idx[0] = a // (L3 * L2 * L1)
-                    idx[1] = (a // (L3 * L2)) % L1
-                    idx[2] = (a // L3) % L2
-                    idx[3] = a % L3
                     c = A[a]
                     for e in range(4):
                         if e != d:
-                            c *= vs[e, idx[e]]
-                    x[idx[d]] += c
+                            c *= vs[e, ix[a, e]]
+                    x[ix[a, d]] += c
             best = -1.0
             jbest = 0
             for j in range(cand.shape[1]):  # |v_d(w_d + cand)^H x|, the phasor by recurrence
@@ -302,7 +407,7 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
             w[d] = w[d] + cand[d, jbest]
             for i in range(n):
                 vs[d, i] = complex(math.cos(w[d] * (i - offsets[d])), -math.sin(w[d] * (i - offsets[d])))
-    return w
+    return w, _antenna_part(A3, w, offsets, dims, W, G)
 
 
 @nb.njit(cache=True)
