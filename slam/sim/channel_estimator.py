@@ -170,17 +170,20 @@ class _Residual:
         self.offsets = np.asarray(grid.offsets, float)
         L = np.asarray(grid.shape, float)  # coordinate-search offsets within one cell either side
         self.cand = np.stack([np.linspace(-2 * np.pi / n, 2 * np.pi / n, 17) for n in L])
-        self.idx = i = [np.arange(n) - o for n, o in zip(grid.shape, grid.offsets)]
+        i = [np.arange(n) - o for n, o in zip(grid.shape, grid.offsets)]
         m1 = np.array([x.sum() for x in i]) / L
         m2 = np.array([(x * x).sum() for x in i]) / L
         self.var = m2 - m1 * m1  # per-axis index variance (:func:`fisher_w`)
+        self.twiddle = np.ones((5, max(grid.shape)), complex)  # exp(-2 pi j m / L_d), the DFTs of the atoms
+        for d, n in enumerate(grid.shape):
+            self.twiddle[d, :n] = np.exp(-2j * np.pi * np.arange(n) / n)
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
         self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
         self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
         # the DFT's update log (:func:`.nomp_kernels.update_dft`): atoms' factors and gains, call boundaries,
         # per row the calls applied, its maximum and a bound of its pending change
         self.log = getattr(_SCRATCH, "log", None)  # its arrays reused (as the four above), grown as needed
-        if self.log is None or self.log[0].shape[1] != Na or self.log[1].shape[1] != K:
+        if self.log is None or self.log[3].shape[1] != Na or self.log[4].shape[1] != K:
             self.log = self._new_log(64, Na, K)
         self.n_log = 0
         self.calls = [0]
@@ -221,37 +224,25 @@ class _Residual:
         maximum always is."""
         n = len(ws)
         if self.n_log + n > len(self.log[0]):  # grow the log (doubling)
-            log = self._new_log(max(2 * len(self.log[0]), self.n_log + n), *self.log[0].shape[1:], self.log[1].shape[1])
+            log = self._new_log(max(2 * len(self.log[0]), self.n_log + n), self.log[3].shape[1], self.log[4].shape[1])
             for x, y in zip(log, self.log):
                 x[:self.n_log] = y[:self.n_log]
             self.log = log
-        a, br, bi, g, sec = self.log
+        W, g, sec, a, br, bi = self.log
         if n:
             sl = slice(self.n_log, self.n_log + n)
-            a[sl], b = self._factors(ws)
-            br[sl], bi[sl] = b.real, b.imag
-            g[sl], sec[sl] = gs, second
+            W[sl], g[sl], sec[sl] = ws, gs, second
         self.n_log += n
         self.calls.append(self.n_log)
-        return nk.update_dft(self.Rr, self.Ri, a, br, bi, g, sec, np.asarray(self.calls, np.int64), self.done,
-                             self.top, self.arg, self.pend)
+        return nk.update_dft(self.Rr, self.Ri, W, g, sec, a, br, bi, self.offsets, self.dims, self.twiddle,
+                             np.asarray(self.calls, np.int64), self.done, self.top, self.arg, self.pend)
 
     @staticmethod
     def _new_log(cap: int, Na: int, K: int) -> tuple[np.ndarray, ...]:
         """Empty log arrays for ``cap`` atoms (:func:`.nomp_kernels.update_dft`), kept for the thread's next call."""
-        _SCRATCH.log = (np.empty((cap, Na), complex), np.empty((cap, K)), np.empty((cap, K)), np.empty(cap, complex),
-                        np.empty(cap, bool))
+        _SCRATCH.log = (np.empty((cap, 5)), np.empty(cap, complex), np.empty(cap, bool), np.empty((cap, Na), complex),
+                        np.empty((cap, K)), np.empty((cap, K)))
         return _SCRATCH.log
-
-    def _factors(self, ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Antenna ``(n, Na)`` (the Kronecker product of the four antenna axes, C order) and delay ``(n, K)``
-        factors of the DFTs of the atoms ``v(w)`` (:func:`atoms`)."""
-        W = np.asarray(ws, float)
-        vs = [np.fft.fft(np.exp(1j * W[:, d, None] * self.idx[d]), axis=-1) for d in range(5)]
-        a = vs[0]
-        for v in vs[1:4]:
-            a = (a[:, :, None] * v[:, None, :]).reshape(len(W), -1)
-        return a, vs[4]
 
 
 def refine(res: _Residual, w: np.ndarray, iters: int = 8, tol: float = 0.02, g_self: complex = 0j,

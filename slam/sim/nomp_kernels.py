@@ -34,16 +34,19 @@ def _axis_factors(w: float, offset: float, n: int) -> np.ndarray:
 
 
 @nb.njit(cache=True)
-def _contract_middle(X: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """``out[m, q, p] = sum_l X[m, l, p] c[q, l]``: ``X (M, L, P)``, ``c (Q, L)`` -> ``(M, Q, P)``."""
+def _contract_middle(X: np.ndarray, c: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``out[m, q, p] = sum_l X[m, l, p] c[q, l]``: ``X (M, L, P)``, ``c (Q, L)`` -> ``(M, Q, P)``, where ``q +
+    order[p] <= 2`` (``order (P,)``: the total derivative order of ``p``); zero elsewhere."""
     M, L, P = X.shape
     out = np.zeros((M, c.shape[0], P), np.complex128)
     for m in range(M):
         for q in range(c.shape[0]):
-            for l in range(L):
-                f = c[q, l]
-                for p in range(P):
-                    out[m, q, p] += X[m, l, p] * f
+            for p in range(P):
+                if q + order[p] <= 2:
+                    t = 0j
+                    for l in range(L):
+                        t += X[m, l, p] * c[q, l]
+                    out[m, q, p] = t
     return out
 
 
@@ -51,7 +54,9 @@ def _contract_middle(X: np.ndarray, c: np.ndarray) -> np.ndarray:
 def contract(rr: np.ndarray, ri: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.ndarray,
              W: np.ndarray, G: np.ndarray) -> np.ndarray:
     """``T[p0, .., p4] = (d^p0 v_0 (x) .. (x) d^p4 v_4)(w)^H r`` for ``p_d = 0..2``: ``(3, 3, 3, 3, 3)`` complex,
-    on the residual ``r = y - sum_m G_m v(W_m)`` (``W (L, 5)``, ``G (L,)``).
+    on the residual ``r = y - sum_m G_m v(W_m)`` (``W (L, 5)``, ``G (L,)``); the entries of total order ``p0
+    + .. + p4 <= 2`` (the value, gradient and Hessian of ``v(w)^H r``: all that is read of it), the others
+    zero.
 
     One pass over ``y = rr + j ri (Na, K)`` (the delay axis, three derivative orders at once:
     :func:`_delay_pass`), then the four antenna axes and the atoms' terms (:func:`_antenna_part`).
@@ -105,9 +110,12 @@ def _antenna_part(A: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.nd
     X = A.reshape(Na * 3)
     P = 3
     M = Na
+    order = np.arange(3)  # total derivative order of the flat index over the axes contracted so far
     for d in range(3, -1, -1):  # axis d is the innermost antenna axis left: X (M, L_d, P) -> (M, 3, P)
         M //= dims[d]
-        X = _contract_middle(X.reshape((M, dims[d], P)), _axis_factors(w[d], offsets[d], dims[d])).reshape(-1)
+        X = _contract_middle(X.reshape((M, dims[d], P)), _axis_factors(w[d], offsets[d], dims[d]),
+                             order).reshape(-1)
+        order = (np.arange(3).reshape(3, 1) + order.reshape(1, P)).reshape(-1)
         P *= 3
     T = X.reshape((3, 3, 3, 3, 3))
     s = np.empty((5, 3), np.complex128)
@@ -118,37 +126,59 @@ def _antenna_part(A: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.nd
     return T
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, fastmath=True)
 def _axis_sums(theta: float, offset: float, n: int, s: np.ndarray, d: int) -> None:
     """``s[d, p] = sum_i (-j x)^p exp(j theta x)`` for ``p = 0, 1, 2``, ``x = i - offset`` (the phasor by
-    recurrence: ~n eps relative)."""
-    e = complex(math.cos(theta * offset), -math.sin(theta * offset))
+    recurrence, four interleaved chains of step ``exp(4 j theta)``: ~n eps / 4 relative)."""
     q = complex(math.cos(theta), math.sin(theta))
+    q4 = (q * q) * (q * q)
+    e0 = complex(math.cos(theta * offset), -math.sin(theta * offset))
+    e1 = e0 * q
+    e2 = e1 * q
+    e3 = e2 * q
     a0 = 0j
-    a1 = 0j
-    a2 = 0j
-    for i in range(n):
-        x = i - offset
-        a0 += e
-        a1 += complex(0.0, -x) * e
-        a2 += -(x * x) * e
-        e *= q
+    a1 = 0j  # sum x exp(j theta x), times -j at the end
+    a2 = 0j  # sum x^2 exp(j theta x), times -1
+    i = 0
+    while i + 4 <= n:
+        x0 = i - offset
+        x1 = x0 + 1.0
+        x2 = x0 + 2.0
+        x3 = x0 + 3.0
+        a0 += (e0 + e1) + (e2 + e3)
+        a1 += (x0 * e0 + x1 * e1) + (x2 * e2 + x3 * e3)
+        a2 += (x0 * x0 * e0 + x1 * x1 * e1) + (x2 * x2 * e2 + x3 * x3 * e3)
+        e0 *= q4
+        e1 *= q4
+        e2 *= q4
+        e3 *= q4
+        i += 4
+    while i < n:
+        x0 = i - offset
+        a0 += e0
+        a1 += x0 * e0
+        a2 += x0 * x0 * e0
+        e0 *= q
+        i += 1
     s[d, 0] = a0
-    s[d, 1] = a1
-    s[d, 2] = a2
+    s[d, 1] = complex(a1.imag, -a1.real)
+    s[d, 2] = -a2
 
 
 @nb.njit(cache=True)
 def _add_outer(T: np.ndarray, s: np.ndarray, g: complex) -> None:
-    """``T += g s[0] (x) s[1] (x) .. (x) s[4]`` (``T (3,)*5``, ``s (5, 3)``)."""
+    """``T += g s[0] (x) s[1] (x) .. (x) s[4]`` (``T (3,)*5``, ``s (5, 3)``) on the entries of total order
+    ``p0 + .. + p4 <= 2``: the value, gradient and Hessian, all that is read of a derivative tensor
+    (:func:`_value_grad_hess`); the others are left as they are."""
     for p0 in range(3):
-        for p1 in range(3):
-            f01 = g * s[0, p0] * s[1, p1]
-            for p2 in range(3):
+        f0 = g * s[0, p0]
+        for p1 in range(3 - p0):
+            f01 = f0 * s[1, p1]
+            for p2 in range(3 - p0 - p1):
                 f012 = f01 * s[2, p2]
-                for p3 in range(3):
+                for p3 in range(3 - p0 - p1 - p2):
                     f0123 = f012 * s[3, p3]
-                    for p4 in range(3):
+                    for p4 in range(3 - p0 - p1 - p2 - p3):
                         T[p0, p1, p2, p3, p4] += f0123 * s[4, p4]
 
 
@@ -170,15 +200,19 @@ DFT_BLOCK = 32
 
 
 @nb.njit(cache=True, fastmath=True)
-def update_dft(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi: np.ndarray, g: np.ndarray,
-               second: np.ndarray, calls: np.ndarray, done: np.ndarray, top: np.ndarray, arg: np.ndarray,
+def update_dft(Xr: np.ndarray, Xi: np.ndarray, W: np.ndarray, g: np.ndarray, second: np.ndarray, a: np.ndarray,
+               br: np.ndarray, bi: np.ndarray, offsets: np.ndarray, dims: np.ndarray, tw: np.ndarray,
+               calls: np.ndarray, done: np.ndarray, top: np.ndarray, arg: np.ndarray,
                pend: np.ndarray) -> tuple[int, float]:
-    """``X -= sum_m g_m a_m b_m^T`` for the atoms of the latest call, applied only where needed to find
-    ``max |X|^2`` (``X = Xr + j Xi (Na, K)``); returns the flat index and value of that maximum of the
-    updated ``X``. Rows are cut into blocks of :data:`DFT_BLOCK` subcarriers (``nb`` per row).
+    """``X -= sum_m g_m a_m b_m^T`` for the atoms of the latest call, the DFTs of the atoms ``v(W_m)``,
+    applied only where needed to find ``max |X|^2`` (``X = Xr + j Xi (Na, K)``, the residual's 5-D DFT);
+    returns the flat index and value of that maximum of the updated ``X``. Rows are cut into blocks of
+    :data:`DFT_BLOCK` subcarriers (``nb`` per row).
 
-    The log: ``a (n, Na)`` complex, ``b = br + j bi (n, K)``, ``g (n,)``: every atom subtracted so far, in
-    order; call ``c`` subtracts atoms ``calls[c]:calls[c + 1]`` (``calls (C + 1,)``, the latest call last);
+    The log: ``W (n, 5)``, ``g (n,)``: every atom subtracted so far, in order; call ``c`` subtracts atoms
+    ``calls[c]:calls[c + 1]`` (``calls (C + 1,)``, the latest call last); this call fills the factors of
+    its atoms' DFTs (:func:`_atom_dft`; ``tw (5, max(dims))``: ``exp(-2 pi j m / L_d)``): antenna ``a (n,
+    Na)`` complex (the Kronecker product of the four antenna axes, C order), delay ``b = br + j bi (n, K)``;
     ``second[m]``: atoms ``m - 1`` and ``m`` are one path's move (new and old atom), bounded together.
     Per block ``(i, q)`` (arrays ``(Na, nb)``): ``done`` calls applied, ``top`` / ``arg`` the block's
     ``max |X|^2`` and its subcarrier as held, ``pend`` a bound of the change of any of its entries by the
@@ -193,6 +227,22 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi
     nb = done.shape[1]
     C = calls.shape[0] - 1
     m0, m1 = calls[C - 1], calls[C]
+    f = np.empty((5, tw.shape[1]), np.complex128)
+    for m in range(m0, m1):
+        for d in range(5):
+            _atom_dft(W[m, d], offsets[d], dims[d], tw[d], f[d])
+        for k in range(K):
+            br[m, k] = f[4, k].real
+            bi[m, k] = f[4, k].imag
+        i = 0
+        for i0 in range(dims[0]):
+            for i1 in range(dims[1]):
+                f01 = f[0, i0] * f[1, i1]
+                for i2 in range(dims[2]):
+                    f012 = f01 * f[2, i2]
+                    for i3 in range(dims[3]):
+                        a[m, i] = f012 * f[3, i3]
+                        i += 1
     bm = np.zeros((m1 - m0, nb))  # per block max |b_m|; for the second atom of a move max |b_m - b_(m-1)|
     for m in range(m0, m1):
         for q in range(nb):
@@ -203,29 +253,32 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi
                     dr, di = dr - br[m - 1, k], di - bi[m - 1, k]
                 t = max(t, dr * dr + di * di)
             bm[m - m0, q] = math.sqrt(t) * (1.0 + 1e-9)  # and the rounding of these sums
+    f1 = np.empty(Na)
+    f2 = np.zeros(Na)
+    m = m0
+    while m < m1:  # pend += per row |coefficient| x per block max |b| (vectorised over the rows)
+        pair = m + 1 < m1 and second[m + 1]
+        for i in range(Na):
+            c = g[m] * a[m, i]
+            if pair:
+                d = g[m + 1] * a[m + 1, i]
+                c += d
+                f2[i] = math.sqrt(d.real * d.real + d.imag * d.imag)
+            f1[i] = math.sqrt(c.real * c.real + c.imag * c.imag)
+        for i in range(Na):
+            for q in range(nb):
+                pend[i, q] += f1[i] * bm[m - m0, q] + (f2[i] * bm[m + 1 - m0, q] if pair else 0.0)
+        m += 2 if pair else 1
     bound = np.empty((Na, nb))
-    rowb = np.empty(Na)
+    rowb = np.zeros(Na)
     for i in range(Na):
-        m = m0
-        while m < m1:
-            c2 = g[m] * a[m, i]
-            if m + 1 < m1 and second[m + 1]:
-                c1 = c2 + g[m + 1] * a[m + 1, i]
-                c2 = g[m + 1] * a[m + 1, i]
-                f1 = math.sqrt(c1.real * c1.real + c1.imag * c1.imag)
-                f2 = math.sqrt(c2.real * c2.real + c2.imag * c2.imag)
-                for q in range(nb):
-                    pend[i, q] += f1 * bm[m - m0, q] + f2 * bm[m + 1 - m0, q]
-                m += 2
-            else:
-                f1 = math.sqrt(c2.real * c2.real + c2.imag * c2.imag)
-                for q in range(nb):
-                    pend[i, q] += f1 * bm[m - m0, q]
-                m += 1
-        rowb[i] = 0.0
         for q in range(nb):
             pq = pend[i, q] * (1.0 + 1e-9)  # the rounding of the bound's sums
-            bound[i, q] = (math.sqrt(top[i, q]) + pq) ** 2 * (1.0 + 1e-9) if pq > 0.0 else top[i, q]
+            if pq > 0.0:
+                t = math.sqrt(top[i, q]) + pq
+                bound[i, q] = t * t * (1.0 + 1e-9)
+            else:
+                bound[i, q] = top[i, q]
             rowb[i] = max(rowb[i], bound[i, q])
     best = -1.0
     jbest = 0
@@ -246,6 +299,28 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi
         if done[i, q] < C:
             _update_block(Xr, Xi, a, br, bi, g, calls, done, top, arg, pend, i, q)
     return jbest, best
+
+
+@nb.njit(cache=True)
+def _atom_dft(w: float, offset: float, L: int, tw: np.ndarray, out: np.ndarray) -> None:
+    """The DFT of a 1-D atom: ``out[m] = sum_i exp(j w (i - offset)) exp(-2 pi j m i / L)`` for ``m < L``; closed
+    form ``exp(-j w offset) (1 - exp(j w L)) / (1 - exp(j w) tw[m])`` (``tw[m] = exp(-2 pi j m / L)``), the
+    sum itself (phasor by recurrence) where the denominator is below 0.1 (within ~0.1 rad of a bin)."""
+    z = complex(math.cos(w), math.sin(w))
+    e0 = complex(math.cos(w * offset), -math.sin(w * offset))
+    num = e0 * (1.0 - complex(math.cos(w * L), math.sin(w * L)))
+    for m in range(L):
+        zm = z * tw[m]
+        den = 1.0 - zm
+        if den.real * den.real + den.imag * den.imag > 1e-2:
+            out[m] = num / den
+        else:
+            t = 0j
+            e = e0
+            for i in range(L):
+                t += e
+                e *= zm
+            out[m] = t
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
