@@ -112,13 +112,14 @@ def estimate_link(Y: np.ndarray, t0_m: float, pm: PilotModel, pfa: float, max_pa
 def estimator_kernels_cached() -> bool:
     """Whether every compiled kernel of the estimator (:mod:`mmslam.slam.sim.nomp_kernels`) is loaded or in
     numba's on-disk cache (its private cache index, as :func:`mmslam.slam.filter.precompile.is_cached`;
-    any error: False)."""
+    any error: False). A kernel marked ``inline="always"`` is compiled into its callers only: not checked."""
     import numba.core.registry as reg
 
     from . import nomp_kernels as nk
 
     for obj in vars(nk).values():
-        if not (isinstance(obj, reg.CPUDispatcher) and obj.py_func.__module__ == nk.__name__) or obj.overloads:
+        if not (isinstance(obj, reg.CPUDispatcher) and obj.py_func.__module__ == nk.__name__) or obj.overloads \
+                or obj.targetoptions.get("inline") == "always":
             continue
         try:
             if not obj._cache._cache_file._load_index():

@@ -115,7 +115,11 @@ def _antenna_part(A: np.ndarray, w: np.ndarray, offsets: np.ndarray, dims: np.nd
         M //= dims[d]
         X = _contract_middle(X.reshape((M, dims[d], P)), _axis_factors(w[d], offsets[d], dims[d]),
                              order).reshape(-1)
-        order = (np.arange(3).reshape(3, 1) + order.reshape(1, P)).reshape(-1)
+        order3 = np.empty(3 * P, np.int64)
+        for q in range(3):
+            for p in range(P):
+                order3[q * P + p] = q + order[p]
+        order = order3
         P *= 3
     T = X.reshape((3, 3, 3, 3, 3))
     s = np.empty((5, 3), np.complex128)
@@ -197,6 +201,8 @@ def add_cross_terms(T: np.ndarray, W: np.ndarray, w: np.ndarray, g: complex, off
 
 DFT_BLOCK = 32
 """Subcarriers per block of a row of the residual's DFT (:func:`update_dft`'s unit of update)."""
+FIRST_ROWS = 16
+"""Rows :func:`update_dft` visits in decreasing order of their bound before it scans the others in order."""
 
 
 @nb.njit(cache=True, fastmath=True)
@@ -218,8 +224,8 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, W: np.ndarray, g: np.ndarray, sec
     ``max |X|^2`` and its subcarrier as held, ``pend`` a bound of the change of any of its entries by the
     calls not applied. A block is brought up to date (its pending calls applied in order, two atoms per
     sweep: the same operations as updating every entry at every call) only where ``(sqrt(top) +
-    pend)^2`` reaches the largest value found so far (rows in decreasing order of their largest such
-    bound); every other block is below the maximum. Bounds: per atom ``|g a_i b_k| <= |g a_i| max_q |b|``
+    pend)^2`` reaches the largest value found so far (first the :data:`FIRST_ROWS` rows of the largest
+    such bound, in decreasing order, then the others in order); every other block is below the maximum. Bounds: per atom ``|g a_i b_k| <= |g a_i| max_q |b|``
     (``max_q``: over the block); per move ``g1 a1 b1 + g2 a2 b2 = (g1 a1 + g2 a2) b1 + g2 a2 (b2 - b1)``,
     small where the path moved little.
     """
@@ -282,9 +288,16 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, W: np.ndarray, g: np.ndarray, sec
             rowb[i] = max(rowb[i], bound[i, q])
     best = -1.0
     jbest = 0
-    for i in np.argsort(-rowb):
+    for r in range(Na + FIRST_ROWS):  # the rows of the largest bounds first, then the others in order
+        if r < FIRST_ROWS:
+            i = np.argmax(rowb)
+        elif r - FIRST_ROWS < Na:
+            i = r - FIRST_ROWS
         if rowb[i] < best:
-            break
+            if r < FIRST_ROWS:
+                break
+            continue
+        rowb[i] = -1.0  # done
         for q in range(nb):
             if bound[i, q] < best:
                 continue
@@ -305,14 +318,14 @@ def update_dft(Xr: np.ndarray, Xi: np.ndarray, W: np.ndarray, g: np.ndarray, sec
 def _atom_dft(w: float, offset: float, L: int, tw: np.ndarray, out: np.ndarray) -> None:
     """The DFT of a 1-D atom: ``out[m] = sum_i exp(j w (i - offset)) exp(-2 pi j m i / L)`` for ``m < L``; closed
     form ``exp(-j w offset) (1 - exp(j w L)) / (1 - exp(j w) tw[m])`` (``tw[m] = exp(-2 pi j m / L)``), the
-    sum itself (phasor by recurrence) where the denominator is below 0.1 (within ~0.1 rad of a bin)."""
+    sum itself (phasor by recurrence) where the denominator is below 0.03 (within ~0.03 rad of a bin)."""
     z = complex(math.cos(w), math.sin(w))
     e0 = complex(math.cos(w * offset), -math.sin(w * offset))
     num = e0 * (1.0 - complex(math.cos(w * L), math.sin(w * L)))
     for m in range(L):
         zm = z * tw[m]
         den = 1.0 - zm
-        if den.real * den.real + den.imag * den.imag > 1e-2:
+        if den.real * den.real + den.imag * den.imag > 1e-3:
             out[m] = num / den
         else:
             t = 0j
@@ -323,7 +336,7 @@ def _atom_dft(w: float, offset: float, L: int, tw: np.ndarray, out: np.ndarray) 
             out[m] = t
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=True)
 def _update_block(Xr: np.ndarray, Xi: np.ndarray, a: np.ndarray, br: np.ndarray, bi: np.ndarray, g: np.ndarray,
                   calls: np.ndarray, done: np.ndarray, top: np.ndarray, arg: np.ndarray, pend: np.ndarray, i: int,
                   q: int) -> None:
