@@ -73,12 +73,10 @@ def _delay_pass(rr: np.ndarray, ri: np.ndarray, w4: float, o4: float, A: np.ndar
     Na, K = rr.shape
     cr = np.empty(K)
     ci = np.empty(K)
+    _phasors(w4, o4, cr, ci)
     xs = np.empty(K)
     for k in range(K):
-        x = k - o4
-        xs[k] = x
-        cr[k] = math.cos(w4 * x)
-        ci[k] = math.sin(w4 * x)
+        xs[k] = k - o4
     for a in range(Na):
         s0r = 0.0
         s0i = 0.0
@@ -99,6 +97,26 @@ def _delay_pass(rr: np.ndarray, ri: np.ndarray, w4: float, o4: float, A: np.ndar
         A[a, 0] = complex(s0r, s0i)
         A[a, 1] = complex(s1i, -s1r)  # (-j) s1
         A[a, 2] = complex(-s2r, -s2i)  # (-j)^2 s2
+
+
+@nb.njit(cache=True)
+def _phasors(w: float, offset: float, c: np.ndarray, s: np.ndarray) -> None:
+    """``c[i] + j s[i] = exp(j w (i - offset))`` for ``i < len(c)``: ``exp(j w (16 u - offset)) exp(j w t)`` with
+    ``i = 16 u + t`` (a sixteenth of the cosines and sines; ~2 eps)."""
+    B = 16
+    lr = np.empty(B)
+    li = np.empty(B)
+    for t in range(B):
+        lr[t] = math.cos(w * t)
+        li[t] = math.sin(w * t)
+    n = c.shape[0]
+    for u in range((n + B - 1) // B):
+        x = B * u - offset
+        hr = math.cos(w * x)
+        hi = math.sin(w * x)
+        for t in range(min(B, n - B * u)):
+            c[B * u + t] = hr * lr[t] - hi * li[t]
+            s[B * u + t] = hr * li[t] + hi * lr[t]
 
 
 @nb.njit(cache=True)
@@ -399,9 +417,12 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
     nmax = np.max(dims)
     w = w0.copy()
     vs = np.empty((5, nmax), np.complex128)  # conj(v_d(w_d)), padded
+    pc = np.empty(nmax)
+    ps = np.empty(nmax)
     for d in range(5):
+        _phasors(w[d], offsets[d], pc[:dims[d]], ps[:dims[d]])
         for i in range(dims[d]):
-            vs[d, i] = complex(math.cos(w[d] * (i - offsets[d])), -math.sin(w[d] * (i - offsets[d])))
+            vs[d, i] = complex(pc[i], -ps[i])
     ix = np.empty((Na, 4), np.int64)  # antenna pair a -> its index on each antenna axis (C order)
     a = 0
     for i0 in range(dims[0]):
@@ -493,8 +514,9 @@ def coordinate_search(rr: np.ndarray, ri: np.ndarray, w0: np.ndarray, offsets: n
                     best = v
                     jbest = j
             w[d] = w[d] + cand[d, jbest]
+            _phasors(w[d], offsets[d], pc[:n], ps[:n])
             for i in range(n):
-                vs[d, i] = complex(math.cos(w[d] * (i - offsets[d])), -math.sin(w[d] * (i - offsets[d])))
+                vs[d, i] = complex(pc[i], -ps[i])
     return w, _antenna_part(A3, w, offsets, dims, W, G)
 
 
