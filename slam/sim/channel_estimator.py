@@ -30,10 +30,11 @@ positioning, with a CFAR stop:
    biased by a later-found neighbour leaves a residual above the threshold (spurious estimates
    around the line of sight).
 
-Cost (:func:`nomp`, :mod:`.nomp_kernels`): ``r = Y - sum_l g_l v(w_l)`` is never formed; a
+Cost (:func:`nomp`, :mod:`.nomp_kernels`, :mod:`.dft_kernels`): ``r = Y - sum_l g_l v(w_l)`` is never formed; a
 contraction of ``r`` is one compiled pass over ``Y`` less the atoms' separable closed-form terms, and
 each path keeps its derivative tensor on ``r``, updated in closed form when an atom is added or
-moved, so step 4's test costs no pass; only the DFT of ``r`` (for step 1) is updated per atom.
+moved, so step 4's test costs no pass; the DFT of ``r`` (for step 1) is updated lazily, per block of
+a row only where the block could hold the maximum (exact bounds, :func:`.dft_kernels.update_dft`).
 
 Paths closer than the resolution (about one DFT cell in every axis: ``c / B`` in range, ``2 / n``
 in each spatial frequency) are one atom to this estimator: they merge into one estimate near their
@@ -54,6 +55,7 @@ import numpy as np
 
 from mmslam import arrays
 
+from . import dft_kernels as dk
 from . import nomp_kernels as nk
 
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
@@ -137,9 +139,9 @@ def grid_frequency(index: tuple[int, ...], grid: Grid) -> np.ndarray:
 
 
 _SCRATCH = threading.local()
-"""Per thread, the four ``(Na, K)`` arrays of :class:`_Residual` and the FFT's buffer, reused by the next
-:func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the system, and their
-page faults made the set-up of one call 19 ms instead of 8 ms (measured, default grid)."""
+"""Per thread, the four ``(Na, K)`` arrays of :class:`_Residual`, the FFT's buffer and the DFT's update log,
+reused by the next :func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the
+system, and their page faults made the set-up of one call 19 ms instead of 8 ms (measured, default grid)."""
 
 
 class _Residual:
@@ -180,14 +182,14 @@ class _Residual:
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
         self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
         self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
-        # the DFT's update log (:func:`.nomp_kernels.update_dft`): atoms' factors and gains, call boundaries,
+        # the DFT's update log (:func:`.dft_kernels.update_dft`): atoms' factors and gains, call boundaries,
         # per row the calls applied, its maximum and a bound of its pending change
         self.log = getattr(_SCRATCH, "log", None)  # its arrays reused (as the four above), grown as needed
         if self.log is None or self.log[3].shape[1] != Na or self.log[4].shape[1] != K:
             self.log = self._new_log(64, Na, K)
         self.n_log = 0
         self.calls = [0]
-        nb = -(-K // nk.DFT_BLOCK)
+        nb = -(-K // dk.DFT_BLOCK)
         self.done = np.zeros((Na, nb), np.int64)
         self.top = np.full((Na, nb), np.inf)
         self.arg = np.zeros((Na, nb), np.int64)
@@ -220,7 +222,7 @@ class _Residual:
     def subtract_dft(self, ws: list[np.ndarray], gs: list[complex], second: list[bool]) -> tuple[int, float]:
         """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``.
         ``second[m]``: atoms ``m - 1`` and ``m`` are one path's new and old atom. Rows of ``R`` are brought
-        up to date only where they may hold the maximum (:func:`.nomp_kernels.update_dft`); the row of the
+        up to date only where they may hold the maximum (:func:`.dft_kernels.update_dft`); the row of the
         maximum always is."""
         n = len(ws)
         if self.n_log + n > len(self.log[0]):  # grow the log (doubling)
@@ -234,12 +236,12 @@ class _Residual:
             W[sl], g[sl], sec[sl] = ws, gs, second
         self.n_log += n
         self.calls.append(self.n_log)
-        return nk.update_dft(self.Rr, self.Ri, W, g, sec, a, br, bi, self.offsets, self.dims, self.twiddle,
+        return dk.update_dft(self.Rr, self.Ri, W, g, sec, a, br, bi, self.offsets, self.dims, self.twiddle,
                              np.asarray(self.calls, np.int64), self.done, self.top, self.arg, self.pend)
 
     @staticmethod
     def _new_log(cap: int, Na: int, K: int) -> tuple[np.ndarray, ...]:
-        """Empty log arrays for ``cap`` atoms (:func:`.nomp_kernels.update_dft`), kept for the thread's next call."""
+        """Empty log arrays for ``cap`` atoms (:func:`.dft_kernels.update_dft`), kept for the thread's next call."""
         _SCRATCH.log = (np.empty((cap, 5)), np.empty(cap, complex), np.empty(cap, bool), np.empty((cap, Na), complex),
                         np.empty((cap, K)), np.empty((cap, K)))
         return _SCRATCH.log
