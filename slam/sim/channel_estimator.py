@@ -288,7 +288,9 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
     t = cfar_threshold(grid, pfa) * N
     ws: list[np.ndarray] = []
     gs: list[complex] = []
-    Ts = np.zeros((0, 3, 3, 3, 3, 3), complex)  # per path: derivatives of v(w_l)^H r
+    W_all, G_all = np.zeros((int(max_paths), 5)), np.zeros(int(max_paths), complex)  # res.W, res.G: their heads
+    T_all = np.zeros((int(max_paths), 3, 3, 3, 3, 3), complex)  # per path: derivatives of v(w_l)^H r
+    Ts = T_all[:0]
 
     def replace(l: int, w: np.ndarray, g: complex, T_fit: np.ndarray) -> None:
         """Path ``l`` (``l = len(ws)``: a new one) becomes ``(w, g)``; ``T_fit`` its tensor on the residual
@@ -298,12 +300,13 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
         if l == len(ws):
             ws.append(w)
             gs.append(g)
-            Ts = np.concatenate([Ts, T_fit[None]])
+            Ts = T_all[:len(ws)]
         else:
             add, sub = [w, ws[l]], [g, -gs[l]]
             ws[l], gs[l] = w, g
-            Ts[l] = T_fit
-        res.W, res.G = np.array(ws), np.array(gs, complex)
+        Ts[l] = T_fit
+        W_all[l], G_all[l] = w, g
+        res.W, res.G = W_all[:len(ws)], G_all[:len(ws)]
         for wa, ga in zip(add, sub):
             nk.add_cross_terms(Ts, res.W, wa, -ga, res.offsets, res.dims)
         pending.extend(zip(add, sub, [False, True]))
