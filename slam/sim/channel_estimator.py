@@ -30,10 +30,11 @@ positioning, with a CFAR stop:
    biased by a later-found neighbour leaves a residual above the threshold (spurious estimates
    around the line of sight).
 
-Cost (:func:`nomp`, :mod:`.nomp_kernels`): ``r = Y - sum_l g_l v(w_l)`` is never formed; a
+Cost (:func:`nomp`, :mod:`.nomp_kernels`, :mod:`.dft_kernels`): ``r = Y - sum_l g_l v(w_l)`` is never formed; a
 contraction of ``r`` is one compiled pass over ``Y`` less the atoms' separable closed-form terms, and
 each path keeps its derivative tensor on ``r``, updated in closed form when an atom is added or
-moved, so step 4's test costs no pass; only the DFT of ``r`` (for step 1) is updated per atom.
+moved, so step 4's test costs no pass; the DFT of ``r`` (for step 1) is updated lazily, per block of
+a row only where the block could hold the maximum (exact bounds, :func:`.dft_kernels.update_dft`).
 
 Paths closer than the resolution (about one DFT cell in every axis: ``c / B`` in range, ``2 / n``
 in each spatial frequency) are one atom to this estimator: they merge into one estimate near their
@@ -54,6 +55,7 @@ import numpy as np
 
 from mmslam import arrays
 
+from . import dft_kernels as dk
 from . import nomp_kernels as nk
 
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
@@ -137,9 +139,9 @@ def grid_frequency(index: tuple[int, ...], grid: Grid) -> np.ndarray:
 
 
 _SCRATCH = threading.local()
-"""Per thread, the four ``(Na, K)`` arrays of :class:`_Residual` and the FFT's buffer, reused by the next
-:func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the system, and their
-page faults made the set-up of one call 19 ms instead of 8 ms (measured, default grid)."""
+"""Per thread, the four ``(Na, K)`` arrays of :class:`_Residual`, the FFT's buffer and the DFT's update log,
+reused by the next :func:`nomp` call of the same size: fresh arrays of this size are fresh pages from the
+system, and their page faults made the set-up of one call 19 ms instead of 8 ms (measured, default grid)."""
 
 
 class _Residual:
@@ -170,14 +172,28 @@ class _Residual:
         self.offsets = np.asarray(grid.offsets, float)
         L = np.asarray(grid.shape, float)  # coordinate-search offsets within one cell either side
         self.cand = np.stack([np.linspace(-2 * np.pi / n, 2 * np.pi / n, 17) for n in L])
-        self.idx = i = [np.arange(n) - o for n, o in zip(grid.shape, grid.offsets)]
+        i = [np.arange(n) - o for n, o in zip(grid.shape, grid.offsets)]
         m1 = np.array([x.sum() for x in i]) / L
         m2 = np.array([(x * x).sum() for x in i]) / L
         self.var = m2 - m1 * m1  # per-axis index variance (:func:`fisher_w`)
+        self.twiddle = np.ones((5, max(grid.shape)), complex)  # exp(-2 pi j m / L_d), the DFTs of the atoms
+        for d, n in enumerate(grid.shape):
+            self.twiddle[d, :n] = np.exp(-2j * np.pi * np.arange(n) / n)
         self.self_term = self.cross(np.zeros(5), np.zeros(5))[0]  # v^(p)(w)^H v(w): the same for every w
         self.W, self.G = np.zeros((0, 5)), np.zeros(0, complex)  # the atoms subtracted from y
         self.no_tensor = np.zeros((0, 3, 3, 3, 3), complex)
-        self._none = (np.zeros((0, Na), complex), np.zeros((0, K), complex), np.zeros(0, complex))
+        # the DFT's update log (:func:`.dft_kernels.update_dft`): atoms' factors and gains, call boundaries,
+        # per row the calls applied, its maximum and a bound of its pending change
+        self.log = getattr(_SCRATCH, "log", None)  # its arrays reused (as the four above), grown as needed
+        if self.log is None or self.log[3].shape[1] != Na or self.log[4].shape[1] != K:
+            self.log = self._new_log(64, Na, K)
+        self.n_log = 0
+        self.calls = [0]
+        nb = -(-K // dk.DFT_BLOCK)
+        self.done = np.zeros((Na, nb), np.int64)
+        self.top = np.full((Na, nb), np.inf)
+        self.arg = np.zeros((Na, nb), np.int64)
+        self.pend = np.zeros((Na, nb))
 
     def contract(self, w: np.ndarray) -> np.ndarray:
         """``(3,)*5`` derivatives of ``v(w)^H r`` (one pass over ``y``, the atoms' terms in closed form)."""
@@ -190,32 +206,45 @@ class _Residual:
         nk.add_cross_terms(S, W, np.asarray(w, float), 1.0 + 0j, self.offsets, self.dims)
         return S
 
-    def coordinate_search(self, j: int, sweeps: int = 2) -> np.ndarray:
+    def coordinate_search(self, j: int, sweeps: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """From DFT cell ``j`` (flat index), per axis in turn the maximum of ``|v(w)^H r|^2`` over 17 values of
         ``w_d`` within one DFT cell either side (the others fixed): brings the cell into Newton's basin.
 
         The first delay profile ``v_ant(w)^H r`` is the inverse delay DFT of the cell's row of the
-        residual's DFT (times the phase of the axes' centres): no pass over ``y``."""
+        residual's DFT (times the phase of the axes' centres): no pass over ``y``. Returns the final ``w``
+        and its :meth:`contract` (from the last sweep's pass: no pass of its own)."""
         w = grid_frequency(np.unravel_index(j, self.grid.shape), self.grid)
         ja = j // self.grid.n_subcarriers
         x0 = np.fft.ifft(self.Rr[ja] + 1j * self.Ri[ja]) * np.exp(1j * np.dot(w[:4], self.offsets[:4]))
         return nk.coordinate_search(self.rr, self.ri, w, self.offsets, self.dims, self.cand, sweeps, self.W,
                                     self.G, x0)
 
-    def subtract_dft(self, ws: list[np.ndarray], gs: list[complex]) -> tuple[int, float]:
-        """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``."""
-        a, b, g = self._none if not ws else (*self._factors(ws), np.asarray(gs, complex))
-        return nk.subtract_atoms(self.Rr, self.Ri, a, b, g, True)
+    def subtract_dft(self, ws: list[np.ndarray], gs: list[complex], second: list[bool]) -> tuple[int, float]:
+        """The DFT's ``R -= sum_m g_m DFT(v(w_m))``; returns the flat index and value of ``max |R|^2``.
+        ``second[m]``: atoms ``m - 1`` and ``m`` are one path's new and old atom. Rows of ``R`` are brought
+        up to date only where they may hold the maximum (:func:`.dft_kernels.update_dft`); the row of the
+        maximum always is."""
+        n = len(ws)
+        if self.n_log + n > len(self.log[0]):  # grow the log (doubling)
+            log = self._new_log(max(2 * len(self.log[0]), self.n_log + n), self.log[3].shape[1], self.log[4].shape[1])
+            for x, y in zip(log, self.log):
+                x[:self.n_log] = y[:self.n_log]
+            self.log = log
+        W, g, sec, a, br, bi = self.log
+        if n:
+            sl = slice(self.n_log, self.n_log + n)
+            W[sl], g[sl], sec[sl] = ws, gs, second
+        self.n_log += n
+        self.calls.append(self.n_log)
+        return dk.update_dft(self.Rr, self.Ri, W, g, sec, a, br, bi, self.offsets, self.dims, self.twiddle,
+                             np.asarray(self.calls, np.int64), self.done, self.top, self.arg, self.pend)
 
-    def _factors(self, ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Antenna ``(n, Na)`` (the Kronecker product of the four antenna axes, C order) and delay ``(n, K)``
-        factors of the DFTs of the atoms ``v(w)`` (:func:`atoms`)."""
-        W = np.asarray(ws, float)
-        vs = [np.fft.fft(np.exp(1j * W[:, d, None] * self.idx[d]), axis=-1) for d in range(5)]
-        a = vs[0]
-        for v in vs[1:4]:
-            a = (a[:, :, None] * v[:, None, :]).reshape(len(W), -1)
-        return a, vs[4]
+    @staticmethod
+    def _new_log(cap: int, Na: int, K: int) -> tuple[np.ndarray, ...]:
+        """Empty log arrays for ``cap`` atoms (:func:`.dft_kernels.update_dft`), kept for the thread's next call."""
+        _SCRATCH.log = (np.empty((cap, 5)), np.empty(cap, complex), np.empty(cap, bool), np.empty((cap, Na), complex),
+                        np.empty((cap, K)), np.empty((cap, K)))
+        return _SCRATCH.log
 
 
 def refine(res: _Residual, w: np.ndarray, iters: int = 8, tol: float = 0.02, g_self: complex = 0j,
@@ -259,7 +288,9 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
     t = cfar_threshold(grid, pfa) * N
     ws: list[np.ndarray] = []
     gs: list[complex] = []
-    Ts = np.zeros((0, 3, 3, 3, 3, 3), complex)  # per path: derivatives of v(w_l)^H r
+    W_all, G_all = np.zeros((int(max_paths), 5)), np.zeros(int(max_paths), complex)  # res.W, res.G: their heads
+    T_all = np.zeros((int(max_paths), 3, 3, 3, 3, 3), complex)  # per path: derivatives of v(w_l)^H r
+    Ts = T_all[:0]
 
     def replace(l: int, w: np.ndarray, g: complex, T_fit: np.ndarray) -> None:
         """Path ``l`` (``l = len(ws)``: a new one) becomes ``(w, g)``; ``T_fit`` its tensor on the residual
@@ -269,23 +300,24 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
         if l == len(ws):
             ws.append(w)
             gs.append(g)
-            Ts = np.concatenate([Ts, T_fit[None]])
+            Ts = T_all[:len(ws)]
         else:
             add, sub = [w, ws[l]], [g, -gs[l]]
             ws[l], gs[l] = w, g
-            Ts[l] = T_fit
-        res.W, res.G = np.array(ws), np.array(gs, complex)
+        Ts[l] = T_fit
+        W_all[l], G_all[l] = w, g
+        res.W, res.G = W_all[:len(ws)], G_all[:len(ws)]
         for wa, ga in zip(add, sub):
             nk.add_cross_terms(Ts, res.W, wa, -ga, res.offsets, res.dims)
-        pending.extend(zip(add, sub))
+        pending.extend(zip(add, sub, [False, True]))
 
-    pending: list[tuple[np.ndarray, complex]] = []
-    j, pmax = res.subtract_dft([], [])
+    pending: list[tuple[np.ndarray, complex, bool]] = []
+    j, pmax = res.subtract_dft([], [], [])
     for _ in range(int(max_paths)):
         if pmax <= t:
             break
-        w = res.coordinate_search(j)
-        w, T_fit = refine(res, w)
+        w, T_fit = res.coordinate_search(j)
+        w, T_fit = refine(res, w, first=T_fit)
         T_fit = res.contract(w) if T_fit is None else T_fit
         replace(len(ws), w, complex(T_fit.flat[0]) / N, T_fit)
         # cyclic refinement (NOMP): every earlier path re-fitted on the residual plus itself (its own
@@ -302,7 +334,7 @@ def nomp(Y: np.ndarray, grid: Grid, pfa: float, max_paths: int = 20,
                 T_fit = res.contract(w_new) if T_fit is None else T_fit
                 g_new = complex(T_fit.flat[0]) / N + gs[l] * complex(res.cross(w_new, ws[l])[0].flat[0]) / N
                 replace(l, w_new, g_new, T_fit)
-        j, pmax = res.subtract_dft([p[0] for p in pending], [p[1] for p in pending])
+        j, pmax = res.subtract_dft(*map(list, zip(*pending)))
         pending.clear()
     w_out = np.angle(np.exp(1j * np.array(ws, float).reshape(-1, 5)))  # wrapped to (-pi, pi]
     return w_out, np.array(gs, complex)

@@ -137,15 +137,17 @@ def estimate_link(Y: np.ndarray, t0_m: float, pm: PilotModel, pfa: float, max_pa
 
 
 def estimator_kernels_cached() -> bool:
-    """Whether every compiled kernel of the estimator (:mod:`mmslam.slam.sim.nomp_kernels`) is loaded or in
-    numba's on-disk cache (its private cache index, as :func:`mmslam.slam.filter.precompile.is_cached`;
-    any error: False)."""
+    """Whether every compiled kernel of the estimator (:mod:`mmslam.slam.sim.nomp_kernels`,
+    :mod:`mmslam.slam.sim.dft_kernels`) is loaded or in numba's on-disk cache (its private cache index, as
+    :func:`mmslam.slam.filter.precompile.is_cached`; any error: False)."""
     import numba.core.registry as reg
 
-    from . import nomp_kernels as nk
+    from . import dft_kernels, nomp_kernels
 
-    for obj in vars(nk).values():
-        if not (isinstance(obj, reg.CPUDispatcher) and obj.py_func.__module__ == nk.__name__) or obj.overloads:
+    kernels = [obj for mod in (nomp_kernels, dft_kernels) for obj in vars(mod).values()
+               if isinstance(obj, reg.CPUDispatcher) and obj.py_func.__module__ == mod.__name__]
+    for obj in kernels:
+        if obj.overloads:
             continue
         try:
             if not obj._cache._cache_file._load_index():
