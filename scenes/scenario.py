@@ -169,6 +169,12 @@ class TypeParams:
                             "the fusion's accumulated-FOV rule)", "", probability=True)
     threshold: float = param(0.55, "estimate-extraction weight threshold of the type's maps (unused for the known "
                              "BS)", "", lo=0.0, hi=10.0)
+    p_detect_source: str = param("value", "where the filter's p_D of this type comes from: value (p_detect), or "
+                                 "link: under a power-aware sensor model (link, estimated) the link budget's mean "
+                                 "detection probability of the type's paths inside the FOV on the run's paths "
+                                 "(their traced power through the sensor's link budget: its predicted-SNR "
+                                 "detection model, not the run's detections), clipped to [0.01, 0.99]; under the "
+                                 "constant model p_detect (docs/estimator.md, 6b)", choices=("value", "link"))
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. Set it where distinct landmarks lie closer than their "
                                 "position uncertainty lets U = 49 tell apart (canyon VAs: two image sources 1.53 m "
@@ -180,9 +186,11 @@ class TypeParams:
 
 
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
-    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5), "SP": TypeParams(), "VS": TypeParams()}
+    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5), "SP": TypeParams(),
+    "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
-prior, and threshold 0.5, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7). A file's row replaces the keys it gives; a type
+prior, and threshold 0.5, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7; VS: p_D from the
+link budget under a power-aware sensor, docs/estimator.md 6b). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
 
 TYPE_PARAM_ALIASES: dict[str, tuple[str, str]] = {
@@ -903,7 +911,8 @@ def parameter_reference() -> str:
         out.extend(f"| `{k}` | {d} | {u} | {_cell(b)} | {_cell(doc)} |" for k, d, u, b, doc in param_rows(cls, section))
         out.append("")
         if cls is FilterParams:
-            rows = ", ".join(f"{n} (" + ", ".join(f"{k} {v:g}" for k, v in dataclasses.asdict(r).items()
+            rows = ", ".join(f"{n} (" + ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                                                  for k, v in dataclasses.asdict(r).items()
                                                   if v is not None) + ")" for n, r in DEFAULT_TYPE_PARAMS.items())
             aliases = ", ".join(f"`{a}`" for a in TYPE_PARAM_ALIASES)
             out.append(f"#### [filter.types.<TYPE>]\n\nThe filter's parameters of each landmark type, one row per type "

@@ -68,6 +68,34 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
     return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
 
 
+def resolve_detect_probs(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray]
+                         ) -> tuple[Scenario, dict[str, dict[str, float]]]:
+    """Each type with ``filter.types.<T>.p_detect_source = "link"`` under a power-aware sensor model (``link``,
+    ``estimated``) gets ``p_detect`` = :func:`~mmslam.slam.sim.sensor.link_detect_rate` on ``paths`` (clipped to
+    [0.01, 0.99]; kept where the type has no path in the FOV). Returns the scenario and, per changed type,
+    ``{"p_detect", "paths"}`` (``Result.meta['p_detect_from_link']``). The constant model: unchanged."""
+    import dataclasses
+
+    from ..sim.sensor import link_detect_rate
+
+    if scn.sensor.model not in ("link", "estimated"):
+        return scn, {}
+    types, notes = dict(scn.filter.types), {}
+    for spec in landmark_types():
+        tp = scn.filter.type_params(spec.name)
+        if tp.p_detect_source != "link":
+            continue
+        rate, n = link_detect_rate(scn, states, paths, spec.code)
+        if n == 0:
+            continue
+        pd = float(np.clip(rate, 0.01, 0.99))
+        types[spec.name] = dataclasses.replace(tp, p_detect=pd)
+        notes[spec.name] = {"p_detect": pd, "paths": n}
+    if not notes:
+        return scn, {}
+    return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, types=types)), notes
+
+
 def schedule(scn: Scenario, n_veh: int, steps: int) -> list[set[int]]:
     """Per vehicle, the steps at which it uploads to the BS: ``fusion.start[n] + i fusion.period``
     (one ``start`` for all vehicles if ``fusion.start`` has a single entry)."""
@@ -152,6 +180,9 @@ class CooperativeRun:
         states = states[:steps]
         step_col = np.asarray(paths["step"])
         sub = {k: np.asarray(v)[step_col < steps] for k, v in paths.items()}
+        # the p_D of types that take it from the sensor's link budget (filter.types.<T>.p_detect_source)
+        scn, self.p_detect_from_link = resolve_detect_probs(scn, states, sub)
+        self.scn = scn
 
         # ---- stage 0: measurements of the whole run, prior, filters
         ss = np.random.SeedSequence(int(seed))
@@ -280,6 +311,7 @@ class CooperativeRun:
                               "include_types": [int(t) for t in self.include_types],
                               "measurement_update": self.measurement_update,
                               "fusion_start": int(min(scn.fusion.start)), "vs_body_model": self.vs_body_model,
+                              "p_detect_from_link": self.p_detect_from_link,
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
         cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
@@ -378,5 +410,11 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
                            "later runs load them")
         warm_up_estimator(scn.sensor, scn.frequency_hz)
     est = {"rays": cache.read_rays(), "estimates_dir": cache.path} if scn.sensor.model == "estimated" else {}
-    return run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
-                      seed=seed, steps=steps, include_types=include_types, meta=meta, source=meta["source"], **est)
+    res = run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
+                     seed=seed, steps=steps, include_types=include_types, meta=meta, source=meta["source"], **est)
+    if compile_notice is not None and res.meta.get("p_detect_from_link"):
+        compile_notice("p_D from the link budget (filter.types.<T>.p_detect_source = link, sensor.model = "
+                       f"{scn.sensor.model}): " + ", ".join(
+                           f"{t} {v['p_detect']:.2f} (mean over {v['paths']} paths in the FOV)"
+                           for t, v in res.meta["p_detect_from_link"].items()))
+    return res
