@@ -11,8 +11,8 @@ from scipy.special import i0e
 from scipy.integrate import quad
 
 from mmslam.scenes.scenario import load_preset, with_overrides
-from mmslam.slam.filter.run import CooperativeRun, resolve_detect_probs
-from mmslam.slam.sim.sensor import LinkBudget, link_detect_rate
+from mmslam.slam.filter.run import CooperativeRun, link_detect_rate, resolve_detect_probs
+from mmslam.slam.sim.sensor import LinkBudget
 from mmslam.slam.specs.landmarks import VA_SPEC, VS_SPEC
 
 

@@ -35,7 +35,7 @@ from mmslam.scenes.scenario import Scenario, with_overrides
 from ..models.dynamics import wrap_angle
 from ..eval.evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
-from ..specs.landmarks import known_codes, landmark_types
+from ..specs.landmarks import is_range_gated, known_codes, landmark_types
 from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
 from .result import Result
@@ -68,15 +68,40 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
     return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
 
 
+def link_detect_rate(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], code: int) -> tuple[float, int]:
+    """The link budget's mean detection probability of the type-``code`` paths inside the FOV.
+
+    Each row of ``paths`` of that type whose landmark lies within ``sensor.fov_range`` of the vehicle's antenna
+    (``states (steps, n_veh, 7)``, m; only range-gated types, the others count at any range) gets
+    ``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` at its traced power (:meth:`~mmslam.slam.sim.sensor.LinkBudget.detect_prob`); returns
+    their mean and their number (``(nan, 0)`` without such a row). A prediction from the paths' power and the
+    sensor's hardware, not a count of detections.
+    """
+    from ..sim.sensor import LinkBudget
+
+    p_type = np.asarray(paths["type"])
+    sel = np.flatnonzero(p_type == code)
+    step, rx = np.asarray(paths["step"])[sel], np.asarray(paths["rx"])[sel]
+    keep = step < states.shape[0]
+    sel, step, rx = sel[keep], step[keep], rx[keep]
+    if bool(np.asarray(is_range_gated(np.array([code])), bool)[0]) and sel.size:
+        lm = np.stack([np.asarray(paths[c], float)[sel] for c in ("lm_x", "lm_y", "lm_z")], -1)
+        inside = np.linalg.norm(lm - np.asarray(states, float)[step, rx, 0:3], axis=-1) <= scn.sensor.fov_range
+        sel = sel[inside]
+    if sel.size == 0:
+        return float("nan"), 0
+    link = LinkBudget.from_sensor(scn.sensor)
+    pd = link.detect_prob(link.snr_db(np.asarray(paths["power_db"], float)[sel]))
+    return float(np.mean(pd)), int(sel.size)
+
+
 def resolve_detect_probs(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray]
                          ) -> tuple[Scenario, dict[str, dict[str, float]]]:
     """Each type with ``filter.types.<T>.p_detect_source = "link"`` under a power-aware sensor model (``link``,
-    ``estimated``) gets ``p_detect`` = :func:`~mmslam.slam.sim.sensor.link_detect_rate` on ``paths`` (clipped to
+    ``estimated``) gets ``p_detect`` = :func:`link_detect_rate` on ``paths`` (clipped to
     [0.01, 0.99]; kept where the type has no path in the FOV). Returns the scenario and, per changed type,
     ``{"p_detect", "paths"}`` (``Result.meta['p_detect_from_link']``). The constant model: unchanged."""
     import dataclasses
-
-    from ..sim.sensor import link_detect_rate
 
     if scn.sensor.model not in ("link", "estimated"):
         return scn, {}

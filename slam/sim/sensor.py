@@ -112,31 +112,6 @@ class Measurements:
         return names, counts
 
 
-def link_detect_rate(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], code: int) -> tuple[float, int]:
-    """The link budget's mean detection probability of the type-``code`` paths inside the FOV.
-
-    Each row of ``paths`` of that type whose landmark lies within ``sensor.fov_range`` of the vehicle's antenna
-    (``states (steps, n_veh, 7)``, m; only range-gated types, the others count at any range) gets
-    ``p_D = Q_1(sqrt(2 SNR), sqrt(-2 ln pfa))`` at its traced power (:meth:`LinkBudget.detect_prob`); returns
-    their mean and their number (``(nan, 0)`` without such a row). A prediction from the paths' power and the
-    sensor's hardware, not a count of detections.
-    """
-    p_type = np.asarray(paths["type"])
-    sel = np.flatnonzero(p_type == code)
-    step, rx = np.asarray(paths["step"])[sel], np.asarray(paths["rx"])[sel]
-    keep = step < states.shape[0]
-    sel, step, rx = sel[keep], step[keep], rx[keep]
-    if bool(np.asarray(is_range_gated(np.array([code])), bool)[0]) and sel.size:
-        lm = np.stack([np.asarray(paths[c], float)[sel] for c in ("lm_x", "lm_y", "lm_z")], -1)
-        inside = np.linalg.norm(lm - np.asarray(states, float)[step, rx, 0:3], axis=-1) <= scn.sensor.fov_range
-        sel = sel[inside]
-    if sel.size == 0:
-        return float("nan"), 0
-    link = LinkBudget.from_sensor(scn.sensor)
-    pd = link.detect_prob(link.snr_db(np.asarray(paths["power_db"], float)[sel]))
-    return float(np.mean(pd)), int(sel.size)
-
-
 def clutter_intensity(params: SensorParams) -> float:
     """Uniform clutter intensity ``clutter_mean / (toa_max * (2 pi)^2 * pi^2)`` (1 / (m rad^4))."""
     vol = params.clutter_toa_max * (2.0 * math.pi) ** 2 * math.pi**2
