@@ -141,6 +141,11 @@ def register(app: typer.Typer) -> None:
             extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
                      f"{run.wall_time_s:.1f} s",
                      f"summary: {Path(out) / 'summary.parquet'}"]
+            from mmslam.pipelines.ablate.sensor_models import link_pd_notice
+
+            note = link_pd_notice((run.summary.sensor or {}).get("measurements") or [])
+            if note:
+                extra.insert(0, note)
             if report:
                 from mmslam.pipelines.report import write_report
 

@@ -12,7 +12,7 @@ from scipy.stats import t as student_t
 
 from mmslam.cli import main
 from mmslam.pipelines import ablate as A
-from mmslam.pipelines.ablate.sensor_models import measurement_rows, sensor_model, sensor_pairs
+from mmslam.pipelines.ablate.sensor_models import link_pd_notice, measurement_rows, sensor_model, sensor_pairs
 from mmslam.slam.sim.sensor import Measurements
 
 
@@ -92,6 +92,18 @@ def test_measurement_rows_average_per_vehicle_step_over_runs() -> None:
     assert row["model"] == "estimated" and row["runs"] == 2
     assert row["measurements"] == {"BS": 1.0, "clutter": 2.0}
     assert row["estimator"] == {"estimates": 4.0, "merged": 0.5}
+    assert row["p_detect_from_link"] is None and link_pd_notice([row]) is None
+
+
+def test_the_link_budget_p_d_is_averaged_per_label_and_named_in_one_line() -> None:
+    class R:
+        def __init__(self, pd: float | None) -> None:
+            self.meta = {} if pd is None else {"p_detect_from_link": {"VS": {"p_detect": pd, "paths": 80}}}
+
+    jobs = {A.Job("proposed", 0): R(0.5), A.Job("proposed", 1): R(0.3), A.Job("baseline", 0): R(None)}
+    rows = measurement_rows(jobs, ["proposed", "baseline"], {})
+    assert rows[0]["p_detect_from_link"] == {"VS": pytest.approx(0.4)} and rows[1]["p_detect_from_link"] is None
+    assert link_pd_notice(rows) == "p_D from the link budget (filter.types.<T>.p_detect_source = link): proposed: VS 0.40"
 
 
 def test_measurement_rows_average_runs_that_store_different_columns() -> None:

@@ -71,17 +71,36 @@ def _mean_counts(metas: Sequence[Mapping[str, Any]], key: str) -> dict[str, floa
     return {col: sums[col] / rows[col] if rows[col] else math.nan for col in sums}
 
 
+def _mean_link_pd(metas: Sequence[Mapping[str, Any]]) -> dict[str, float] | None:
+    """Type -> mean over the runs of the p_D taken from the link budget (``meta['p_detect_from_link']``), or None."""
+    vals: dict[str, list[float]] = {}
+    for m in metas:
+        for t, v in (m.get("p_detect_from_link") or {}).items():
+            vals.setdefault(t, []).append(float(v["p_detect"]))
+    return {t: float(np.mean(v)) for t, v in vals.items()} or None
+
+
 def measurement_rows(jobs: Mapping[Job, Any], labels: Sequence[str], spec: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Per label: ``variant`` (the label), ``model``, ``runs``, ``measurements`` (mean count per
-    vehicle-step of each origin column; None for runs stored before the counts existed) and
-    ``estimator`` (the estimator's counts per vehicle-step, None unless ``estimated``)."""
+    vehicle-step of each origin column; None for runs stored before the counts existed),
+    ``estimator`` (the estimator's counts per vehicle-step, None unless ``estimated``) and
+    ``p_detect_from_link`` (type -> the filter's p_D taken from the link budget, mean over runs; None
+    where no type took it: the ``constant`` model, ``filter.types.<T>.p_detect_source = value``)."""
     rows = []
     for lab in labels:
         metas = [jobs[j].meta for j in sorted(jobs) if j.label == lab]
         rows.append({"variant": lab, "model": sensor_model(lab, spec, metas), "runs": len(metas),
                      "measurements": _mean_counts(metas, "measurement_counts"),
-                     "estimator": _mean_counts(metas, "estimator_counts")})
+                     "estimator": _mean_counts(metas, "estimator_counts"),
+                     "p_detect_from_link": _mean_link_pd(metas)})
     return rows
+
+
+def link_pd_notice(rows: Sequence[Mapping[str, Any]]) -> str | None:
+    """One line naming each label's p_D taken from the link budget (:func:`measurement_rows`), or None."""
+    parts = [f"{r['variant']}: " + ", ".join(f"{t} {v:.2f}" for t, v in r["p_detect_from_link"].items())
+             for r in rows if r.get("p_detect_from_link")]
+    return ("p_D from the link budget (filter.types.<T>.p_detect_source = link): " + "; ".join(parts)) if parts else None
 
 
 def _reference_label(label: str, labels: Sequence[str], models: Mapping[str, str]) -> str | None:
