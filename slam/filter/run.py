@@ -35,7 +35,7 @@ from mmslam.scenes.scenario import Scenario, with_overrides
 from ..models.dynamics import wrap_angle
 from ..eval.evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
-from ..specs.landmarks import is_range_gated, known_codes, landmark_types
+from ..specs.landmarks import known_codes, landmark_types
 from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
 from .result import Result
@@ -77,17 +77,15 @@ def link_detect_rate(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndar
     their mean and their number (``(nan, 0)`` without such a row). A prediction from the paths' power and the
     sensor's hardware, not a count of detections.
     """
-    from ..sim.sensor import LinkBudget
+    from ..sim.sensor import LinkBudget, fov_detect_prob
 
-    p_type = np.asarray(paths["type"])
-    sel = np.flatnonzero(p_type == code)
+    sel = np.flatnonzero(np.asarray(paths["type"]) == code)
     step, rx = np.asarray(paths["step"])[sel], np.asarray(paths["rx"])[sel]
     keep = step < states.shape[0]
     sel, step, rx = sel[keep], step[keep], rx[keep]
-    if bool(np.asarray(is_range_gated(np.array([code])), bool)[0]) and sel.size:
+    if sel.size:  # the sensor's FOV rule (fov_detect_prob: range-gated types within fov_range)
         lm = np.stack([np.asarray(paths[c], float)[sel] for c in ("lm_x", "lm_y", "lm_z")], -1)
-        inside = np.linalg.norm(lm - np.asarray(states, float)[step, rx, 0:3], axis=-1) <= scn.sensor.fov_range
-        sel = sel[inside]
+        sel = sel[fov_detect_prob(np.asarray(states, float)[step, rx, 0:3], lm, code, scn.sensor, p_inside=1.0) > 0]
     if sel.size == 0:
         return float("nan"), 0
     link = LinkBudget.from_sensor(scn.sensor)
