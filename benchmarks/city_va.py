@@ -4,7 +4,7 @@ Usage (one process, nice it on a shared machine)::
 
     python benchmarks/city_va.py CACHE_DIR [CACHE_DIR ...] [--seeds 100-109] [--particles 300] [--kmin 10]
         [--variant proposed] [--set section.key=value ...] [--odometry] [--ignore-va]
-        [--compare section.key=value[,section.key=value ...]] [--save OUT.json]
+        [--compare section.key=value[,section.key=value ...]] [--known-va 0,0.3,1] [--save OUT.json]
 
 Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the cache's scenario and the
 ``--set`` overrides, and prints, averaged over steps ``k >= kmin``:
@@ -17,7 +17,11 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
 - ``vs`` / ``vs_others``: the fused VS GOSPA against every vehicle, and of the fused map's non-ego Gaussians
   against the vehicles another vehicle could see (map ``fused_others``; NaN without labels).
 
-``--odometry``: dead reckoning too (``odo_rmse``). ``--ignore-va``: the same variant with the VA paths dropped
+``--known-va E1,E2,...``: the variant once per mapping error ``E`` (m) with a known VA map instead of the one it
+estimates (:mod:`mmslam.slam.filter.known_map`: every vehicle given, before each correction, the true VAs it
+has a path to at that step, each moved by a fixed error of std ``E``, covariance ``max(E, 0.05)^2 I``):
+``known<E>_rmse`` and ``known<E>_rmse_nlos``, paired against ``--ignore-va`` (the upper bound of what a VA map
+with that error helps localisation). ``--odometry``: dead reckoning too (``odo_rmse``). ``--ignore-va``: the same variant with the VA paths dropped
 from the measurements (``include_types`` without VA: the filter never sees a wall bounce), ``noVA_rmse`` and
 ``noVA_rmse_nlos``. ``--compare``: the variant once more with these extra overrides (``cmp_*``). Every claimed
 difference is printed as a paired mean with its 95% Student-t half-width over the seeds.
@@ -96,6 +100,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     """All runs of one cache; prints per seed and the summary; returns the rows and summary."""
     from mmslam.raytrace.cache import load_cache
     from mmslam.slam.filter import run_slam
+    from mmslam.slam.filter.known_map import known_map
     from mmslam.slam.specs.landmarks import VA_SPEC, landmark_types
 
     c = load_cache(cache)
@@ -105,6 +110,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     ev = c.scenario.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
     cmp_sets = [x for x in re.split(r",(?=\w+\.\w+=)", a.compare) if x] if a.compare else []
+    known_errors = [float(x) for x in a.known_va.split(",") if x] if a.known_va else []
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
     for s in seeds_of(a.seeds):
@@ -121,6 +127,11 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set + cmp_sets),
                        a.kmin, nlos, ev)
             sc.update({f"cmp_{k}": v for k, v in o.items()})
+        for e in known_errors:
+            km = known_map(c.paths, VA_SPEC.code, e, float(c.scenario.sensor.p_detect), np.random.default_rng([s, 1]))
+            o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set, known_map=km),
+                       a.kmin, nlos, ev)
+            sc[f"known{e:g}_rmse"], sc[f"known{e:g}_rmse_nlos"] = o["rmse"], o["rmse_nlos"]
         sc["seed"] = s
         rows.append(sc)
         print(f"seed {s}: " + "  ".join(f"{k} {v:.3f}" for k, v in sc.items() if k != "seed")
@@ -137,6 +148,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
         print(f"  RMSE / odometry: {summ['rmse'][0] / summ['odo_rmse'][0]:.3f}")
     if a.ignore_va:
         pairs += [("rmse", "noVA_rmse"), ("rmse_nlos", "noVA_rmse_nlos")]
+        pairs += [(f"known{e:g}_{k}", f"noVA_{k}") for e in known_errors for k in ("rmse", "rmse_nlos")]
     if cmp_sets:
         pairs += [(k, f"cmp_{k}") for k in ("va", "rmse", "vs", "vs_others")]
     for x, y in pairs:
@@ -158,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--odometry", action="store_true")
     ap.add_argument("--ignore-va", action="store_true")
     ap.add_argument("--compare", default="")
+    ap.add_argument("--known-va", default="", help="mapping errors (m) of known VA maps, e.g. 0,0.3,1")
     ap.add_argument("--save", default=None)
     a = ap.parse_args(argv)
     out = [run_scene(c, a) for c in a.cache]

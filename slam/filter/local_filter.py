@@ -37,6 +37,7 @@ from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, with_la
 from ..phd.gmphd import correct
 from ..specs.landmarks import LandmarkSpec, trace_cap
 from ..models.measurement import BS
+from .known_map import KnownMap
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
                    weighted_state_cov, weighted_state_mean)
 from ..phd.reduction import average_map, prune_merge
@@ -85,12 +86,16 @@ class LocalFilter:
         measurement_update: False for dead reckoning (no correction, births or map).
         vehicle: the vehicle's index in ``[0, 2^23)``; with ``fusion.average_by_label`` its births are
             labelled ``vehicle * 2^40 + i`` (``i = 0, 1, ...``), unique across the vehicles of a run.
+        known_map: an oracle map of one type (:mod:`mmslam.slam.filter.known_map`): before every correction
+            that type's map in every particle is replaced by the landmarks ``known_map`` gives this vehicle
+            at this step; None (default): every map is estimated.
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
                  R: np.ndarray, clutter_intensity: float,
                  pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
-                 rng: np.random.Generator, measurement_update: bool = True, vehicle: int = 0) -> None:
+                 rng: np.random.Generator, measurement_update: bool = True, vehicle: int = 0,
+                 known_map: KnownMap | None = None) -> None:
         spec = get_variant(variant)
         if particles < 1:
             raise MmslamError(f"particles={particles}: expected at least 1 particle")
@@ -122,6 +127,10 @@ class LocalFilter:
                                     for t, s in self.specs.items()}
         self._prev_Z: np.ndarray | None = None
         self._k = -1
+        self.vehicle = int(vehicle)
+        if known_map is not None and known_map.type_code not in self.specs:
+            raise MmslamError(f"known map of type code {known_map.type_code}: variant {spec.name!r} keeps no such map")
+        self.known_map = known_map
         self._next_label = int(vehicle) << LABEL_BITS
         self._ego_label = ego_label(vehicle)  # the last of the vehicle's range: not a birth's
         """the label of the next birth (``fusion.average_by_label``)"""
@@ -165,6 +174,10 @@ class LocalFilter:
         # J = 0 still corrects: every detectable Gaussian was missed, w <- (1 - p_D) w (eq. (5) with
         # an empty set); the particle weights are unchanged (an empty product)
         R = self.R if R_z is None or J == 0 else np.asarray(R_z, float).reshape(J, 5, 5)
+        if self.known_map is not None:  # the oracle map of one type, given afresh at every step
+            t = self.known_map.type_code
+            self.maps[t] = self.known_map.mixture(self._k, self.vehicle, self.P,
+                                                  self.specs[t].pd_beta_prior(self.scn) is not None, self._labels)
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,

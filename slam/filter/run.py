@@ -36,6 +36,7 @@ from ..models.dynamics import wrap_angle
 from ..eval.evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
 from ..specs.landmarks import known_codes, landmark_types
+from .known_map import KnownMap
 from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
 from .result import Result
@@ -162,6 +163,8 @@ class CooperativeRun:
         include_types: path type codes turned into measurements (default all registered types).
         measurement_update: False forces dead reckoning (also implied by the variant).
         evaluate: keep the truth and the per-step tables (False: the filters only, e.g. benchmarks).
+        known_map: an oracle map of one type given to every vehicle at every step
+            (:mod:`mmslam.slam.filter.known_map`, experiments only); None: every map is estimated.
 
     Attributes:
         filters: the vehicles' :class:`LocalFilter`; ``center``: the :class:`FusionCenter` (None
@@ -173,7 +176,8 @@ class CooperativeRun:
                  variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
                  steps: int | None = None, include_types: Sequence[int] | None = None, *,
                  measurement_update: bool = True, evaluate: bool = True, rays: dict[str, np.ndarray] | None = None,
-                 estimates_dir: str | Path | None = None, source: str | None = None) -> None:
+                 estimates_dir: str | Path | None = None, source: str | None = None,
+                 known_map: KnownMap | None = None) -> None:
         from ..sim.sensor import fov_detect_prob, simulate_measurements
 
         self.t0 = time.perf_counter()
@@ -245,7 +249,8 @@ class CooperativeRun:
             prior_mean = self.true[0, n] + prior_rng.standard_normal(7) * prior_std
             self.filters.append(LocalFilter(scn, self.variant, self.particles, prior_mean, R,
                                             float(self.meas.clutter_intensity), pd_fn,
-                                            np.random.default_rng(s_veh[n]), self.measurement_update, vehicle=n))
+                                            np.random.default_rng(s_veh[n]), self.measurement_update, vehicle=n,
+                                            known_map=known_map))
         self.center = FusionCenter(scn, self.variant) if self.measurement_update else None
         self.schedule = schedule(scn, n_veh, self.steps)
         self._acc_fov: list[list[np.ndarray]] = [[] for _ in range(n_veh)]
@@ -356,7 +361,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                steps: int | None = None, include_types: Sequence[int] | None = None,
                meta: dict[str, Any] | None = None, *, measurement_update: bool = True,
                rays: dict[str, np.ndarray] | None = None, estimates_dir: str | Path | None = None,
-               source: str | None = None) -> Result:
+               source: str | None = None, known_map: KnownMap | None = None) -> Result:
     """Run cooperative MM-PHD-SLAM on noise-free paths (no cache needed): :meth:`CooperativeRun.run`.
 
     Args:
@@ -376,18 +381,20 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
             "estimated"`` only, :mod:`mmslam.slam.sim.estimated_sensor`).
         source: the path source (a cache's ``source``: ``sionna``, ``analytic``); decides
             ``filter.vs_body_model = "auto"`` (:func:`resolve_vs_body`; None: the point VS).
+        known_map: an oracle map of one type (:mod:`mmslam.slam.filter.known_map`; experiments only).
 
     Returns:
         A :class:`~mmslam.slam.filter.result.Result` (tables documented in :mod:`mmslam.slam.filter.result`).
     """
     return CooperativeRun(scn, states, paths, variant, particles, seed, steps, include_types,
                           measurement_update=measurement_update, rays=rays, estimates_dir=estimates_dir,
-                          source=source).run(meta)
+                          source=source, known_map=known_map).run(meta)
 
 
 def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", particles: int | None = None,
              seed: int = 0, steps: int | None = None, include_types: Sequence[int] | None = None,
-             overrides: Sequence[str] = (), compile_notice: Callable[[str], None] | None = None) -> Result:
+             overrides: Sequence[str] = (), compile_notice: Callable[[str], None] | None = None,
+             known_map: KnownMap | None = None) -> Result:
     """Load a path cache and run :func:`run_filter` on it.
 
     The variant's numba kernels are compiled (in parallel processes, if not cached yet: a fresh
@@ -400,7 +407,8 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
     ``overrides``: ``section.key=value`` strings (e.g. ``"fusion.vs_reduction=gate"``) applied to
     the cached scenario's [sensor], [filter], [fusion] and [evaluation] parameters
     (:func:`mmslam.scenes.scenario.with_overrides`); they change the filter run, never the trace.
-    ``particles`` None: the (overridden) scenario's ``filter.particles``.
+    ``particles`` None: the (overridden) scenario's ``filter.particles``. ``known_map``: an oracle map of one
+    type (:mod:`mmslam.slam.filter.known_map`, built from the cache's paths; experiments only).
 
     Raises:
         CacheError: the cache is missing, corrupt or of another schema (from ``load_cache``).
@@ -434,7 +442,8 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
         warm_up_estimator(scn.sensor, scn.frequency_hz)
     est = {"rays": cache.read_rays(), "estimates_dir": cache.path} if scn.sensor.model == "estimated" else {}
     res = run_filter(scn, cache.states, cache.paths, variant=variant, particles=particles,
-                     seed=seed, steps=steps, include_types=include_types, meta=meta, source=meta["source"], **est)
+                     seed=seed, steps=steps, include_types=include_types, meta=meta, source=meta["source"],
+                     known_map=known_map, **est)
     if compile_notice is not None and res.meta.get("p_detect_from_link"):
         compile_notice("p_D from the link budget (filter.types.<T>.p_detect_source = link, sensor.model = "
                        f"{scn.sensor.model}): " + ", ".join(
