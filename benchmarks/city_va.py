@@ -47,6 +47,17 @@ def seeds_of(s: str) -> list[int]:
     return [int(x) for x in s.split(",")]
 
 
+def errors_of(s: str) -> list[float]:
+    """``"0,0.3,1"`` -> ``[0.0, 0.3, 1.0]`` (``--known-va``); a bad list is argparse's one-line error, exit 2."""
+    try:
+        out = [float(x) for x in s.split(",") if x]
+    except ValueError:
+        out = [-1.0]
+    if not out or not all(e >= 0.0 for e in out):
+        raise argparse.ArgumentTypeError(f"{s!r}: expected mapping errors >= 0 in metres, e.g. 0,0.3,1")
+    return out
+
+
 def nlos_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
     """``(steps, n_veh)`` bool: no line-of-sight (BS) path for that vehicle at that step."""
     from mmslam.slam.specs.landmarks import BS_SPEC
@@ -110,7 +121,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     ev = c.scenario.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
     cmp_sets = [x for x in re.split(r",(?=\w+\.\w+=)", a.compare) if x] if a.compare else []
-    known_errors = [float(x) for x in a.known_va.split(",") if x] if a.known_va else []
+    known_errors = a.known_va
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
     for s in seeds_of(a.seeds):
@@ -170,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--odometry", action="store_true")
     ap.add_argument("--ignore-va", action="store_true")
     ap.add_argument("--compare", default="")
-    ap.add_argument("--known-va", default="", help="mapping errors (m) of known VA maps, e.g. 0,0.3,1")
+    ap.add_argument("--known-va", type=errors_of, default=[], help="mapping errors (m) of known VA maps, e.g. 0,0.3,1")
     ap.add_argument("--save", default=None)
     a = ap.parse_args(argv)
     out = [run_scene(c, a) for c in a.cache]

@@ -36,13 +36,32 @@ def test_rows_of_the_type_per_step_and_vehicle_exact_without_error():
 
 def test_one_fixed_error_per_landmark_of_the_stated_std():
     va = VA_SPEC.code
-    rows = [(k, r, va, f"wall{i}", float(i), 0.0, 0.0) for i in range(3000) for k, r in ((0, 0), (5, 2))]
+    truth = np.stack([10.0 * np.arange(3000), np.zeros(3000), np.zeros(3000)], 1)  # 10 m apart: order kept
+    rows = [(k, r, va, f"wall{i:04d}", *truth[i]) for i in range(3000) for k, r in ((0, 0), (5, 2))]
     km = known_map(_paths(rows), va, 0.3, 0.9, np.random.default_rng(1))
     a, b = km.at(0, 0), km.at(5, 2)
     np.testing.assert_array_equal(a, b)  # the same landmark moved by the same error at every step and vehicle
-    err = a - np.stack([np.round(a[:, 0]), np.zeros(len(a)), np.zeros(len(a))], 1)  # errors << 0.5 m in x
+    err = a - truth  # at() sorts by x, the truth's order (errors << 5 m)
     assert abs(err.std() / 0.3 - 1.0) < 0.05 and abs(err.mean()) < 0.02  # 9000 draws: 3% / 0.006 m sd
     assert km.std == 0.3
+
+
+def test_a_vehicle_given_no_known_landmark_has_an_empty_map():
+    """Degenerate shapes: Q = 0 for every particle (vehicle 1 is given nothing), P = 1."""
+    scn = load_preset("paper")
+    states = true_trajectories(scn)[:3]
+    parts = [AnalyticSource(scn).trace_step(k, states[k]) for k in range(3)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    only0 = {c: v[np.asarray(paths["rx"]) == 0] for c, v in paths.items()}
+    km = known_map(only0, VA_SPEC.code, 0.0, 0.95, np.random.default_rng(0))
+    g = km.mixture(0, 1, 1, with_pd_beta=True, with_label=True)
+    assert g.w.shape == (1, 0) and g.m.shape == (1, 0, 3) and g.P.shape == (1, 0, 3, 3) and g.pd_beta.shape == (1, 0, 2)
+    run = CooperativeRun(scn, states, paths, "proposed", 1, seed=0, known_map=km)
+    for k in range(3):
+        est = run.step(k)
+        g1, g0 = est[1].avg_maps[VA_SPEC.code], est[0].avg_maps[VA_SPEC.code]
+        assert not g1.mask.any()  # nothing given, its own births replaced
+        assert g0.mask.sum() >= 1
 
 
 @pytest.mark.parametrize("err, pd", [(-0.1, 0.9), (0.0, 1.0), (0.0, 0.0)])
