@@ -70,6 +70,27 @@ def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
     return s
 
 
+def route_height_step(v: Vehicle, dt: float) -> float:
+    """RMS height change per step (m) of vehicle ``v`` moving at its plan speed along its route: the road's slope.
+
+    ``sqrt(sum_i L_i (g_i zeta dt)^2 / sum_i L_i)`` over the route's segments ``i`` of plan length ``L_i`` (m)
+    and grade ``g_i = dz_i / L_i``, at the plan speed ``zeta`` (m/s, ``initial_state[4]``) and step ``dt`` (s).
+    The scene's geometry (the route on the terrain), known before any run: 0 for a ``ct`` vehicle (a planar
+    coordinated turn), for ``[x, y]`` waypoints and on a flat route.
+    """
+    wps = np.asarray(v.waypoints, dtype=float)
+    if v.motion != "waypoints" or wps.ndim != 2 or wps.shape[1] != 3 or len(wps) < 2:
+        return 0.0
+    seg = np.diff(wps, axis=0)
+    length = np.linalg.norm(seg[:, :2], axis=1)
+    moving = length > 1e-9
+    if not moving.any():
+        return 0.0
+    grade = seg[moving, 2] / length[moving]
+    step = grade * float(v.initial_state[4]) * float(dt)
+    return float(np.sqrt(np.sum(length[moving] * step ** 2) / np.sum(length[moving])))
+
+
 def vehicle_trajectories(scn: Scenario, steps: int | None = None,
                          rng: np.random.Generator | None = None) -> np.ndarray:
     """True vehicle states per step, shape ``(steps, n_vehicles, 7)``, global frame.

@@ -5,7 +5,7 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
    states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``);
    particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
-   and process noise ``sensor.vehicle_noise_std``; each map through its type's ``predict``
+   and process noise ``sensor.vehicle_noise_std`` (height: ``filter.height_process``); each map through its type's ``predict``
    (static: times ``p_S``, eq. 4; VS: coordinated turn with process noise and dithering, eq. 9);
 2. correction with ``Z_k`` (eqs. 5 / 10, CKF per Gaussian, filter noise ``R = r_scale R_true``);
    particle log-weights ``+= sum_z log psi(z)`` (product form, as the authors' code; the paper's
@@ -89,13 +89,16 @@ class LocalFilter:
         known_map: an oracle map of one type (:mod:`mmslam.slam.filter.known_map`): before every correction
             that type's map in every particle is replaced by the landmarks ``known_map`` gives this vehicle
             at this step; None (default): every map is estimated.
+        process_std: ``(7,)`` the vehicle's process noise std (units of ``sensor.vehicle_noise_std``); None
+            (default): ``scn.sensor.vehicle_noise_std`` (:func:`~mmslam.slam.filter.run.vehicle_process_std`
+            gives each vehicle its own height noise).
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,
                  R: np.ndarray, clutter_intensity: float,
                  pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                  rng: np.random.Generator, measurement_update: bool = True, vehicle: int = 0,
-                 known_map: KnownMap | None = None) -> None:
+                 known_map: KnownMap | None = None, process_std: np.ndarray | None = None) -> None:
         spec = get_variant(variant)
         if particles < 1:
             raise MmslamError(f"particles={particles}: expected at least 1 particle")
@@ -131,6 +134,9 @@ class LocalFilter:
         if known_map is not None and known_map.type_code not in self.specs:
             raise MmslamError(f"known map of type code {known_map.type_code}: variant {spec.name!r} keeps no such map")
         self.known_map = known_map
+        self.process_std = np.asarray(scn.sensor.vehicle_noise_std if process_std is None else process_std, float)
+        if self.process_std.shape != (7,) or not (self.process_std >= 0).all():
+            raise MmslamError(f"process_std={self.process_std.tolist()}: expected 7 stds >= 0")
         self._next_label = int(vehicle) << LABEL_BITS
         self._ego_label = ego_label(vehicle)  # the last of the vehicle's range: not a birth's
         """the label of the next birth (``fusion.average_by_label``)"""
@@ -150,8 +156,7 @@ class LocalFilter:
                     births[t], self._next_label = with_labels(births[t], self._next_label)
                     if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice
                         raise MmslamError(f"vehicle {self._ego_label >> LABEL_BITS} ran out of birth labels")
-        self.s = propagate(self.s, speed, turn_rate, self.dt, np.asarray(self.scn.sensor.vehicle_noise_std),
-                           self.rng)
+        self.s = propagate(self.s, speed, turn_rate, self.dt, self.process_std, self.rng)
         if not self.update:
             return
         for t, sp in self.specs.items():

@@ -69,6 +69,24 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
     return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
 
 
+def vehicle_process_std(scn: Scenario) -> np.ndarray:
+    """The filter's process noise std of every vehicle, ``(n_veh, 7)`` (units of ``sensor.vehicle_noise_std``).
+
+    ``sensor.vehicle_noise_std`` for every vehicle, with its height entry under ``filter.height_process =
+    "route"`` the larger of ``vehicle_noise_std[2]`` and the RMS height change per step along the vehicle's
+    route (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets). The
+    motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
+    """
+    from mmslam.scenes.trajectory import route_height_step
+
+    base = np.asarray(scn.sensor.vehicle_noise_std, float)
+    out = np.tile(base, (len(scn.vehicles), 1))
+    if scn.filter.height_process == "route":
+        for n, v in enumerate(scn.vehicles):
+            out[n, 2] = max(base[2], route_height_step(v, scn.dt))
+    return out
+
+
 def link_detect_rate(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], code: int) -> tuple[float, int]:
     """The link budget's mean detection probability of the type-``code`` paths inside the FOV.
 
@@ -244,13 +262,15 @@ class CooperativeRun:
         self.pd_fn = pd_fn
         prior_rng = np.random.default_rng(s_prior)
         prior_std = np.asarray(scn.filter.prior_std, float)
+        self.process_std = vehicle_process_std(scn)
+        """``(n_veh, 7)`` each vehicle's process noise std (filter.height_process)"""
         self.filters: list[LocalFilter] = []
         for n in range(n_veh):
             prior_mean = self.true[0, n] + prior_rng.standard_normal(7) * prior_std
             self.filters.append(LocalFilter(scn, self.variant, self.particles, prior_mean, R,
                                             float(self.meas.clutter_intensity), pd_fn,
                                             np.random.default_rng(s_veh[n]), self.measurement_update, vehicle=n,
-                                            known_map=known_map))
+                                            known_map=known_map, process_std=self.process_std[n]))
         self.center = FusionCenter(scn, self.variant) if self.measurement_update else None
         self.schedule = schedule(scn, n_veh, self.steps)
         self._acc_fov: list[list[np.ndarray]] = [[] for _ in range(n_veh)]
@@ -340,6 +360,7 @@ class CooperativeRun:
                               "measurement_update": self.measurement_update,
                               "fusion_start": int(min(scn.fusion.start)), "vs_body_model": self.vs_body_model,
                               "p_detect_from_link": self.p_detect_from_link,
+                              "height_process_std": self.process_std[:, 2].tolist(),
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
         cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
@@ -449,4 +470,8 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
                        f"{scn.sensor.model}): " + ", ".join(
                            f"{t} {v['p_detect']:.2f} (mean over {v['paths']} paths in the FOV)"
                            for t, v in res.meta["p_detect_from_link"].items()))
+    hz = res.meta.get("height_process_std") or []
+    if compile_notice is not None and any(h > scn.sensor.vehicle_noise_std[2] for h in hz):
+        compile_notice("height process noise from the routes' slope (filter.height_process = route): " + ", ".join(
+            f"{name} {h:.3g}" for name, h in zip(scn.vehicle_names, hz)) + " m per step")
     return res

@@ -1,0 +1,94 @@
+"""The filter's height process noise from the road's slope (``filter.height_process``, docs/city-slam.md)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mmslam.errors import MmslamError
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.scenes.scenario import Vehicle, load_preset, with_overrides
+from mmslam.scenes.trajectory import route_height_step, true_trajectories
+from mmslam.slam.filter.local_filter import LocalFilter
+from mmslam.slam.filter.run import run_filter, vehicle_process_std
+
+
+def _car(name: str, wps: list[list[float]], speed: float) -> Vehicle:
+    x0, y0 = wps[0][:2]
+    z0 = wps[0][2] if len(wps[0]) == 3 else 1.6
+    return Vehicle(name, (x0, y0, z0, 0.0, speed, 0.0, 300.0), motion="waypoints",
+                   waypoints=tuple(tuple(float(c) for c in p) for p in wps))
+
+
+def test_route_height_step_by_hand():
+    # 10 m at a 10% grade, then 10 m flat; 4 m/s, 0.5 s: 0.2 m per step on the first half, 0 on the second
+    v = _car("a", [[0, 0, 0], [10, 0, 1], [20, 0, 1]], 4.0)
+    assert route_height_step(v, 0.5) == pytest.approx(np.sqrt((10 * 0.2 ** 2 + 10 * 0.0) / 20), rel=1e-12)
+    # a downhill leg counts like an uphill one; a diagonal leg's plan length is its horizontal length
+    v = _car("b", [[0, 0, 5], [3, 4, 4.5]], 10.0)  # 5 m in plan, -0.5 m: grade -0.1, 1 m per step at dt = 1
+    assert route_height_step(v, 1.0) == pytest.approx(1.0, rel=1e-12)
+    assert route_height_step(_car("c", [[0, 0], [50, 0]], 7.0), 0.5) == 0.0  # [x, y] waypoints: flat
+    assert route_height_step(_car("d", [[0, 0, 2], [50, 0, 2]], 7.0), 0.5) == 0.0
+    assert route_height_step(Vehicle("e", (0, 0, 0, 0, 5, 0.1, 0)), 0.5) == 0.0  # ct: a planar turn
+
+
+def _hill_scenario(**over: str):
+    """``paper``'s BS and walls, two cars on straight streets at a 5% grade (0.175 m per step), up and down."""
+    scn = load_preset("paper")
+    cars = (_car("up", [[-80, 30, 1.6], [80, 30, 9.6]], 7.0), _car("down", [[80, -30, 9.6], [-80, -30, 1.6]], 7.0))
+    scn = dataclasses.replace(scn, vehicles=cars)
+    return with_overrides(scn, [f"{k}={v}" for k, v in over.items()])
+
+
+def test_vehicle_process_std_takes_the_larger_of_the_sensor_and_the_slope():
+    scn = _hill_scenario()
+    base = np.asarray(scn.sensor.vehicle_noise_std)
+    got = vehicle_process_std(scn)
+    np.testing.assert_allclose(got[:, 2], 0.05 * 7.0 * 0.5, rtol=1e-12)
+    np.testing.assert_array_equal(np.delete(got, 2, axis=1), np.tile(np.delete(base, 2), (2, 1)))
+    np.testing.assert_array_equal(vehicle_process_std(_hill_scenario(**{"filter.height_process": "sensor"})),
+                                  np.tile(base, (2, 1)))
+    big = _hill_scenario(**{"sensor.vehicle_noise_std": "[0.2, 0.2, 0.5, 0.001, 0, 0, 0.2]"})
+    np.testing.assert_allclose(vehicle_process_std(big)[:, 2], 0.5)
+    for name in ("paper", "street", "canyon", "munich"):  # flat: the sensor's noise, as before
+        flat = load_preset(name)
+        np.testing.assert_array_equal(vehicle_process_std(flat),
+                                      np.tile(flat.sensor.vehicle_noise_std, (len(flat.vehicles), 1)))
+
+
+def test_local_filter_propagates_with_its_own_process_std():
+    scn = with_overrides(load_preset("paper"), ["filter.prior_std=[0, 0, 0, 0, 0, 0, 0]"])
+    std = np.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    f = LocalFilter(scn, "odometry", 4000, np.array([0, 0, 0, 0, 5.0, 0, 0]), np.eye(5), 0.0,
+                    lambda u, x, t: np.ones(np.broadcast_shapes(u.shape[:-1], x.shape[:-1])),
+                    np.random.default_rng(3), measurement_update=False, process_std=std)
+    for _ in range(4):
+        f.predict(5.0, 0.0)
+    assert np.std(f.s[:, 2]) == pytest.approx(0.3 * 2.0, rel=0.05)  # 4 steps: sqrt(4) 0.3; 4000 draws: 1.1% sd
+    assert np.ptp(f.s[:, [0, 1, 3, 6]], axis=0).max() == 0.0  # no other noise was drawn
+    with pytest.raises(MmslamError, match=r"process_std=.*expected 7 stds >= 0"):
+        LocalFilter(scn, "odometry", 2, np.zeros(7), np.eye(5), 0.0, lambda u, x, t: u[..., 0],
+                    np.random.default_rng(0), measurement_update=False, process_std=np.full(7, -1.0))
+
+
+def test_cars_on_a_hill_are_localised_in_height_with_the_route_noise():
+    """Paired over seeds: with the motion model's constant height (``sensor``) the height error grows to the
+    climb (7 m over 40 steps); with the route's slope noise the measurements keep it to about 1 m."""
+    scn = _hill_scenario()
+    states = true_trajectories(scn)
+    assert np.ptp(states[:, 0, 2]) == pytest.approx(0.175 * 39, rel=1e-9)  # it does climb
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(scn.steps)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    flat = with_overrides(scn, ["filter.height_process=sensor"])
+
+    def z_rmse(s, seed):
+        v = run_filter(s, states, paths, "proposed", 100, seed=seed).vehicles
+        late = v["step"] >= 10
+        return float(np.sqrt(np.mean((v["z"] - v["true_z"])[late] ** 2)))
+
+    route = np.array([z_rmse(scn, seed) for seed in (0, 1, 2)])
+    const = np.array([z_rmse(flat, seed) for seed in (0, 1, 2)])
+    assert (const > 2.0).all()  # the climb of k >= 10 is 1.75-6.8 m, never followed
+    assert (route < 0.3 * const).all()  # 0.85-1.09 m (paper's r_scale 9: its angles are 0.03 rad, ~2 m in height)
