@@ -71,24 +71,26 @@ def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
 
 
 def route_height_step(v: Vehicle, dt: float) -> float:
-    """RMS height change per step (m) of vehicle ``v`` moving at its plan speed along its route: the road's slope.
+    """The largest height change (m) over one step's travel along vehicle ``v``'s route: the road's slope.
 
-    ``sqrt(sum_i L_i (g_i zeta dt)^2 / sum_i L_i)`` over the route's segments ``i`` of plan length ``L_i`` (m)
-    and grade ``g_i = dz_i / L_i``, at the plan speed ``zeta`` (m/s, ``initial_state[4]``) and step ``dt`` (s).
-    The scene's geometry (the route on the terrain), known before any run: 0 for a ``ct`` vehicle (a planar
-    coordinated turn), for ``[x, y]`` waypoints and on a flat route.
+    ``max_s |z(s + zeta dt) - z(s)|`` over the plan distance ``s`` along the route, ``z(s)`` its piecewise linear
+    height profile, at the plan speed ``zeta`` (m/s, ``initial_state[4]``) and step ``dt`` (s); the whole route's
+    height change if it is shorter than one step. This is the systematic height drift per step that a motion
+    model with a constant height must absorb as noise (a random walk smaller than the drift lags behind until
+    the measurements stop pulling it back). The scene's geometry (the route on the terrain), known before any
+    run: 0 for a ``ct`` vehicle (a planar coordinated turn), for ``[x, y]`` waypoints and on a flat route.
     """
     wps = np.asarray(v.waypoints, dtype=float)
     if v.motion != "waypoints" or wps.ndim != 2 or wps.shape[1] != 3 or len(wps) < 2:
         return 0.0
-    seg = np.diff(wps, axis=0)
-    length = np.linalg.norm(seg[:, :2], axis=1)
-    moving = length > 1e-9
-    if not moving.any():
-        return 0.0
-    grade = seg[moving, 2] / length[moving]
-    step = grade * float(v.initial_state[4]) * float(dt)
-    return float(np.sqrt(np.sum(length[moving] * step ** 2) / np.sum(length[moving])))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(wps[:, :2], axis=0), axis=1))])
+    z = wps[:, 2]
+    step = float(v.initial_state[4]) * float(dt)
+    if step >= s[-1]:
+        return float(abs(z[-1] - z[0]))
+    # |z(s + L) - z(s)| is piecewise linear in s: its maximum lies where s or s + L is a waypoint
+    at = np.clip(np.concatenate([s, s - step]), 0.0, s[-1] - step)
+    return float(np.max(np.abs(np.interp(at + step, s, z) - np.interp(at, s, z))))
 
 
 def vehicle_trajectories(scn: Scenario, steps: int | None = None,

@@ -22,15 +22,20 @@ def _car(name: str, wps: list[list[float]], speed: float) -> Vehicle:
 
 
 def test_route_height_step_by_hand():
-    # 10 m at a 10% grade, then 10 m flat; 4 m/s, 0.5 s: 0.2 m per step on the first half, 0 on the second
+    # 10 m at a 10% grade, then 10 m flat; 4 m/s, 0.5 s: 2 m per step, at most 0.2 m up in one step
     v = _car("a", [[0, 0, 0], [10, 0, 1], [20, 0, 1]], 4.0)
-    assert route_height_step(v, 0.5) == pytest.approx(np.sqrt((10 * 0.2 ** 2 + 10 * 0.0) / 20), rel=1e-12)
-    # a downhill leg counts like an uphill one; a diagonal leg's plan length is its horizontal length
-    v = _car("b", [[0, 0, 5], [3, 4, 4.5]], 10.0)  # 5 m in plan, -0.5 m: grade -0.1, 1 m per step at dt = 1
-    assert route_height_step(v, 1.0) == pytest.approx(1.0, rel=1e-12)
-    assert route_height_step(_car("c", [[0, 0], [50, 0]], 7.0), 0.5) == 0.0  # [x, y] waypoints: flat
-    assert route_height_step(_car("d", [[0, 0, 2], [50, 0, 2]], 7.0), 0.5) == 0.0
-    assert route_height_step(Vehicle("e", (0, 0, 0, 0, 5, 0.1, 0)), 0.5) == 0.0  # ct: a planar turn
+    assert route_height_step(v, 0.5) == pytest.approx(0.2, rel=1e-12)
+    # 10 m per step over a 4 m rise in 8 m, then a 2 m fall in 4 m: the window [0, 10] gives the most, 4 - 1 = 3 m
+    v = _car("b", [[0, 0, 0], [8, 0, 4], [12, 0, 2], [40, 0, 2]], 10.0)
+    z = lambda s: np.interp(s, [0, 8, 12, 40], [0, 4, 2, 2])  # noqa: E731
+    brute = max(abs(z(s + 10.0) - z(s)) for s in np.linspace(0, 30, 30001))
+    assert route_height_step(v, 1.0) == pytest.approx(brute, rel=1e-9) == pytest.approx(3.0, rel=1e-12)
+    # downhill counts like uphill; a diagonal leg's plan length is its horizontal length (50 m, -5 m)
+    assert route_height_step(_car("c", [[0, 0, 5], [30, 40, 0]], 10.0), 1.0) == pytest.approx(1.0, rel=1e-12)
+    assert route_height_step(_car("d", [[0, 0, 5], [3, 4, 4.5]], 10.0), 1.0) == pytest.approx(0.5, rel=1e-12)  # shorter than a step
+    assert route_height_step(_car("e", [[0, 0], [50, 0]], 7.0), 0.5) == 0.0  # [x, y] waypoints: flat
+    assert route_height_step(_car("f", [[0, 0, 2], [50, 0, 2]], 7.0), 0.5) == 0.0
+    assert route_height_step(Vehicle("g", (0, 0, 0, 0, 5, 0.1, 0)), 0.5) == 0.0  # ct: a planar turn
 
 
 def _hill_scenario(**over: str):
