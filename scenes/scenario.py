@@ -215,9 +215,9 @@ class FilterParams:
         "[x, y, z, heading, speed, turn rate, clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3,
         length=7)
     height_process: str = param("route", "the filter's height (z) process noise of each vehicle: route (the larger "
-                                "of sensor.vehicle_noise_std[2] and the RMS height change per step along the "
-                                "vehicle's route at its speed, from the road's slope: 0 on flat streets and for "
-                                "ct vehicles; docs/city-slam.md) or sensor (sensor.vehicle_noise_std[2] for every "
+                                "of sensor.vehicle_noise_std[2] and the largest height change over one step's travel "
+                                "along the vehicle's route at its speed, from the road's slope: 0 on flat streets "
+                                "and for ct vehicles; docs/city-slam.md) or sensor (sensor.vehicle_noise_std[2] for every "
                                 "vehicle)", choices=("route", "sensor"))
     p_survival: float = param(0.99, "landmark survival probability per step", "", probability=True)
     birth_weight: float = param(1.5e-5, "weight of each birth Gaussian", "", lo=0.0, lo_open=True, hi=1.0)

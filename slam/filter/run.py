@@ -73,9 +73,9 @@ def vehicle_process_std(scn: Scenario) -> np.ndarray:
     """The filter's process noise std of every vehicle, ``(n_veh, 7)`` (units of ``sensor.vehicle_noise_std``).
 
     ``sensor.vehicle_noise_std`` for every vehicle, with its height entry under ``filter.height_process =
-    "route"`` the larger of ``vehicle_noise_std[2]`` and the RMS height change per step along the vehicle's
-    route (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets). The
-    motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
+    "route"`` the larger of ``vehicle_noise_std[2]`` and the largest height change over one step's travel along
+    the vehicle's route (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets).
+    The motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
     """
     from mmslam.scenes.trajectory import route_height_step
 
