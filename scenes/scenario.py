@@ -175,6 +175,12 @@ class TypeParams:
                                  "(their traced power through the sensor's link budget: its predicted-SNR "
                                  "detection model, not the run's detections), clipped to [0.01, 0.99]; under the "
                                  "constant model p_detect (docs/estimator.md, 6b)", choices=("value", "link"))
+    missed: str = param("phd", "the weight of a Gaussian of this type after a missed detection inside the FOV: phd "
+                        "((1 - p_D) w, eq. (5), the paper) or bernoulli (w (1 - p_D) / (1 - w p_D) for w < 1, w kept "
+                        "for w >= 1: the Gaussian read as one landmark that exists with probability min(w, 1), the "
+                        "missed-detection update of a Bernoulli filter as in BP-SLAM: a confirmed landmark is not "
+                        "decayed by misses, only by p_S, so a wall out of sight for a while stays mapped; "
+                        "docs/city-slam.md)", choices=("phd", "bernoulli"))
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. Set it where distinct landmarks lie closer than their "
                                 "position uncertainty lets U = 49 tell apart (canyon VAs: two image sources 1.53 m "
@@ -186,10 +192,11 @@ class TypeParams:
 
 
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
-    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5), "SP": TypeParams(),
+    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli"), "SP": TypeParams(),
     "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
-prior, and threshold 0.5, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7; VS: p_D from the
+prior, threshold 0.5 and the Bernoulli missed-detection rule, the city defaults of docs/city-slam.md; the ``paper``
+preset sets 0.95 / 0.7 / phd; VS: p_D from the
 link budget under a power-aware sensor, docs/estimator.md 6b). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
 

@@ -51,6 +51,30 @@ def predict_beta(pd_beta: np.ndarray, forget: float) -> np.ndarray:
     return pd_beta if forget == 1.0 else pd_beta * forget
 
 
+def bernoulli_missed_weight(w: np.ndarray, p_d: np.ndarray) -> np.ndarray:
+    """Weight of a Gaussian after a missed detection, the Gaussian read as one Bernoulli landmark.
+
+    A component of weight ``w`` (``filter.types.<T>.missed = "bernoulli"``) is taken as a landmark that exists
+    with probability ``r = min(w, 1)``; a missed detection with probability ``p_D`` gives the Bernoulli posterior
+    ``r' = r (1 - p_D) / (1 - r p_D)`` (the missed-detection update of a (multi-)Bernoulli filter, as in BP-SLAM,
+    Leitinger et al. 2019), so ``w' = w (1 - p_D) / (1 - w p_D)`` for ``w < 1`` and ``w' = w`` for ``w >= 1``
+    (a landmark sure to exist is not made less likely by a miss; ``p_S`` still decays it). The PHD's
+    ``(1 - p_D) w`` (eq. (5)) is the same for ``w -> 0`` and below it for every ``w > 0``. ``w' <= w``: the
+    correction's mass bound holds.
+
+    Args:
+        w: ``(...)`` predicted weights (>= 0).
+        p_d: ``(...)`` detection probabilities in ``[0, 1]`` (0 outside the FOV: ``w' = w``).
+
+    Returns:
+        ``(...)`` missed-detection weights.
+    """
+    w, p_d = np.asarray(w, float), np.asarray(p_d, float)
+    sure = w >= 1.0
+    lo = np.where(sure, 0.0, w)
+    return np.where(sure, w, lo * (1.0 - p_d) / (1.0 - lo * p_d))
+
+
 def expected_pd(gate_pd: np.ndarray, pd_beta: np.ndarray) -> np.ndarray:
     """``p_D = E[p_D] = s / (s + t)`` where the FOV gate passes (``gate_pd > 0``), else 0.
 

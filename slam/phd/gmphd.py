@@ -30,7 +30,7 @@ from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
-from .detection import expected_pd
+from .detection import bernoulli_missed_weight, expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _mass_bound_holds, _write_corrected)
 
@@ -39,7 +39,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray], p_bs: np.ndarray, log_clutter: float,
             prune: float | None, extents: dict[int, np.ndarray | None], step: int,
             kinds: Mapping[int, LandmarkKind],
-            bodies: Mapping[int, np.ndarray | None] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            bodies: Mapping[int, np.ndarray | None] | None = None,
+            missed: Mapping[int, str] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -59,7 +60,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
        a Gaussian with ``p_D = 0`` gets no update and keeps its whole weight as missed detection;
     3. ``log psi(z_j)`` per particle: log-sum-exp over clutter, BS and every Gaussian of every type
        (:func:`log_psi`);
-    4. the corrected components, the two terms of ``D_t^+``: ``(1 - p_D) w`` with the predicted
+    4. the corrected components, the two terms of ``D_t^+``: ``(1 - p_D) w`` (or, for a type with
+       ``missed[t] = "bernoulli"``, :func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`) with the predicted
        moments and ``p_D w N(z_j) / psi(z_j)`` with the CKF posterior, those below ``prune`` never
        materialised (:func:`corrected_gm`; Beta model: missed ``(s, t + 1)``, detected ``(s + 1, t)``);
     5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`);
@@ -81,6 +83,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         kinds: type code -> its :class:`~mmslam.slam.models.measurement.LandmarkKind` (e.g. its spec):
             the geometry of its measurement kernel and its name in messages (every key of ``maps``).
         bodies: type code -> ``(4,)`` car body of :func:`type_terms` or None (point landmark; None: every type).
+        missed: type code -> the missed-detection rule of :func:`type_terms` (``phd`` or ``bernoulli``;
+            None or a type not in it: ``phd``).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)``.
@@ -92,8 +96,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
-    bodies = bodies or {}
-    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune, bodies.get(t))
+    bodies, missed = bodies or {}, missed or {}
+    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune, bodies.get(t),
+                        missed.get(t, "phd"))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -152,7 +157,7 @@ class TypeCorrection:
 def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
-               prune: float | None = None, body: np.ndarray | None = None) -> TypeCorrection:
+               prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd") -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -181,6 +186,9 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             ``log c(z) - 40`` (less than ``4.3e-18`` of ``psi(z_j) >= c(z)``) is set to ``-inf``,
             and the posterior mean of a term that :func:`corrected_gm` will prune is not computed
             (its ``m_post`` row starts with NaN). The defaults compute everything.
+        missed: the missed-detection weight: ``phd``, ``(1 - p_D) w`` (eq. (5)), or ``bernoulli``, the Gaussian
+            as one landmark that exists with probability ``min(w, 1)``
+            (:func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`).
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -221,6 +229,10 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     n = _detection_slots(g.mask, g.w, pd, g.m, g.P, det_index, missed_w, logq, pred_mass)
     if n < 0:
         raise FloatingPointError(f"non-finite mean or covariance in {name} correction")
+    if missed == "bernoulli":
+        missed_w = np.where(g.mask, bernoulli_missed_weight(g.w, pd), missed_w)
+    elif missed != "phd":
+        raise ValueError(f"missed-detection rule {missed!r}: expected 'phd' or 'bernoulli'")
     loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
     floor_q, floor_post = _skip_floors(log_clutter, prune)
     code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext, body_array(body),

@@ -1,0 +1,65 @@
+"""The Bernoulli missed-detection rule of a landmark type (``filter.types.<T>.missed``, docs/city-slam.md)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.errors import ConfigError
+from mmslam.model import VA, VS
+from mmslam.scenes.scenario import load_preset, with_overrides
+from mmslam.slam.core.gm import GM
+from mmslam.slam.filter.local_filter import LocalFilter
+from mmslam.slam.phd.detection import bernoulli_missed_weight
+
+
+def test_bernoulli_missed_weight_by_hand_and_as_bayes_rule():
+    w = np.array([0.0, 0.2, 0.5, 0.9, 0.999, 1.0, 1.7, 0.5, 0.5])
+    p = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.0, 1.0])
+    got = bernoulli_missed_weight(w, p)
+    assert got[2] == pytest.approx(0.5 * 0.9 / 0.95, rel=1e-15)  # 0.47368...
+    assert got[5] == 1.0 and got[6] == 1.7  # a landmark sure to exist is not made less likely by a miss
+    assert got[7] == 0.5 and got[8] == 0.0  # p_D = 0 (outside the FOV): kept; p_D = 1: a miss rules it out
+    # Bayes' rule on the two hypotheses "exists and missed" (r (1 - p)) and "does not exist" (1 - r)
+    r = w[:5]
+    bayes = r * (1 - p[:5]) / (r * (1 - p[:5]) + (1 - r))
+    np.testing.assert_allclose(got[:5], bayes, rtol=1e-13, atol=0)
+    phd = (1 - p) * w
+    assert np.all(got >= phd) and np.all(got <= w)  # above the PHD's term, never above the prior weight
+    assert bernoulli_missed_weight(1e-9, 0.3) / (0.7e-9) == pytest.approx(1.0, rel=1e-8)  # the PHD's for w -> 0
+
+
+def _filter(missed: str) -> LocalFilter:
+    scn = with_overrides(load_preset("paper"), [f'filter.types.VA.missed="{missed}"'])
+    s0 = np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5])
+
+    def pd_fn(u, x, t):  # VS: 0.9 within 30 m, 0 beyond; VAs 0.2 everywhere
+        d = np.linalg.norm(np.asarray(x) - np.asarray(u), axis=-1)
+        return np.where(d < 30.0, 0.9, 0.0) if t == VS else np.full(d.shape, 0.2)
+
+    f = LocalFilter(scn, "cm1", 2, s0, np.eye(5), 1e-3, pd_fn, np.random.default_rng(0))
+    f.maps[VA] = GM(np.tile([0.8, 1.3], (2, 1)), np.tile([[50.0, 60.0, 10.0], [-40.0, 10.0, 8.0]], (2, 1, 1)),
+                    np.broadcast_to(np.eye(3), (2, 2, 3, 3)).copy(), np.ones((2, 2), bool))
+    f.maps[VS] = GM(np.tile([0.5], (2, 1)), np.tile(np.r_[s0[:3] + [10.0, 0, 0], np.zeros(4)], (2, 1, 1)),
+                    np.broadcast_to(np.eye(7), (2, 1, 7, 7)).copy(), np.ones((2, 1), bool))
+    return f
+
+
+def test_a_missed_va_keeps_more_weight_under_the_bernoulli_rule_and_other_types_are_unchanged():
+    phd, bern = _filter("phd"), _filter("bernoulli")
+    for f in (phd, bern):
+        f.correct(np.zeros((0, 5)))  # an empty scan: every Gaussian in the FOV was missed
+    np.testing.assert_allclose(phd.maps[VA].w, np.tile([0.64, 1.04], (2, 1)), rtol=1e-12)  # (1 - 0.2) w
+    np.testing.assert_allclose(bern.maps[VA].w, np.tile([0.8 * 0.8 / (1 - 0.16), 1.3], (2, 1)), rtol=1e-12)
+    np.testing.assert_array_equal(bern.maps[VA].m, phd.maps[VA].m)
+    np.testing.assert_allclose(bern.maps[VS].w, phd.maps[VS].w, rtol=0, atol=0)  # VS keeps the PHD's rule (0.05)
+    assert phd.maps[VS].w[0, 0] == pytest.approx(0.05, rel=1e-12)
+
+
+def test_defaults_and_presets():
+    assert load_preset("canyon").filter.type_params("VA").missed == "bernoulli"  # the city default
+    for name in ("paper", "twc2020"):  # published configurations keep the PHD's term
+        assert load_preset(name).filter.type_params("VA").missed == "phd"
+    for t in ("SP", "VS"):
+        assert load_preset("munich").filter.type_params(t).missed == "phd"
+    with pytest.raises(ConfigError, match=r"filter\.types\.VA\.missed.*phd.*bernoulli"):
+        with_overrides(load_preset("canyon"), ['filter.types.VA.missed="lmb"'])
