@@ -5,7 +5,8 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
    states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``);
    particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
-   and process noise ``sensor.vehicle_noise_std`` (height: ``filter.height_process``); each map through its type's ``predict``
+   and process noise ``sensor.vehicle_noise_std`` (height: ``filter.height_process``); each map through its
+   type's ``predict``
    (static: times ``p_S``, eq. 4; VS: coordinated turn with process noise and dithering, eq. 9);
 2. correction with ``Z_k`` (eqs. 5 / 10, CKF per Gaussian, filter noise ``R = r_scale R_true``);
    particle log-weights ``+= sum_z log psi(z)`` (product form, as the authors' code; the paper's
