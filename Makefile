@@ -47,14 +47,15 @@ llvm: $(STAMP)
 demo: setup
 	$(VENV)/bin/mmslam demo $(DEMO_ARGS)
 
+# the tests in one process per core (pytest-xdist; worksteal: the few long end-to-end tests do not leave a core idle)
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist worksteal
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n auto --dist worksteal -m "not slow"
 
 test-min: $(MIN_STAMP) llvm
-	NUMBA_CACHE_DIR=$(abspath $(VENV_MIN))/numba-cache $(VENV_MIN)/bin/python -m pytest -q -m "not slow"
+	NUMBA_CACHE_DIR=$(abspath $(VENV_MIN))/numba-cache $(VENV_MIN)/bin/python -m pytest -q -n auto --dist worksteal -m "not slow"
 
 bench: setup
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
