@@ -235,13 +235,13 @@ class StaticGeometry:
         ij = np.floor((pxy - g["origin"]) / c).astype(np.int64)
         ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g["nx"]) & (ij[:, 1] < g["ny"])
         seg, cid = seg[ok], ij[ok, 0] * g["ny"] + ij[ok, 1]
-        sc = np.unique(seg * (g["nx"] * g["ny"]) + cid)
+        sc = _unique_ints(seg * (g["nx"] * g["ny"]) + cid)
         seg, cid = sc // (g["nx"] * g["ny"]), sc % (g["nx"] * g["ny"])
         s0, s1 = g["starts"][cid], g["starts"][cid + 1]
         cnt = s1 - s0
         sp = np.repeat(seg, cnt)
         k = np.repeat(s0 - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
-        pair = np.unique(sp * len(self.triangles) + g["tri"][k])
+        pair = _unique_ints(sp * len(self.triangles) + g["tri"][k])
         sp, t = pair // len(self.triangles), pair % len(self.triangles)
         keep = self.obj[t] != ex[sp]
         sp, t = sp[keep], t[keep]
@@ -259,7 +259,7 @@ class StaticGeometry:
         s = np.einsum("ij,ij->i", e2, qv) * inv
         m = margin / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
         hit = good & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > m) & (s < 1 - m)
-        out[np.unique(sp[hit])] = True
+        out[sp[hit]] = True
         return out
 
     def _segment_index(self) -> dict:
@@ -283,6 +283,13 @@ class StaticGeometry:
         self._grid["seg"] = {"tri": rep[order], "starts": np.searchsorted(cid[order], np.arange(nx * ny + 1)),
                              "origin": origin, "nx": nx, "ny": ny, "cell": c}
         return self._grid["seg"]
+
+
+def _unique_ints(x: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of a 1-D integer array, as ``np.unique(x)``, by one sort: NumPy 2.3+'s hash-based
+    ``np.unique`` is 20-50x slower on the 10^5-10^6 (segment, cell) and (segment, triangle) keys here."""
+    s = np.sort(np.asarray(x).reshape(-1))
+    return s[np.concatenate(([True], s[1:] != s[:-1]))] if s.size else s
 
 
 # ====================================================================== building it

@@ -120,3 +120,15 @@ def test_scene_show_draws_munich_heights(tmp_path, capsys):
     png = tmp_path / "plan.png"
     assert main(["scene", "show", "munich", "--out", str(png)]) == 0
     assert png.stat().st_size > 10_000
+
+
+def test_unique_ints_equals_numpys_unique():
+    """The sort-based distinct values used by ``segments_blocked`` (NumPy's hash-based np.unique is far slower there)."""
+    from mmslam.scenes.geometry import _unique_ints
+
+    rng = np.random.default_rng(7)
+    for x in (rng.integers(0, 10**9, 50_000), rng.integers(-5, 5, 1_000), np.array([3, 3, 3]), np.zeros(0, np.int64)):
+        x = np.concatenate([x, x[: len(x) // 3]])
+        got, want = _unique_ints(x), np.unique(x)
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == want.dtype
