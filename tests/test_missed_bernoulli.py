@@ -63,3 +63,36 @@ def test_defaults_and_presets():
         assert load_preset("munich").filter.type_params(t).missed == "phd"
     with pytest.raises(ConfigError, match=r"filter\.types\.VA\.missed.*phd.*bernoulli"):
         with_overrides(load_preset("canyon"), ['filter.types.VA.missed="lmb"'])
+
+
+def test_with_measurements_only_the_missed_terms_change_and_degenerate_shapes_hold():
+    """J = 1 measurement of a VA: the detected components are the PHD's exactly (same psi, same CKF posterior),
+    the missed ones take the Bernoulli weight; P = 1 with Q = 0 (an empty VA map) gives the same empty map."""
+    from mmslam.slam.models.measurement import measure
+    from mmslam.slam.phd.gmphd import correct
+
+    scn = load_preset("paper")
+    s = np.array([[20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]])
+    va = np.array([50.0, 60.0, 10.0])
+    pd_fn = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.3)  # noqa: E731
+    kinds = {VA: _filter("phd").specs[VA]}
+    z = measure(s[0], va, int(kinds[VA].geometry), np.asarray(scn.bs, float))[None] + [0.05, 0.01, 0.0, -0.01, 0.0]
+
+    def run(missed, q):
+        g = GM(np.full((1, q), 0.8), np.tile(va, (1, q, 1)), np.broadcast_to(np.eye(3), (1, q, 3, 3)).copy(),
+               np.ones((1, q), bool))
+        out, lpsi = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
+                            np.log(1e-3), None, {VA: None}, 0, kinds, missed={VA: missed})
+        return out[VA], lpsi
+
+    (gp, lp), (gb, lb) = run("phd", 1), run("bernoulli", 1)
+    np.testing.assert_array_equal(lb, lp)  # psi (particle weights) unchanged
+    live_p, live_b = gp.w[gp.mask], gb.w[gb.mask]
+    assert live_p.shape == live_b.shape == (2,)  # dense layout: the missed component first, then z's
+    assert live_p[1] > 0.1  # the measurement is the VA's: a real detection term
+    assert live_p[0] == pytest.approx(0.7 * 0.8, rel=1e-12) and live_b[0] == pytest.approx(0.8 * 0.7 / 0.76, rel=1e-12)
+    assert live_b[1] == live_p[1]  # the detected term is the PHD's
+    np.testing.assert_array_equal(gb.m, gp.m)
+    (ep, lep), (eb, leb) = run("phd", 0), run("bernoulli", 0)  # Q = 0
+    assert eb.w.shape == ep.w.shape and not eb.mask.any()
+    np.testing.assert_array_equal(leb, lep)

@@ -58,9 +58,9 @@ def bernoulli_missed_weight(w: np.ndarray, p_d: np.ndarray) -> np.ndarray:
     with probability ``r = min(w, 1)``; a missed detection with probability ``p_D`` gives the Bernoulli posterior
     ``r' = r (1 - p_D) / (1 - r p_D)`` (the missed-detection update of a (multi-)Bernoulli filter, as in BP-SLAM,
     Leitinger et al. 2019), so ``w' = w (1 - p_D) / (1 - w p_D)`` for ``w < 1`` and ``w' = w`` for ``w >= 1``
-    (a landmark sure to exist is not made less likely by a miss; ``p_S`` still decays it). The PHD's
-    ``(1 - p_D) w`` (eq. (5)) is the same for ``w -> 0`` and below it for every ``w > 0``. ``w' <= w``: the
-    correction's mass bound holds.
+    (a landmark sure to exist is not made less likely by a miss; ``p_S`` still decays it). It tends to the
+    PHD's ``(1 - p_D) w`` (eq. (5)) as ``w -> 0`` and lies above it for every ``w > 0`` (``p_D > 0``), never
+    above ``w``: the correction's mass bound holds.
 
     Args:
         w: ``(...)`` predicted weights (>= 0).
