@@ -51,28 +51,48 @@ def predict_beta(pd_beta: np.ndarray, forget: float) -> np.ndarray:
     return pd_beta if forget == 1.0 else pd_beta * forget
 
 
-def bernoulli_missed_weight(w: np.ndarray, p_d: np.ndarray) -> np.ndarray:
-    """Weight of a Gaussian after a missed detection, the Gaussian read as one Bernoulli landmark.
+def bernoulli_missed_weight(w: np.ndarray, p_d: np.ndarray, shares: np.ndarray | None = None) -> np.ndarray:
+    """Weight of a Gaussian's missed-detection term, the Gaussian read as one Bernoulli landmark.
 
     A component of weight ``w`` (``filter.types.<T>.missed = "bernoulli"``) is taken as a landmark that exists
-    with probability ``r = min(w, 1)``; a missed detection with probability ``p_D`` gives the Bernoulli posterior
-    ``r' = r (1 - p_D) / (1 - r p_D)`` (the missed-detection update of a (multi-)Bernoulli filter, as in BP-SLAM,
-    Leitinger et al. 2019), so ``w' = w (1 - p_D) / (1 - w p_D)`` for ``w < 1`` and ``w' = w`` for ``w >= 1``
-    (a landmark sure to exist is not made less likely by a miss; ``p_S`` still decays it). It tends to the
-    PHD's ``(1 - p_D) w`` (eq. (5)) as ``w -> 0`` and lies above it for every ``w > 0`` (``p_D > 0``), never
-    above ``w``: the correction's mass bound holds.
+    with probability ``r = min(w, 1)``:
+
+    - ``w < 1``: a missed detection with probability ``p_D`` gives the Bernoulli posterior
+      ``r' = r (1 - p_D) / (1 - r p_D)`` (the missed-detection update of a (multi-)Bernoulli filter, as in
+      BP-SLAM, Leitinger et al. 2019): ``w' = w (1 - p_D) / (1 - w p_D)``. The PHD's detection terms
+      (eq. (5)) are added to it, so a landmark detected at two or three steps crosses 1: it is confirmed.
+    - ``w >= 1`` (confirmed, sure to exist): its mass is kept through the scan. A miss does not lower it
+      (``p_S`` still decays it) and the detection terms take their shares ``s_j = p_D w N(z_j) / psi(z_j)``
+      of measurement ``z_j`` out of it: ``w' = max(w - sum_j s_j, 0)``, so the corrected mass stays ``w``
+      (``sum_j s_j`` if larger) instead of growing by one per detection.
+
+    It tends to the PHD's ``(1 - p_D) w`` as ``w -> 0``, lies above it for ``0 < w < 1`` and never above ``w``;
+    the corrected mass is at most ``w + sum_j s_j`` (``w < 1``) or ``max(w, sum_j s_j)``: the correction's
+    bound (predicted mass + ``J``) holds.
 
     Args:
         w: ``(...)`` predicted weights (>= 0).
-        p_d: ``(...)`` detection probabilities in ``[0, 1]`` (0 outside the FOV: ``w' = w``).
+        p_d: ``(...)`` detection probabilities in ``[0, 1]`` (0 outside the FOV: ``w' = w`` for ``w < 1``).
+        shares: ``(..., J)`` the Gaussian's detection shares ``s_j`` in ``[0, 1]`` (:func:`detection_shares`);
+            None: no measurement.
 
     Returns:
         ``(...)`` missed-detection weights.
     """
     w, p_d = np.asarray(w, float), np.asarray(p_d, float)
+    taken = 0.0 if shares is None else np.sum(np.asarray(shares, float), axis=-1)
     sure = w >= 1.0
     lo = np.where(sure, 0.0, w)
-    return np.where(sure, w, lo * (1.0 - p_d) / (1.0 - lo * p_d))
+    return np.where(sure, np.maximum(w - taken, 0.0), lo * (1.0 - p_d) / (1.0 - lo * p_d))
+
+
+def detection_shares(logq: np.ndarray, logpsi: np.ndarray) -> np.ndarray:
+    """``s_j = q_j / psi(z_j)``: each Gaussian's share of each measurement, its PHD detection weight (eq. (5)).
+
+    ``logq (P, Q, J)``: ``log(p_D w N(z_j))`` of each Gaussian (``-inf`` where it cannot be detected);
+    ``logpsi (P, J)``. Returns ``(P, Q, J)`` in ``[0, 1]``.
+    """
+    return np.exp(np.minimum(logq - logpsi[:, None, :], 0.0))
 
 
 def expected_pd(gate_pd: np.ndarray, pd_beta: np.ndarray) -> np.ndarray:

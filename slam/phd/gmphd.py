@@ -30,7 +30,7 @@ from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
-from .detection import bernoulli_missed_weight, expected_pd
+from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _mass_bound_holds, _write_corrected)
 
@@ -61,7 +61,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     3. ``log psi(z_j)`` per particle: log-sum-exp over clutter, BS and every Gaussian of every type
        (:func:`log_psi`);
     4. the corrected components, the two terms of ``D_t^+``: ``(1 - p_D) w`` (or, for a type with
-       ``missed[t] = "bernoulli"``, :func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`) with the predicted
+       ``missed[t] = "bernoulli"``, :func:`~mmslam.slam.phd.detection.bernoulli_missed_weight` with the Gaussian's
+       detection shares ``p_D w N(z_j) / psi(z_j)`` of this scan) with the predicted
        moments and ``p_D w N(z_j) / psi(z_j)`` with the CKF posterior, those below ``prune`` never
        materialised (:func:`corrected_gm`; Beta model: missed ``(s, t + 1)``, detected ``(s + 1, t)``);
     5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`);
@@ -103,6 +104,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
+        if tc.missed == "bernoulli":  # 4. a confirmed landmark (w >= 1) keeps its mass through the scan
+            tc.missed_w = np.where(tc.g.mask, bernoulli_missed_weight(tc.g.w, tc.pd, detection_shares(tc.logq, lpsi)),
+                                   tc.missed_w)
         g, mass = _corrected_gm(tc, Z, lpsi, prune, (J, tc.name, step))  # 4.
         check_phd_mass(tc.g, g, J, tc.name, step,
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
@@ -131,7 +135,9 @@ class TypeCorrection:
     """Intermediate per-type correction terms: detection terms and innovation.
 
     ``logq (P, Q, J)``: ``log(p_D w N(z_j; zhat, S))`` (``-inf`` where masked or ``p_D = 0``);
-    ``missed_w (P, Q)``: ``(1 - p_D) w``; ``det_index (P, Q)``: index of the Gaussian in the
+    ``missed_w (P, Q)``: ``(1 - p_D) w`` (``missed = "bernoulli"``: :func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`
+    without the scan; :func:`correct` gives it the scan's detection shares); ``pd (P, Q)``: the ``p_D`` of each
+    Gaussian; ``det_index (P, Q)``: index of the Gaussian in the
     innovation ``inn`` (``-1`` where masked or ``p_D = 0``: no innovation is computed for
     a Gaussian that cannot be detected, its detection terms are exactly zero).
 
@@ -148,6 +154,8 @@ class TypeCorrection:
     det_index: np.ndarray
     pred_mass: np.ndarray | None = None
     name: str = ""
+    pd: np.ndarray | None = None
+    missed: str = "phd"
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -229,7 +237,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     n = _detection_slots(g.mask, g.w, pd, g.m, g.P, det_index, missed_w, logq, pred_mass)
     if n < 0:
         raise FloatingPointError(f"non-finite mean or covariance in {name} correction")
-    if missed == "bernoulli":
+    if missed == "bernoulli":  # without the scan; correct() takes a confirmed one's detection shares out of it
         missed_w = np.where(g.mask, bernoulli_missed_weight(g.w, pd), missed_w)
     elif missed != "phd":
         raise ValueError(f"missed-detection rule {missed!r}: expected 'phd' or 'bernoulli'")
@@ -244,7 +252,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         raise FloatingPointError(
             f"covariance not positive definite in {name} correction (innovation covariance)")
     return TypeCorrection(g, lm_type, logq, missed_w, Innovation(loglik, m_post, P_post), det_index, pred_mass,
-                          name)
+                          name, pd, missed)
 
 
 NEGLIGIBLE_LOG = -40.0
