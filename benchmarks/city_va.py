@@ -9,8 +9,9 @@ Usage (one process, nice it on a shared machine)::
 Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the cache's scenario and the
 ``--set`` overrides, and prints, averaged over steps ``k >= kmin``:
 
-- ``va``: the fused VA GOSPA (m), its missed / false parts (m^2), the truth count and ``n_visible`` (VAs some
-  vehicle could detect at that step);
+- ``va``: the fused VA GOSPA (m), its missed / false parts (m^2), the truth count, ``n_visible`` (VAs some
+  vehicle could detect at that step) and ``card``, the fused VA map's PHD mass (its expected number of VAs, to
+  set against the truth count);
 - ``empty``: the same truth's GOSPA with no estimates (``sqrt(c^alpha / 2 n_true)`` per step; computed, no run);
 - ``rmse``: the position RMSE (m) over all vehicles and those steps, and ``rmse_nlos`` over the (vehicle, step)
   pairs without a line-of-sight path in the cache (the car that lost the BS);
@@ -83,6 +84,7 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     out["va"] = mean("gospa", "fused", "VA")
     out["missed"], out["false"] = mean("missed", "fused", "VA"), mean("false", "fused", "VA")
     out["n_true"], out["n_visible"] = mean("n_true", "fused", "VA"), mean("n_visible", "fused", "VA")
+    out["card"] = mean("card", "fused", "VA")
     sel = (mp == "fused") & (ty == "VA") & (st >= kmin)
     n_true = np.asarray(m["n_true"], float)[sel]
     out["empty"] = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * n_true) ** (1 / ev.gospa_p))) if n_true.size else math.nan
