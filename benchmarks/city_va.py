@@ -122,7 +122,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     nlos = nlos_mask(c.paths, c.states.shape[0], n_veh)
     ev = c.scenario.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
-    cmp_sets = [x for x in re.split(r",(?=\w+\.\w+=)", a.compare) if x] if a.compare else []
+    cmp_sets = [x for x in re.split(r",(?=\w+(?:\.\w+)+=)", a.compare) if x] if a.compare else []
     known_errors = a.known_va
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)

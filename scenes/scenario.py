@@ -176,24 +176,32 @@ class TypeParams:
                                  "detection model, not the run's detections), clipped to [0.01, 0.99]; under the "
                                  "constant model p_detect (docs/estimator.md, 6b)", choices=("value", "link"))
     missed: str = param("phd", "the weight of a Gaussian of this type after a missed detection inside the FOV: phd "
-                        "((1 - p_D) w, eq. (5), the paper) or bernoulli (w (1 - p_D) / (1 - w p_D) for w < 1, w kept "
-                        "for w >= 1: the Gaussian read as one landmark that exists with probability min(w, 1), the "
-                        "missed-detection update of a Bernoulli filter as in BP-SLAM: a confirmed landmark is not "
-                        "decayed by misses, only by p_S, so a wall out of sight for a while stays mapped; "
-                        "docs/city-slam.md)", choices=("phd", "bernoulli"))
+                        "((1 - p_D) w, eq. (5), the paper) or bernoulli (w (1 - p_D) / (1 - w p_D) for w < 1; for w >= 1 "
+                        "the mass w is kept, less the shares its detections take: the Gaussian read as one landmark "
+                        "that exists with probability min(w, 1), the missed-detection update of a Bernoulli filter as "
+                        "in BP-SLAM: a confirmed landmark is not decayed by misses, only by p_S, so a wall out of sight "
+                        "for a while stays mapped; docs/city-slam.md)", choices=("phd", "bernoulli"))
+    association: str = param("phd", "how a scan's measurements update the type's Gaussians: phd (every Gaussian "
+                             "takes its share of every measurement, eq. (5), the paper) or exclusive (each Gaussian "
+                             "one landmark that gives at most one measurement, each measurement from at most one "
+                             "landmark: marginal association probabilities by belief propagation, as in BP-SLAM; "
+                             "a second measurement near a landmark then births a second landmark instead of pulling "
+                             "the first; docs/city-slam.md)", choices=("phd", "exclusive"))
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
-                                "not set: filter.merge. Set it where distinct landmarks lie closer than their "
-                                "position uncertainty lets U = 49 tell apart (canyon VAs: two image sources 1.53 m "
-                                "apart, merge = 4)", "", lo=0.0, hi=1e6)
+                                "not set: filter.merge. The VA default, 9 (3 sigma), keeps apart image sources "
+                                "that U = 49 joins (canyon: two 1.53 m apart); with exclusive association the "
+                                "fragments a tight gate used to leave are not created (docs/city-slam.md); "
+                                "negative: filter.merge", "", lo=-1.0, hi=1e6)
 
     def merge_gate(self, default: float) -> float:
-        """The merge gate of the type: :attr:`merge`, or ``default`` (``filter.merge``) when it is not set."""
-        return float(default) if self.merge is None else float(self.merge)
+        """The merge gate of the type: :attr:`merge`, or ``default`` (``filter.merge``) when it is not set or negative."""
+        return float(default) if self.merge is None or self.merge < 0 else float(self.merge)
 
 
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
-    "BS": TypeParams(), "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli"), "SP": TypeParams(),
-    "VS": TypeParams(p_detect_source="link")}
+    "BS": TypeParams(),
+    "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", merge=9.0),
+    "SP": TypeParams(), "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
 prior, threshold 0.5 and the Bernoulli missed-detection rule, the city defaults of docs/city-slam.md; the ``paper``
 preset sets 0.95 / 0.7 / phd; VS: p_D from the
@@ -312,7 +320,7 @@ class FilterParams:
         if alias is None:
             raise AttributeError(f"{type(self).__name__!r} object has no attribute {key!r}")
         v = getattr(self.type_params(alias[0]), alias[1])
-        return -1.0 if v is None else v
+        return -1.0 if v is None or v < 0 else v
 
 
 @dataclass(frozen=True)
@@ -592,7 +600,9 @@ def _filter_params(src: str, table: Any) -> FilterParams:
         t, k = TYPE_PARAM_ALIASES[key]
         v = table.pop(key)
         if k == "merge" and isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
-            continue  # the old "same as filter.merge": not set
+            if k in rows.get(t, {}):
+                continue  # the old default, "not set": the row's value stands
+            v = -1.0  # the old "same as filter.merge"
         if k in rows.get(t, {}):
             raise _err(src, f"filter.{key}", f"given twice (also as filter.types.{t}.{k}); keep one")
         rows.setdefault(t, {})[k] = v
@@ -883,7 +893,7 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
         if section == "filter" and name in TYPE_PARAM_ALIASES:  # an old flat key: its table entry
             t, k = TYPE_PARAM_ALIASES[name]
             if k == "merge" and isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
-                value = None  # merge_va < 0: the old "same as filter.merge"
+                value = -1.0  # merge_va < 0: the old "same as filter.merge"
             name = f"types.{t}.{k}"
         if section == "filter" and name.startswith("types."):
             _, t, k = (name.split(".", 2) + ["", ""])[:3]

@@ -130,7 +130,12 @@ def test_the_per_type_table_in_a_file_and_its_aliases():
     assert scn.filter.types["VA"].merge == 4.0 and scn.filter.types["VA"].threshold == builtin_va == 0.5
     assert scn.filter.types["SP"].p_detect == 0.4 and scn.filter.types["LP"].p_detect == 0.3
     assert scenario_from_resolved(scn.to_dict()).filter == scn.filter
-    assert load(merge_va=-1).filter.types["VA"].merge is None
+    assert load(merge_va=-1).filter.types["VA"].merge == 49.0  # paper.toml's row pins its gate
+    data = tomllib.loads(text)
+    del data["filter"]["types"]["VA"]["merge"]
+    data["filter"]["merge_va"] = -1
+    scn = scenario_from_dict(data, "test.toml")  # no row value: merge_va < 0 is filter.merge (not the VA default 9)
+    assert scn.filter.types["VA"].merge == -1.0 and scn.filter.type_params("VA").merge_gate(scn.filter.merge) == 49.0
     with pytest.raises(ConfigError, match=r"filter.p_detect_va.*given twice \(also as filter.types.VA.p_detect\)"):
         load(p_detect_va=0.4, types={"VA": {"p_detect": 0.5}})
     with pytest.raises(ConfigError, match="filter.types.VA.bogus"):

@@ -124,6 +124,7 @@ class LocalFilter:
         self._extent = {t: s.extent(scn) for t, s in self.specs.items()}
         self._body = {t: s.body(scn) for t, s in self.specs.items()}
         self._missed = {t: s.type_params(scn).missed for t, s in self.specs.items()}
+        self._association = {t: s.type_params(scn).association for t, s in self.specs.items()}
         """type code -> its missed-detection rule (``filter.types.<T>.missed``)"""
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
@@ -189,7 +190,7 @@ class LocalFilter:
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
-                                  self._body, self._missed)
+                                  self._body, self._missed, self._association)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 

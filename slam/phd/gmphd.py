@@ -30,6 +30,7 @@ from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
+from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _mass_bound_holds, _write_corrected)
@@ -40,7 +41,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             prune: float | None, extents: dict[int, np.ndarray | None], step: int,
             kinds: Mapping[int, LandmarkKind],
             bodies: Mapping[int, np.ndarray | None] | None = None,
-            missed: Mapping[int, str] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            missed: Mapping[int, str] | None = None,
+            association: Mapping[int, str] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -86,6 +88,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         bodies: type code -> ``(4,)`` car body of :func:`type_terms` or None (point landmark; None: every type).
         missed: type code -> the missed-detection rule of :func:`type_terms` (``phd`` or ``bernoulli``;
             None or a type not in it: ``phd``).
+        association: type code -> ``phd`` (the shares of eq. (5)) or ``exclusive`` (each Gaussian one landmark
+            with at most one measurement: the detected and missed weights of
+            :func:`~mmslam.slam.phd.association.exclusive_terms`; None or a type not in it: ``phd``).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)``.
@@ -97,14 +102,25 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
-    bodies, missed = bodies or {}, missed or {}
-    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter, prune, bodies.get(t),
-                        missed.get(t, "phd"))
+    bodies, missed, association = bodies or {}, missed or {}, association or {}
+    for t in maps:
+        if association.get(t, "phd") not in ("phd", "exclusive"):
+            raise ValueError(f"association {association[t]!r}: expected 'phd' or 'exclusive'")
+    exclusive = {t for t in maps if association.get(t, "phd") == "exclusive"}
+    # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
+    terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
+                        None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
     for tc in terms:
-        if tc.missed == "bernoulli":  # 4. a confirmed landmark (w >= 1) keeps its mass through the scan
+        if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
+            det, miss = exclusive_terms(np.where(tc.g.mask, tc.g.w, 0.0), np.where(tc.g.mask, tc.pd, 0.0),
+                                        detection_shares(tc.logq, lpsi), tc.missed)
+            with np.errstate(divide="ignore"):
+                tc.logq = np.where(det > 0.0, np.log(np.where(det > 0.0, det, 1.0)), -np.inf) + lpsi[:, None, :]
+            tc.missed_w = np.where(tc.g.mask, miss, tc.missed_w)
+        elif tc.missed == "bernoulli":  # 4. a confirmed landmark (w >= 1) keeps its mass through the scan
             tc.missed_w = np.where(tc.g.mask, bernoulli_missed_weight(tc.g.w, tc.pd, detection_shares(tc.logq, lpsi)),
                                    tc.missed_w)
         g, mass = _corrected_gm(tc, Z, lpsi, prune, (J, tc.name, step))  # 4.
