@@ -596,6 +596,8 @@ def _filter_params(src: str, table: Any) -> FilterParams:
         if not isinstance(row, dict):
             raise _err(src, f"filter.types.{name}", "expected a table (p_detect, threshold, merge)")
         rows[name] = {k: v for k, v in row.items() if v is not None}  # None: not set (a resolved scenario's JSON)
+        if "merge" in row and row["merge"] is None and DEFAULT_TYPE_PARAMS.get(name, TypeParams()).merge is not None:
+            rows[name]["merge"] = -1.0  # a stored "not set" (before the VA gate had a default): filter.merge
     for key in [k for k in table if k in TYPE_PARAM_ALIASES]:
         t, k = TYPE_PARAM_ALIASES[key]
         v = table.pop(key)
@@ -898,8 +900,9 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
         if section == "filter" and name.startswith("types."):
             _, t, k = (name.split(".", 2) + ["", ""])[:3]
             if not t or k not in {f.name for f, _ in iter_params(TypeParams)}:
-                raise ConfigError(f"--set {key}: expected filter.types.<TYPE>.<key> with key p_detect, threshold "
-                                  "or merge (see docs/scenario.md)")
+                keys = ", ".join(f.name for f, _ in iter_params(TypeParams))
+                raise ConfigError(f"--set {key}: expected filter.types.<TYPE>.<key> with key one of {keys} "
+                                  "(see docs/scenario.md)")
             d.setdefault("filter", {}).setdefault("types", {}).setdefault(t, {})[k] = value
             continue
         cls = PARAM_SECTIONS.get(section)

@@ -50,10 +50,11 @@ def test_bp_is_exact_on_trees_and_close_on_small_loopy_problems():
 def test_a_measurement_taken_by_a_better_fit_goes_to_its_own_gaussian():
     """Two measurements, one Gaussian that fits the first far better: exclusively it takes that one, and a weak
     second Gaussian fitting the second takes it; the PHD gives the second measurement to the strong one."""
-    # shares: Gaussian 0 explains z1 alone and 90% of z2's psi; the weak one 9.99%; clutter 1e-6 and 1e-4
-    s = np.array([[[1.0 - 1e-6, 0.9], [0.0, 0.0999]]])
+    # psi = 1: Gaussian 0 explains z1 alone and 90% of z2; the weak one 9.99%; the clutter 1e-6 and 1e-4
+    with np.errstate(divide="ignore"):
+        logq = np.log(np.array([[[1.0 - 1e-6, 0.9], [0.0, 0.0999]]]))
     w, p = np.array([[1.0, 1e-3]]), np.array([[0.5, 0.5]])
-    det, miss = exclusive_terms(w, p, s, "bernoulli")
+    det, miss = exclusive_terms(w, p, logq, np.log(np.array([[1e-6, 1e-4]])), "bernoulli")
     assert det[0, 0, 0] > 0.95 and det[0, 0, 1] < 0.1  # the strong Gaussian keeps the measurement it fits
     assert det[0, 1, 1] > 0.5  # the weak one takes the other: a second landmark
     assert det[0, 0].sum() + miss[0, 0] == pytest.approx(1.0, rel=1e-12)  # a confirmed one keeps its mass
@@ -100,3 +101,63 @@ def test_defaults_and_presets():
         assert load_preset("munich").filter.type_params(t).association == "phd"
     with pytest.raises(ConfigError, match=r"filter\.types\.VA\.association.*phd.*exclusive"):
         with_overrides(load_preset("canyon"), ['filter.types.VA.association="jpda"'])
+
+
+def test_bp_stays_exact_over_a_huge_dynamic_range():
+    """Likelihood ratios from 1e-3 to 1e20 (a clutter-free street): the leave-one-out sums are built without
+    cancellation, so the marginals match the enumeration (G0 takes z1 and G1 takes z0: 1e36 against 1e17)."""
+    L, l0 = np.array([[1e20, 1e18], [1e18, 1e-3]]), np.array([1.0, 1.0])
+    got, _ = exclusive_association(L[None], l0[None])
+    np.testing.assert_allclose(got[0], brute_force(L, l0), atol=1e-6)
+    assert got[0, 0, 1] > 0.999 and got[0, 1, 0] > 0.999
+
+
+def test_extremes_stay_finite_and_a_sure_unseen_landmark_keeps_its_mass():
+    """p_D = 1 and no other explanation of a measurement (c_j = 0): finite weights; a sure landmark (w >= 1) with
+    p_D = 1 and no measurement near it keeps w (a miss of a confirmed landmark is no evidence against it)."""
+    w, p = np.array([[2.0, 1.0]]), np.array([[1.0, 1.0]])
+    logq = np.array([[[0.0], [-np.inf]]])  # only Gaussian 0 can explain z0
+    for missed in ("bernoulli", "phd"):
+        det, miss = exclusive_terms(w, p, logq, np.array([[-np.inf]]), missed)
+        assert np.isfinite(det).all() and np.isfinite(miss).all()
+        assert det[0, 0, 0] == pytest.approx(2.0) and miss[0, 0] == pytest.approx(0.0, abs=1e-12)  # it was seen
+        assert miss[0, 1] == 1.0 and det[0, 1, 0] == 0.0  # nothing near: kept
+
+
+def test_exclusive_association_keeps_the_mass_bound_with_either_missed_rule():
+    """A Gaussian of weight 5 detected once: the corrected mass stays 5 under both missed rules (the PHD-mass
+    check inside correct() would raise otherwise); a weight below 1 ends at most at 1 + its missed part."""
+    from mmslam.slam.models.measurement import measure
+    from mmslam.slam.phd.gmphd import correct
+    from mmslam.slam.specs.landmarks import VA_SPEC
+
+    scn = load_preset("paper")
+    bs = np.asarray(scn.bs, float)
+    s = np.array([[0.0, 0.0, 1.5, 0.0, 10.0, 0.0, 0.0]])
+    va = np.array([60.0, 30.0, 10.0])
+    Z = measure(s[0], va, int(VA_SPEC.geometry), bs)[None]
+    pd_fn = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.5)  # noqa: E731
+    for w0 in (5.0, 0.4):
+        for missed in ("bernoulli", "phd"):
+            g = GM(np.array([[w0]]), va[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
+            for prune in (None, 1e-5):
+                out, _ = correct({VA: g.copy()}, s, Z, np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2, bs, pd_fn,
+                                 np.zeros(1), np.log(1e-6), prune, {VA: None}, 0, {VA: VA_SPEC},
+                                 missed={VA: missed}, association={VA: "exclusive"})
+                mass = float(out[VA].w[out[VA].mask].sum())
+                if w0 >= 1.0:
+                    assert mass == pytest.approx(w0, rel=1e-9)
+                else:
+                    assert w0 < mass <= 1.0 + w0
+
+
+def test_a_stored_scenario_without_a_va_gate_keeps_filter_merge():
+    """A scenario resolved before the VA gate had a default stores ``merge: null`` (then: filter.merge); it loads
+    as -1 (filter.merge), not as today's default 9."""
+    from mmslam.scenes.scenario import scenario_from_resolved
+
+    d = load_preset("canyon").to_dict()
+    d["filter"]["types"]["VA"]["merge"] = None
+    scn = scenario_from_resolved(d)
+    assert scn.filter.types["VA"].merge == -1.0 and scn.filter.type_params("VA").merge_gate(scn.filter.merge) == 49.0
+    assert scenario_from_resolved(load_preset("canyon").to_dict()).filter.types["VA"].merge == 9.0

@@ -124,8 +124,9 @@ class LocalFilter:
         self._extent = {t: s.extent(scn) for t, s in self.specs.items()}
         self._body = {t: s.body(scn) for t, s in self.specs.items()}
         self._missed = {t: s.type_params(scn).missed for t, s in self.specs.items()}
-        self._association = {t: s.type_params(scn).association for t, s in self.specs.items()}
         """type code -> its missed-detection rule (``filter.types.<T>.missed``)"""
+        self._association = {t: s.type_params(scn).association for t, s in self.specs.items()}
+        """type code -> its measurement association (``filter.types.<T>.association``)"""
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))

@@ -115,8 +115,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     out = {}
     for tc in terms:
         if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
-            det, miss = exclusive_terms(np.where(tc.g.mask, tc.g.w, 0.0), np.where(tc.g.mask, tc.pd, 0.0),
-                                        detection_shares(tc.logq, lpsi), tc.missed)
+            det, miss = exclusive_terms(np.where(tc.g.mask, tc.g.w, 0.0), np.where(tc.g.mask, tc.pd, 0.0), tc.logq,
+                                        _log_others(terms, tc, bs_term, log_clutter, lpsi.shape), tc.missed)
             with np.errstate(divide="ignore"):
                 tc.logq = np.where(det > 0.0, np.log(np.where(det > 0.0, det, 1.0)), -np.inf) + lpsi[:, None, :]
             tc.missed_w = np.where(tc.g.mask, miss, tc.missed_w)
@@ -128,6 +128,19 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
         out[tc.lm_type] = g
     return out, lpsi
+
+
+def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,
+                shape: tuple[int, int]) -> np.ndarray:
+    """``log c_j (P, J)``: every explanation of ``z_j`` but ``tc``'s Gaussians (clutter, BS, the other types),
+    ``-inf`` where there is none (the exclusive association's clutter)."""
+    out = np.full(shape, float(log_clutter))
+    if bs_term is not None:
+        out = np.logaddexp(out, np.asarray(bs_term, float))
+    for t in terms:
+        if t is not tc and t.logq.shape[1]:
+            out = np.logaddexp(out, _logsumexp_slots(t.logq))
+    return out
 
 
 def predict_static(g: GM, p_survival: float) -> GM:
