@@ -54,7 +54,7 @@ def test_a_measurement_taken_by_a_better_fit_goes_to_its_own_gaussian():
     with np.errstate(divide="ignore"):
         logq = np.log(np.array([[[1.0 - 1e-6, 0.9], [0.0, 0.0999]]]))
     w, p = np.array([[1.0, 1e-3]]), np.array([[0.5, 0.5]])
-    det, miss = exclusive_terms(w, p, logq, np.log(np.array([[1e-6, 1e-4]])), "bernoulli")
+    det, miss = exclusive_terms(w, p, logq, np.log(np.array([[1e-6, 1e-4]])), np.zeros((1, 2)), "bernoulli")
     assert det[0, 0, 0] > 0.95 and det[0, 0, 1] < 0.1  # the strong Gaussian keeps the measurement it fits
     assert det[0, 1, 1] > 0.5  # the weak one takes the other: a second landmark
     assert det[0, 0].sum() + miss[0, 0] == pytest.approx(1.0, rel=1e-12)  # a confirmed one keeps its mass
@@ -118,7 +118,7 @@ def test_extremes_stay_finite_and_a_sure_unseen_landmark_keeps_its_mass():
     w, p = np.array([[2.0, 1.0]]), np.array([[1.0, 1.0]])
     logq = np.array([[[0.0], [-np.inf]]])  # only Gaussian 0 can explain z0
     for missed in ("bernoulli", "phd"):
-        det, miss = exclusive_terms(w, p, logq, np.array([[-np.inf]]), missed)
+        det, miss = exclusive_terms(w, p, logq, np.array([[-np.inf]]), np.zeros((1, 1)), missed)
         assert np.isfinite(det).all() and np.isfinite(miss).all()
         assert det[0, 0, 0] == pytest.approx(2.0) and miss[0, 0] == pytest.approx(0.0, abs=1e-12)  # it was seen
         assert miss[0, 1] == 1.0 and det[0, 1, 0] == 0.0  # nothing near: kept
@@ -161,3 +161,26 @@ def test_a_stored_scenario_without_a_va_gate_keeps_filter_merge():
     scn = scenario_from_resolved(d)
     assert scn.filter.types["VA"].merge == -1.0 and scn.filter.type_params("VA").merge_gate(scn.filter.merge) == 49.0
     assert scenario_from_resolved(load_preset("canyon").to_dict()).filter.types["VA"].merge == 9.0
+
+
+@pytest.mark.parametrize("missed", ["bernoulli", "phd"])
+def test_degenerate_shapes_against_the_closed_form(missed):
+    """Q = 0 (an empty map): nothing; Q = 1, J = 1 (one Gaussian, one measurement): the Bernoulli update written
+    out, P(1 <-> z) = L / (l0 + L), L = r p N / c, with r = min(w, 1); several particles are independent."""
+    det, miss = exclusive_terms(np.zeros((2, 0)), np.zeros((2, 0)), np.zeros((2, 0, 3)), np.zeros((2, 3)),
+                                np.zeros((2, 3)), missed)
+    assert det.shape == (2, 0, 3) and miss.shape == (2, 0)
+    w, p = np.array([[0.4], [2.0], [0.0]]), np.array([[0.3], [0.6], [0.5]])  # P = 3: w < 1, w >= 1, a dead slot
+    pN, c = np.array([0.05, 0.02, 0.0]), np.array([0.01, 0.03, 0.01])  # p_D N(z) per particle; the clutter c
+    logq = np.log(np.maximum(w[:, 0] * pN, 1e-300))[:, None, None]
+    logq[2] = -np.inf
+    det, miss = exclusive_terms(w, p, logq, np.log(c)[:, None], np.log(c + w[:, 0] * pN)[:, None], missed)
+    for k in range(2):
+        r = min(w[k, 0], 1.0)
+        L = r * pN[k] / c[k]
+        l0 = 1.0 - r * p[k, 0]
+        assert det[k, 0, 0] == pytest.approx(w[k, 0] / r * L / (l0 + L), rel=1e-9)
+        exp_miss = (w[k, 0] * (1 - p[k, 0]) / (l0 + L) if (missed == "phd" or w[k, 0] >= 1)
+                    else w[k, 0] * (1 - p[k, 0]) / (1 - w[k, 0] * p[k, 0]))
+        assert miss[k, 0] == pytest.approx(exp_miss, rel=1e-9)
+    assert det[2, 0, 0] == 0.0 and miss[2, 0] == 0.0

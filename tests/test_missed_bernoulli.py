@@ -109,9 +109,9 @@ def test_a_confirmed_landmark_gives_its_detection_shares_out_of_its_missed_term(
 
 
 def test_a_confirmed_va_detected_at_every_step_keeps_its_mass():
-    """One VA of weight 1, detected by a measurement at every step (psi from a small clutter and this VA): the
-    corrected VA mass stays 1 (missed 1 - s plus detected s; merged it is one landmark) step after step. The
-    previous rule kept the whole w as the missed term and added s: the mass grew by about 1 per detection
+    """One VA of weight 1 detected by a measurement (psi from a small clutter and this VA): the corrected VA mass
+    stays 1 (missed 1 - s plus detected s; merged it is one landmark), so it is 1 again at every later detection.
+    The previous rule kept the whole w as the missed term and added s: the mass grew by about 1 per detection
     (munich: one VA at weight 12-17, the fused VA map's PHD mass 5x its landmarks)."""
     from mmslam.slam.models.measurement import measure
     from mmslam.slam.phd.gmphd import correct
@@ -122,14 +122,11 @@ def test_a_confirmed_va_detected_at_every_step_keeps_its_mass():
     pd_fn = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.5)  # noqa: E731
     kinds = {VA: _filter("phd").specs[VA]}
     z = measure(s[0], va, int(kinds[VA].geometry), np.asarray(scn.bs, float))[None]
-    mass = 1.0
-    for _ in range(5):
-        g = GM(np.array([[mass]]), va[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
-        out, lpsi = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
-                            np.log(1e-6), None, {VA: None}, 0, kinds, missed={VA: "bernoulli"})
-        live = out[VA].w[out[VA].mask]
-        share = live[1]  # the PHD's detection term s
-        assert 0.9 < share < 1.0  # the measurement is this VA's: psi = clutter + s psi
-        assert live[0] == pytest.approx(mass - share, rel=1e-12)  # the missed term gives the share out
-        assert live.sum() == pytest.approx(1.0, rel=1e-12)
-        mass = float(live.sum())
+    g = GM(np.array([[1.0]]), va[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
+    out, _ = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
+                     np.log(1e-6), None, {VA: None}, 0, kinds, missed={VA: "bernoulli"})
+    live = out[VA].w[out[VA].mask]
+    share = live[1]  # the PHD's detection term s
+    assert 0.9 < share < 1.0  # the measurement is this VA's: psi = clutter + s psi
+    assert live[0] == pytest.approx(1.0 - share, rel=1e-12)  # the missed term gives the share out
+    assert live.sum() == pytest.approx(1.0, rel=1e-12)  # the previous rule: 1 + s

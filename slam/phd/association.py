@@ -79,8 +79,8 @@ def exclusive_association(L: np.ndarray, l0: np.ndarray) -> tuple[np.ndarray, np
     return np.where(col > 1.0, assoc / np.where(col > 1.0, col, 1.0), assoc), D
 
 
-def exclusive_terms(w: np.ndarray, p_d: np.ndarray, logq: np.ndarray, log_others: np.ndarray, missed: str
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def exclusive_terms(w: np.ndarray, p_d: np.ndarray, logq: np.ndarray, log_others: np.ndarray, logpsi: np.ndarray,
+                    missed: str) -> tuple[np.ndarray, np.ndarray]:
     """Detected and missed weights of one type's Gaussians under exclusive association (module docstring).
 
     Args:
@@ -88,6 +88,7 @@ def exclusive_terms(w: np.ndarray, p_d: np.ndarray, logq: np.ndarray, log_others
         logq: ``(P, Q, J)`` ``log(p_D w N(z_j))`` of each Gaussian (``-inf``: cannot be detected).
         log_others: ``(P, J)`` ``log c_j``, every other explanation of ``z_j`` (clutter, BS, other types;
             ``-inf`` if none); floored at ``log psi(z_j) - 575``, so every ``L_ij`` is finite.
+        logpsi: ``(P, J)`` ``log psi(z_j)`` (:func:`~mmslam.slam.phd.gmphd.log_psi`: ``c_j`` plus this type's terms).
         missed: the type's missed rule. ``bernoulli``: ``w >= 1`` keeps its mass, ``w (1 - p_D) / D_i`` missed
             and ``w P(i <-> j)`` detected; ``w < 1``: ``w (1 - p_D) / (1 - w p_D)``
             (:func:`~mmslam.slam.phd.detection.bernoulli_missed_weight` without the scan), the detections on top
@@ -105,8 +106,7 @@ def exclusive_terms(w: np.ndarray, p_d: np.ndarray, logq: np.ndarray, log_others
     r = np.minimum(w, 1.0)
     live = w > 0.0
     per_mass = np.where(live, r / np.where(live, w, 1.0), 0.0)  # r / w
-    lpsi = np.logaddexp(log_others, _lse(logq, axis=1))  # (P, J)
-    logc = np.maximum(log_others, lpsi - LOG_L_MAX)
+    logc = np.maximum(log_others, np.asarray(logpsi, float) - LOG_L_MAX)
     with np.errstate(divide="ignore"):
         logL = np.minimum(np.log(np.where(live, per_mass, 1.0))[:, :, None] + logq - logc[:, None, :], LOG_L_MAX)
     L = np.where(live[:, :, None] & np.isfinite(logq), np.exp(logL), 0.0)
@@ -128,12 +128,3 @@ def exclusive_terms(w: np.ndarray, p_d: np.ndarray, logq: np.ndarray, log_others
         missed_w = posterior
     return detected, np.where(live, missed_w, 0.0)
 
-
-def _lse(x: np.ndarray, axis: int) -> np.ndarray:
-    """``log sum exp`` along ``axis`` (``-inf`` where every term is, or there is none)."""
-    if x.shape[axis] == 0:
-        return np.full(np.delete(x.shape, axis), -np.inf)
-    m = np.max(x, axis=axis, keepdims=True)
-    m = np.where(np.isfinite(m), m, 0.0)
-    with np.errstate(divide="ignore"):
-        return np.log(np.sum(np.exp(x - m), axis=axis)) + np.squeeze(m, axis=axis)

@@ -116,7 +116,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     for tc in terms:
         if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
             det, miss = exclusive_terms(np.where(tc.g.mask, tc.g.w, 0.0), np.where(tc.g.mask, tc.pd, 0.0), tc.logq,
-                                        _log_others(terms, tc, bs_term, log_clutter, lpsi.shape), tc.missed)
+                                        _log_others(terms, tc, bs_term, log_clutter, lpsi.shape), lpsi,
+                                        tc.missed)
             with np.errstate(divide="ignore"):
                 tc.logq = np.where(det > 0.0, np.log(np.where(det > 0.0, det, 1.0)), -np.inf) + lpsi[:, None, :]
             tc.missed_w = np.where(tc.g.mask, miss, tc.missed_w)
