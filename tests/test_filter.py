@@ -404,6 +404,25 @@ def test_order_two_vas_count_in_the_truth_and_the_visible_counts_like_order_one(
     np.testing.assert_array_equal(vis, [[1, 0, 1], [1, 1, 1], [0, 1, 1]])
 
 
+def test_unconfirmed_counts_are_the_truths_seen_at_one_step_so_far():
+    """Hand-counted: VA a seen at steps 0 and 3 (confirmed from 3 on), b at step 1 only, c by both vehicles at
+    step 2 only (one step: still unconfirmed), d at steps 2 and 4 by different vehicles; min_steps = 3 keeps a
+    until the end too. The fused truth count of each step minus these is what a two-detection filter can find."""
+    from mmslam.slam.eval.evaluation import unconfirmed_counts
+    from mmslam.slam.models.measurement import VA
+
+    scn = load_preset("paper")
+    rows = [(0, 0, "a", 20.0), (3, 0, "a", 20.0), (1, 1, "b", 60.0), (2, 0, "c", 100.0), (2, 1, "c", 100.0),
+            (2, 1, "d", 140.0), (4, 0, "d", 140.0)]
+    paths = {"step": np.array([r[0] for r in rows]), "rx": np.array([r[1] for r in rows]),
+             "type": np.full(len(rows), VA), "landmark_id": np.array([r[2] for r in rows]),
+             "lm_x": np.zeros(len(rows)), "lm_y": np.array([r[3] for r in rows]), "lm_z": np.full(len(rows), 40.0)}
+    pos = np.zeros((5, 2, 3))
+    np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 5, pos, scn.sensor)[VA], [1, 2, 4, 3, 2])
+    np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 5, pos, scn.sensor, min_steps=3)[VA], [1, 2, 4, 4, 4])
+    np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 3, pos, scn.sensor)[VA], [1, 2, 4])  # steps < 3 only
+
+
 def test_va_truths_closer_than_the_resolution_are_one():
     """evaluation.va_resolution (1 m): the images of two parallel facades 0.4 m apart (0.8 m apart) are one
     VA for the truth, those of facades 0.765 m apart (canyon's, images 1.53 m apart) stay two; a chain

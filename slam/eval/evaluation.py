@@ -171,6 +171,40 @@ def visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positio
     return out
 
 
+def unconfirmed_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
+                       sensor: Any, resolution: float = VA_KEY_RESOLUTION, min_steps: int = 2) -> dict[int, np.ndarray]:
+    """Static type code -> ``(steps,)`` number of the fused map's truth landmarks at step ``k`` (first seen at or
+    before ``k`` by some vehicle, :func:`first_seen`) that some vehicle could detect at fewer than ``min_steps``
+    distinct steps ``<= k`` (in its paths and inside its FOV, as :func:`visible_counts` counts).
+
+    A filter that confirms a landmark only after a second detection (a measurement-driven birth from one scan
+    has a small weight) cannot have found those: a map holding every other truth exactly and none of these
+    scores ``(c^p / alpha n_unconfirmed)^(1/p)``, the floor of the fused GOSPA for such a filter
+    (``benchmarks/city_va.py`` prints it as ``floor2``). Arrays ``positions (steps, n_veh, 3)`` m.
+    """
+    from ..sim.sensor import fov_detect_prob
+
+    step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
+    out = {}
+    for spec in evaluated_types():
+        if spec.moving:
+            continue
+        t = spec.code
+        sel = np.nonzero((typ == t) & (step < steps))[0]
+        sightings: dict[str, set[int]] = {}
+        if sel.size:
+            pd = np.asarray(fov_detect_prob(positions[step[sel], rx[sel]], xyz[sel], t, sensor), float)
+            for i in sel[pd > 0]:
+                sightings.setdefault(str(ids[i]), set()).add(int(step[i]))
+        counts = np.zeros(steps, np.int32)
+        for s in sightings.values():
+            ordered = sorted(s)
+            confirmed = ordered[min_steps - 1] if len(ordered) >= min_steps else steps
+            counts[ordered[0]:confirmed] += 1  # in the truth from its first sighting, unconfirmed until then
+        out[t] = counts
+    return out
+
+
 def all_static(paths: dict[str, np.ndarray], steps: int, resolution: float = VA_KEY_RESOLUTION) -> dict[int, Seen]:
     """type code -> every static landmark of that type in ``paths`` (steps ``< steps``, any vehicle, in
     its FOV or not), each "seen" at step 0 (``evaluation.truth_set = "all"``: every map is scored
