@@ -28,6 +28,11 @@ from mmslam.errors import ConfigError
 from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
 from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
 
+WAYPOINT_MOTION = "pure-pursuit-ct-1"
+"""How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.trajectory._waypoint_trajectory`),
+part of :meth:`Scenario.geometry_hash` for a scenario with such a vehicle: a cache traced with another rule
+(before it, cars kept to the polyline and their heading jumped at its corners) is not resumed with this one."""
+
 MATERIALS = ("concrete", "metal", "brick", "wood", "glass", "marble", "plasterboard", "ceiling_board",
              "floorboard", "chipboard", "very_dry_ground")
 """ITU-R P.2040 materials valid at 28 GHz that scenario files may name (Sionna's ``itu_*``).
@@ -424,13 +429,15 @@ class Scenario:
         """SHA-256 (hex, 16 chars) of everything that changes traced paths.
 
         Covers BS, buildings, scatterers, ground, vehicles, dt, frequency, xml scene and the FOV
-        range (and the true process noise, when on); not ``steps`` (a longer trace extends a shorter one), nor sensor noise, filter,
+        range (and the true process noise, when on; with a ``waypoints`` vehicle, :data:`WAYPOINT_MOTION`); not ``steps`` (a longer trace extends a shorter one), nor sensor noise, filter,
         fusion or evaluation parameters (they act after the cache).
         """
         d = self.to_dict()
         keep = {k: d[k] for k in ("bs", "vehicles", "buildings", "scatterers", "ground", "dt",
                                   "frequency_hz", "xml_scene")}
         keep["fov_range"] = d["sensor"]["fov_range"]
+        if any(v.motion == "waypoints" for v in self.vehicles):  # the truth depends on how a route is driven
+            keep["waypoint_motion"] = WAYPOINT_MOTION
         if self.sensor.true_process_noise:  # the truth itself then depends on the noise draw
             keep["true_process_noise"] = [d["seed"], d["sensor"]["vehicle_noise_std"]]
         blob = json.dumps(keep, sort_keys=True).encode()

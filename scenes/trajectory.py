@@ -1,13 +1,13 @@
 """Ground-truth vehicle trajectories (docs/design.md section 3).
 
 ``ct`` vehicles follow the polar coordinated turn exactly (noise-free by default).
-``waypoints`` vehicles move at constant speed along a polyline; per step the heading, speed and
-turn rate are set so that the CT model maps the position at step k exactly onto the position at
-step k+1 (a circular arc whose chord is the true displacement), so the filter's known inputs
-(speed, turn rate) are consistent with the truth. Heading may jump by half the chord-direction
-change at polyline corners; on straight legs the motion is exact. Waypoints ``[x, y, z]``
-(street routes, :mod:`mmslam.scenes.streets`) give the antenna height along the route: the car
-moves at its speed in plan and z is interpolated linearly (it follows the terrain).
+``waypoints`` vehicles drive their route (a polyline) at their plan speed, steered by pure pursuit
+under the same CT model (:func:`_waypoint_trajectory`): the state of step k+1 is the CT transition of
+step k with that step's speed and turn rate, so the filter's known inputs describe the true motion
+exactly, heading included, and a route of many short segments (street centrelines) is driven as a
+smooth curve that rounds its corners. Waypoints ``[x, y, z]`` (street routes,
+:mod:`mmslam.scenes.streets`) give the antenna height along the route: z follows the route's height
+profile at the car's progress (the terrain).
 """
 from __future__ import annotations
 
@@ -28,45 +28,85 @@ def _ct_trajectory(v: Vehicle, steps: int, dt: float, rng: np.random.Generator |
     return s
 
 
-def _polyline_positions(wps: np.ndarray, speed: float, times: np.ndarray) -> np.ndarray:
-    """Positions at ``times`` moving at plan speed ``speed`` along ``wps (k, 2 or 3)`` (z interpolated)."""
-    seg = np.diff(wps, axis=0)
-    seg_len = np.linalg.norm(seg[:, :2], axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
-    dist = np.minimum(speed * times, cum[-1])  # stop at the last waypoint
-    i = np.clip(np.searchsorted(cum, dist, side="right") - 1, 0, len(seg) - 1)
-    frac = np.where(seg_len[i] > 0, (dist - cum[i]) / np.where(seg_len[i] > 0, seg_len[i], 1.0), 0.0)
-    return wps[i] + frac[:, None] * seg[i]
+LOOKAHEAD_STEPS = 2.0
+"""Pure-pursuit lookahead of a ``waypoints`` vehicle, in steps of travel (``speed x dt`` each)."""
+MIN_LOOKAHEAD = 4.0
+"""m: the smallest lookahead (a slow car still rounds a polyline corner instead of pivoting on it)."""
+
+
+def _route(wps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plan segments ``(n - 1, 2)``, their lengths ``(n - 1,)`` and the cumulative plan length at each
+    waypoint ``(n,)`` (m) of a route ``wps (n, 2 or 3)``."""
+    seg = np.diff(wps[:, :2], axis=0)
+    seg_len = np.linalg.norm(seg, axis=1)
+    return seg, seg_len, np.concatenate([[0.0], np.cumsum(seg_len)])
+
+
+def _point_at(wps: np.ndarray, cum: np.ndarray, dist: float) -> np.ndarray:
+    """The route point ``(2 or 3,)`` at plan distance ``dist`` (m) from its start (clipped to the route)."""
+    return np.array([np.interp(dist, cum, wps[:, c]) for c in range(wps.shape[1])])
+
+
+def _project(xy: np.ndarray, wps: np.ndarray, seg: np.ndarray, seg_len: np.ndarray, cum: np.ndarray,
+             lo: float, hi: float) -> float:
+    """Plan distance along the route (m) of the point of its stretch ``[lo, hi]`` nearest to ``xy (2,)``: the
+    vehicle's progress, searched forward from the last one (a route that crosses itself is not mistaken)."""
+    best, best_d = lo, np.inf
+    for i in np.nonzero((cum[1:] >= lo) & (cum[:-1] <= hi) & (seg_len > 0))[0]:
+        t = float(np.clip((xy - wps[i, :2]) @ seg[i] / seg_len[i] ** 2, 0.0, 1.0))
+        d = float(np.linalg.norm(wps[i, :2] + t * seg[i] - xy))
+        if d < best_d:
+            best, best_d = float(np.clip(cum[i] + t * seg_len[i], lo, hi)), d
+    return best
 
 
 def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
+    """A car that drives its route at its plan speed, steered by pure pursuit under the CT model.
+
+    Each step ``k`` the car turns at the rate ``xi_k = 2 zeta sin(a) / L_d`` that puts the CT arc of this step
+    on the circle through the car and the route point ``L = max(LOOKAHEAD_STEPS zeta dt, MIN_LOOKAHEAD)`` ahead
+    of its progress (``a``: that point's bearing from the heading, ``L_d`` its distance); the state of step
+    ``k + 1`` is the CT transition (:func:`~mmslam.model.vehicle_ct`) of step ``k`` with ``(zeta, xi_k)``, so the
+    filter's known inputs describe the true motion exactly, heading included: a polyline route (street
+    centrelines, many short segments) is driven as a smooth curve that rounds each corner by about a metre
+    instead of turning on the spot. On a straight leg the car stays on it. The antenna height follows the
+    route's height profile at the car's progress (3-D waypoints, the terrain); the car stops (speed and turn
+    rate 0) once its progress reaches the last waypoint, the last step shortened to end there. A change of this
+    rule changes :data:`~mmslam.scenes.scenario.WAYPOINT_MOTION` (caches traced with the old one are not resumed).
+    """
     wps = np.asarray(v.waypoints, dtype=float)
-    t = np.arange(steps + 1) * dt
-    pos = _polyline_positions(wps, v.initial_state[4], t)
-    xy = pos[:, :2]
-    d = np.diff(xy, axis=0)  # (steps, 2) chord of each step
-    chord = np.linalg.norm(d, axis=1)
-    moving = chord > 1e-9
-    direc = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), np.nan)
-    # carry the last known direction over stopped steps (and the initial heading before motion)
-    last = v.initial_state[3]
-    for k in range(steps):
-        if np.isnan(direc[k]):
-            direc[k] = last
-        last = direc[k]
-    turn = np.zeros(steps)
-    turn[1:] = wrap_angle(np.diff(direc)) / dt
-    heading = direc - turn * dt / 2.0
-    half = turn * dt / 2.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        speed = np.where(np.abs(half) > 1e-12, chord * half / np.sin(half) / dt, chord / dt)
+    seg, seg_len, cum = _route(wps)
+    total = float(cum[-1])
+    speed = float(v.initial_state[4])
+    look = max(LOOKAHEAD_STEPS * speed * dt, MIN_LOOKAHEAD)
+    first = np.nonzero(seg_len > 0)[0]
+    heading = float(np.arctan2(seg[first[0], 1], seg[first[0], 0])) if first.size else float(v.initial_state[3])
     s = np.zeros((steps, 7))
-    s[:, 0:2] = xy[:-1]
-    s[:, 2] = pos[:-1, 2] if wps.shape[1] == 3 else v.initial_state[2]  # 3-D waypoints: z follows the terrain
-    s[:, 3] = heading
-    s[:, 4] = speed
-    s[:, 5] = turn
-    s[:, 6] = v.initial_state[6]
+    cur = np.array([wps[0, 0], wps[0, 1], wps[0, 2] if wps.shape[1] == 3 else v.initial_state[2], heading,
+                    0.0, 0.0, v.initial_state[6]])
+    prog = 0.0
+    for k in range(steps):
+        left = total - prog
+        if left <= 1e-9 or speed <= 0.0:
+            zeta, xi = 0.0, 0.0
+        else:
+            target = _point_at(wps, cum, min(prog + look, total))[:2]
+            d = target - cur[:2]
+            ld = float(np.hypot(*d))
+            a = float(wrap_angle(np.arctan2(d[1], d[0]) - cur[3])) if ld > 0 else 0.0
+            zeta = min(speed, left / dt)  # the last step ends at the route's end
+            xi = float(np.clip(2.0 * zeta * np.sin(a) / ld, -np.pi / dt, np.pi / dt)) if ld > 0 else 0.0
+        cur[4], cur[5] = zeta, xi
+        s[k] = cur
+        if k + 1 < steps:
+            cur = vehicle_ct(cur, dt)
+            cur[3] = wrap_angle(cur[3])
+            step = zeta * dt
+            prog = _project(cur[:2], wps, seg, seg_len, cum, prog, min(prog + 2.0 * step + look, total)) if step > 0 else prog
+            if zeta > 0.0 and zeta < speed:  # the shortened last step: at the end
+                prog = total
+            if wps.shape[1] == 3:
+                cur[2] = float(np.interp(prog, cum, wps[:, 2]))
     return s
 
 
