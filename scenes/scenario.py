@@ -119,6 +119,11 @@ class SensorParams:
     vehicle_noise_std: tuple[float, ...] = param(
         (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2), "process noise std of [x, y, z, heading, speed, turn rate, "
         "clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3, length=7)
+    odometry_noise_std: tuple[float, ...] = param(
+        (0.0, 0.0), "std of the odometry the filter takes as its known inputs each step: speed, turn rate (white "
+        "noise on the true values; 0: exact, the paper's known inputs; a stopped car reads speed 0); the filter's "
+        "process noise grows to match (mmslam.slam.filter.run.vehicle_process_std)", "m/s, rad/s", lo=0.0, hi=100.0,
+        length=2)
     true_process_noise: bool = param(False, "add the process noise (all but the clock bias) to the "
                                      "true, traced trajectory too (off: the traced trajectory is the truth)")
     emit_other: bool = param(False, "also emit paths labelled OTHER (higher-order bounces) as measurements")

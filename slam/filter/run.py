@@ -72,14 +72,19 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
 def vehicle_process_std(scn: Scenario) -> np.ndarray:
     """The filter's process noise std of every vehicle, ``(n_veh, 7)`` (units of ``sensor.vehicle_noise_std``).
 
-    ``sensor.vehicle_noise_std`` for every vehicle, with its height entry under ``filter.height_process =
+    ``sensor.vehicle_noise_std`` for every vehicle, its x, y and heading entries grown by one step's error of the
+    odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the track in
+    either axis, the turn rate's in the heading), with its height entry under ``filter.height_process =
     "route"`` the larger of ``vehicle_noise_std[2]`` and the largest height change over one step's travel along
     the vehicle's route (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets).
     The motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
     """
     from mmslam.scenes.trajectory import route_height_step
 
-    base = np.asarray(scn.sensor.vehicle_noise_std, float)
+    base = np.asarray(scn.sensor.vehicle_noise_std, float).copy()
+    odo = np.asarray(scn.sensor.odometry_noise_std, float) * float(scn.dt)  # one step's error of the odometry
+    base[0:2] = np.hypot(base[0:2], odo[0])  # the speed error along the track, either axis
+    base[3] = np.hypot(base[3], odo[1])  # the turn rate's error in the heading
     out = np.tile(base, (len(scn.vehicles), 1))
     if scn.filter.height_process == "route":
         for n, v in enumerate(scn.vehicles):
@@ -196,7 +201,7 @@ class CooperativeRun:
                  measurement_update: bool = True, evaluate: bool = True, rays: dict[str, np.ndarray] | None = None,
                  estimates_dir: str | Path | None = None, source: str | None = None,
                  known_map: KnownMap | None = None) -> None:
-        from ..sim.sensor import fov_detect_prob, simulate_measurements
+        from ..sim.sensor import fov_detect_prob, odometry_readings, simulate_measurements
 
         self.t0 = time.perf_counter()
         scn, self.vs_body_model = resolve_vs_body(scn, source)
@@ -231,7 +236,7 @@ class CooperativeRun:
 
         # ---- stage 0: measurements of the whole run, prior, filters
         ss = np.random.SeedSequence(int(seed))
-        s_meas, s_prior, *s_veh = ss.spawn(2 + n_veh)
+        s_meas, s_prior, *s_veh, s_odo = ss.spawn(3 + n_veh)  # children by index: the first 2 + n_veh as before
         self.estimator_counts = None
         if scn.sensor.model == "estimated":  # measurements from the channel estimator (estimated_sensor.py)
             from ..sim.estimated_sensor import estimated_run, resolve_estimates, to_measurements
@@ -248,6 +253,10 @@ class CooperativeRun:
             self.meas = simulate_measurements(scn, states, sub, np.random.default_rng(s_meas),
                                               include_types=include_types)
         self.true = np.asarray(self.meas.true_states, float)
+        odo_std = np.asarray(scn.sensor.odometry_noise_std, float)
+        self.odometry = (odometry_readings(self.true, odo_std, np.random.default_rng(s_odo)) if (odo_std > 0).any()
+                         else None)
+        """``(steps, n_veh, 2)`` the speed and turn rate the filters read (``sensor.odometry_noise_std``), None: exact"""
         R = scn.filter.r_scale * np.asarray(self.meas.R, float)
         sensor = scn.sensor
         pd_type = filter_detect_probs(scn)
@@ -285,12 +294,13 @@ class CooperativeRun:
 
     def local_inputs(self, k: int, n: int) -> tuple[np.ndarray, float | None, float | None, np.ndarray | None]:
         """Vehicle ``n``'s measurement set ``Z (J, 5)`` at step ``k``, the known speed (m/s) and turn
-        rate (rad/s) of step ``k-1`` (None at ``k = 0``) and the per-measurement covariances
+        rate (rad/s) of step ``k-1`` (its odometry reading under ``sensor.odometry_noise_std``; None at ``k = 0``) and the per-measurement covariances
         ``R_z (J, 5, 5)`` of the power-aware sensor (scaled like ``R``; None for the constant model)."""
         meas, scn = self.meas, self.scn
         sel = np.asarray(meas.mask[k, n], bool)
         Z = np.asarray(meas.z[k, n], float)[sel]
-        spd, tr = (self.true[k - 1, n, 4], self.true[k - 1, n, 5]) if k > 0 else (None, None)
+        inputs = self.true[..., 4:6] if self.odometry is None else self.odometry
+        spd, tr = (float(inputs[k - 1, n, 0]), float(inputs[k - 1, n, 1])) if k > 0 else (None, None)
         # the constant sensor model's per-measurement covariances are all R: the filter's shared R
         # (one batched correction) instead of J equal copies (a per-measurement loop, ~2.5x slower)
         R_z = (None if meas.R_meas is None or scn.sensor.model == "constant" else

@@ -1,0 +1,68 @@
+"""Noisy odometry (``sensor.odometry_noise_std``): the speed and turn rate the filter takes as its known inputs."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.raytrace.analytic import AnalyticSource
+from mmslam.scenes.scenario import load_preset, with_overrides
+from mmslam.scenes.trajectory import true_trajectories
+from mmslam.slam.filter.run import run_filter, vehicle_process_std
+from mmslam.slam.sim.sensor import odometry_readings
+
+
+def test_odometry_readings_are_the_true_inputs_plus_white_noise():
+    """20 000 draws: the readings' errors have the stated stds (1% of sd at 2.2 sigma) and no mean; a stopped car
+    reads speed 0 exactly and the turn rate's noise; the true states are not touched."""
+    states = np.zeros((10000, 2, 7))
+    states[:, 0, 4], states[:, 0, 5] = 7.0, 0.1
+    before = states.copy()
+    got = odometry_readings(states, (0.1, 0.01), np.random.default_rng(0))
+    assert got.shape == (10000, 2, 2)
+    err = got[:, 0] - np.array([7.0, 0.1])
+    assert np.std(err, axis=0) == pytest.approx([0.1, 0.01], rel=0.03)
+    assert np.abs(err.mean(axis=0)).max() < 3 * 0.1 / 100
+    assert (got[:, 1, 0] == 0.0).all() and np.std(got[:, 1, 1]) == pytest.approx(0.01, rel=0.03)
+    np.testing.assert_array_equal(states, before)
+
+
+def test_the_filter_process_noise_grows_by_one_step_of_odometry_error():
+    """x, y: hypot(0.2, 0.1 m/s x 0.5 s) = 0.20616 m; heading: hypot(0.001, 0.01 rad/s x 0.5 s) = 0.0050990 rad; the
+    other entries as the sensor's; [0, 0] (the default) leaves every entry as before."""
+    scn = load_preset("paper")
+    noisy = with_overrides(scn, ["sensor.odometry_noise_std=[0.1, 0.01]"])
+    got = vehicle_process_std(noisy)
+    np.testing.assert_allclose(got[:, 0:2], np.hypot(0.2, 0.05), rtol=1e-12)
+    np.testing.assert_allclose(got[:, 3], np.hypot(1e-3, 5e-3), rtol=1e-12)
+    np.testing.assert_array_equal(got[:, [2, 4, 5, 6]], np.tile(np.asarray(scn.sensor.vehicle_noise_std)[[2, 4, 5, 6]],
+                                                              (len(scn.vehicles), 1)))
+    np.testing.assert_array_equal(vehicle_process_std(scn), np.tile(scn.sensor.vehicle_noise_std, (len(scn.vehicles), 1)))
+
+
+def test_the_filter_takes_the_readings_of_the_run_odometry_stream():
+    """Each vehicle's known inputs of step k - 1 are the readings of the run's odometry stream (the last child of the
+    seed's SeedSequence, recomputed here by hand); with exact odometry they are the true inputs, and dead reckoning
+    with no process or prior noise stays on the truth (1e-9 m), while with noisy odometry it drifts from it."""
+    from mmslam.slam.filter.run import CooperativeRun
+
+    zero = "[0, 0, 0, 0, 0, 0, 0]"
+    scn = with_overrides(load_preset("paper"), [f"sensor.vehicle_noise_std={zero}", f"filter.prior_std={zero}",
+                                                "sensor.odometry_noise_std=[0.5, 0.05]"])
+    steps = 12
+    states = true_trajectories(scn, steps)
+    src = AnalyticSource(scn)
+    parts = [src.trace_step(k, states[k]) for k in range(steps)]
+    paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+    n_veh = states.shape[1]
+    odo = odometry_readings(states, (0.5, 0.05), np.random.default_rng(np.random.SeedSequence(5).spawn(3 + n_veh)[-1]))
+    run = CooperativeRun(scn, states, paths, "odometry", 3, 5, evaluate=False)
+    for k in range(1, steps):
+        for n in range(n_veh):
+            _, spd, tr, _ = run.local_inputs(k, n)
+            assert (spd, tr) == (odo[k - 1, n, 0], odo[k - 1, n, 1])
+    assert run.local_inputs(0, 0)[1:3] == (None, None)
+    exact_scn = with_overrides(scn, ["sensor.odometry_noise_std=[0, 0]"])
+    exact = CooperativeRun(exact_scn, states, paths, "odometry", 3, 5, evaluate=False)
+    assert exact.local_inputs(3, 1)[1:3] == (states[2, 1, 4], states[2, 1, 5])
+    assert np.asarray(run_filter(exact_scn, states, paths, "odometry", 3, seed=5).vehicles["pos_err"]).max() < 1e-9
+    assert np.asarray(run_filter(scn, states, paths, "odometry", 3, seed=5).vehicles["pos_err"]).max() > 0.5
