@@ -116,6 +116,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     """All runs of one cache; prints per seed and the summary; returns the rows and summary."""
     from mmslam.raytrace.cache import load_cache
     from mmslam.slam.filter import run_slam
+    from mmslam.scenes.scenario import with_overrides
     from mmslam.slam.eval.evaluation import unconfirmed_counts
     from mmslam.slam.filter.known_map import known_map
     from mmslam.slam.specs.landmarks import VA_SPEC, landmark_types
@@ -124,7 +125,8 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     steps = c.states.shape[0] if a.steps is None else a.steps
     n_veh = c.states.shape[1]
     nlos = nlos_mask(c.paths, c.states.shape[0], n_veh)
-    ev = c.scenario.evaluation
+    run_scn = with_overrides(c.scenario, a.set)  # the runs' sensor and evaluation settings (--set)
+    ev = run_scn.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
     cmp_sets = [x for x in re.split(r",(?=\w+(?:\.\w+)+=)", a.compare) if x] if a.compare else []
     known_errors = a.known_va
@@ -160,7 +162,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     va, emp = summ["va"][0], summ["empty"][0]
     print(f"  VA / empty map: {va / emp:.3f}")
     # the truths no two-detection filter can have found (seen at one step so far): the floor of the ratio
-    unconf = unconfirmed_counts(c.paths, n_veh, steps, c.states[:steps, :, 0:3], c.scenario.sensor,
+    unconf = unconfirmed_counts(c.paths, n_veh, steps, c.states[:steps, :, 0:3], run_scn.sensor,
                                 float(ev.va_resolution))[VA_SPEC.code][a.kmin:]
     floor2 = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * unconf) ** (1 / ev.gospa_p))) if unconf.size else math.nan
     summ["floor2"] = (floor2, 0.0)

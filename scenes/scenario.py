@@ -28,8 +28,8 @@ from mmslam.errors import ConfigError
 from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
 from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
 
-WAYPOINT_MOTION = "pure-pursuit-ct-1"
-"""How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.trajectory._waypoint_trajectory`),
+WAYPOINT_MOTION = "pure-pursuit-ct-2"
+"""How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.trajectory.drive_route`),
 part of :meth:`Scenario.geometry_hash` for a scenario with such a vehicle: a cache traced with another rule
 (before it, cars kept to the polyline and their heading jumped at its corners) is not resumed with this one."""
 
@@ -83,8 +83,8 @@ class Vehicle:
     ``initial_state = [x, y, z, heading, speed, turn_rate, clock_bias]`` (m, m, m, rad, m/s,
     rad/s, m). The antenna is at ``(x, y, z)``; the car body is a ``length x width x height``
     box whose roof is ``roof_gap`` m below the antenna. ``motion`` is ``ct`` (coordinated turn
-    from the initial state) or ``waypoints`` (constant ``speed`` along the ``waypoints``
-    polyline, starting at the first waypoint).
+    from the initial state) or ``waypoints`` (the ``waypoints`` polyline driven at the plan ``speed`` from the
+    first waypoint, corners rounded: :func:`mmslam.scenes.trajectory.drive_route`).
     """
 
     name: str
@@ -241,7 +241,8 @@ class FilterParams:
         length=7)
     height_process: str = param("route", "the filter's height (z) process noise of each vehicle: route (the larger "
                                 "of sensor.vehicle_noise_std[2] and the largest height change over one step's travel "
-                                "along the vehicle's route at its speed, from the road's slope: 0 on flat streets "
+                                "along the vehicle's route at its speed, or in one step of the car driving it, from the road's slope: "
+                                "0 on flat streets "
                                 "and for ct vehicles; docs/city-slam.md) or sensor (sensor.vehicle_noise_std[2] for every "
                                 "vehicle)", choices=("route", "sensor"))
     p_survival: float = param(0.99, "landmark survival probability per step", "", probability=True)

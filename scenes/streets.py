@@ -230,14 +230,12 @@ def _truncate(wp: np.ndarray, length: float) -> np.ndarray:
     return np.concatenate([wp[:k], (wp[k - 1] + f * (wp[k] - wp[k - 1]))[None]])
 
 
-def _along(wp: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Points ``(len(s), 3)`` at plan arc lengths ``s`` (m) along waypoints ``wp (k, 3)`` (clamped to the ends)."""
-    L = np.hypot(*np.diff(wp[:, :2], axis=0).T)
-    cum = np.concatenate([[0.0], np.cumsum(L)])
-    s = np.clip(s, 0.0, cum[-1])
-    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(L) - 1)
-    f = (s - cum[k]) / np.where(L[k] > 0, L[k], 1.0)
-    return wp[k] + f[:, None] * (wp[k + 1] - wp[k])
+def _driven(wp: np.ndarray, length: float, steps: int) -> np.ndarray:
+    """``(steps, 2)`` plan positions of a car driving waypoints ``wp`` ``length`` m in ``steps`` steps, as the
+    trajectory drives it (:func:`mmslam.scenes.trajectory.drive_route`: pure pursuit, corners rounded)."""
+    from mmslam.scenes.trajectory import drive_route  # trajectory imports scenario, which imports this module
+
+    return drive_route(wp, length / steps, steps, 1.0)[:, :2]
 
 
 def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, length_m: np.ndarray,
@@ -249,8 +247,8 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
     Start points are drawn from the centreline cells within ``radius`` m (plan) of the BS; the end
     is a random reachable cell at street distance ``>= length_m[i]``. A route is kept if the BS is
     in line of sight (static triangles) from at least ``min_los`` of its points sampled every 5 m;
-    else the best of ``tries`` draws is kept. With ``steps``, car ``i`` is at arc length
-    ``length_m[i] k / steps`` at step ``k`` (constant speed from the start), and a draw that brings
+    else the best of ``tries`` draws is kept. With ``steps``, car ``i`` drives ``length_m[i] / steps`` per step
+    from the start as its trajectory will (:func:`_driven`: corners rounded), and a draw that brings
     it within ``min_gap`` m (plan, antenna to antenna; 6 m clears two 4.5 x 1.8 m bodies in any
     orientation) of an earlier car at the same step is not kept and not counted as one of the
     ``tries`` (at most ``10 tries`` draws in all): cars on one centreline would drive through each other.
@@ -295,7 +293,7 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
             f = (t - cum[k]) / np.where(L[k] > 0, L[k], 1.0)
             samp = wp[k] + f[:, None] * (wp[k + 1] - wp[k])
             if steps is not None:
-                pos = _along(wp, length_m[i] * np.arange(steps) / steps)[:, :2]
+                pos = _driven(wp, length_m[i], steps)
                 if any(np.min(np.hypot(*(pos - q).T)) < min_gap for q in placed):
                     used -= 1
                     continue
@@ -310,7 +308,7 @@ def random_routes(sm: StreetMap, geom: StaticGeometry, bs: np.ndarray, n: int, l
                               "n_vehicles or change the seed")
         out.append(best)
         if steps is not None:
-            placed.append(_along(best, length_m[i] * np.arange(steps) / steps)[:, :2])
+            placed.append(_driven(best, length_m[i], steps))
     return out
 
 

@@ -32,6 +32,10 @@ LOOKAHEAD_STEPS = 2.0
 """Pure-pursuit lookahead of a ``waypoints`` vehicle, in steps of travel (``speed x dt`` each)."""
 MIN_LOOKAHEAD = 4.0
 """m: the smallest lookahead (a slow car still rounds a polyline corner instead of pivoting on it)."""
+MIN_TURN_RADIUS = 5.0
+"""m: the tightest circle a ``waypoints`` car drives (a passenger car's turning circle is 10-12 m across): its
+turn rate is at most ``speed / MIN_TURN_RADIUS``, and a car whose route point ahead lies behind it (a U-turn)
+turns at that rate towards it."""
 
 
 def _route(wps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -47,12 +51,15 @@ def _point_at(wps: np.ndarray, cum: np.ndarray, dist: float) -> np.ndarray:
     return np.array([np.interp(dist, cum, wps[:, c]) for c in range(wps.shape[1])])
 
 
-def _project(xy: np.ndarray, wps: np.ndarray, seg: np.ndarray, seg_len: np.ndarray, cum: np.ndarray,
-             lo: float, hi: float) -> float:
-    """Plan distance along the route (m) of the point of its stretch ``[lo, hi]`` nearest to ``xy (2,)``: the
-    vehicle's progress, searched forward from the last one (a route that crosses itself is not mistaken)."""
+def _project(xy: np.ndarray, heading: float, wps: np.ndarray, seg: np.ndarray, seg_len: np.ndarray,
+             cum: np.ndarray, lo: float, hi: float) -> float:
+    """Plan distance along the route (m) of the point of its stretch ``[lo, hi]`` nearest to ``xy (2,)``, among
+    the segments that do not point against ``heading`` (rad): the vehicle's progress, searched forward from the
+    last one over a short window, so neither a route that crosses itself nor the return leg of a hairpin next
+    to the car is mistaken for where it is; ``lo`` when no segment qualifies (the car is still turning)."""
     best, best_d = lo, np.inf
-    for i in np.nonzero((cum[1:] >= lo) & (cum[:-1] <= hi) & (seg_len > 0))[0]:
+    fwd = np.array([np.cos(heading), np.sin(heading)])
+    for i in np.nonzero((cum[1:] >= lo) & (cum[:-1] <= hi) & (seg_len > 0) & (seg @ fwd >= 0.0))[0]:
         t = float(np.clip((xy - wps[i, :2]) @ seg[i] / seg_len[i] ** 2, 0.0, 1.0))
         d = float(np.linalg.norm(wps[i, :2] + t * seg[i] - xy))
         if d < best_d:
@@ -60,77 +67,96 @@ def _project(xy: np.ndarray, wps: np.ndarray, seg: np.ndarray, seg_len: np.ndarr
     return best
 
 
-def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
-    """A car that drives its route at its plan speed, steered by pure pursuit under the CT model.
+def drive_route(wps: np.ndarray, speed: float, steps: int, dt: float, z0: float = 0.0, bias: float = 0.0,
+                heading: float | None = None) -> np.ndarray:
+    """States ``(steps, 7)`` of a car that drives the route ``wps (n, 2 or 3)`` (m) at plan speed ``speed`` (m/s),
+    steered by pure pursuit under the CT model, one state per step of ``dt`` s.
 
-    Each step ``k`` the car turns at the rate ``xi_k = 2 zeta sin(a) / L_d`` that puts the CT arc of this step
-    on the circle through the car and the route point ``L = max(LOOKAHEAD_STEPS zeta dt, MIN_LOOKAHEAD)`` ahead
-    of its progress (``a``: that point's bearing from the heading, ``L_d`` its distance); the state of step
+    Each step ``k`` the car turns at the rate ``xi_k = 2 zeta sin(a) / L_d`` that puts the CT arc of this step on
+    the circle through the car and the route point ``L = max(LOOKAHEAD_STEPS zeta dt, MIN_LOOKAHEAD)`` ahead of its
+    progress (``a``: that point's bearing from the heading, ``L_d`` its distance), at most ``zeta /
+    MIN_TURN_RADIUS`` (and that rate, towards the point, when the point is behind the car); the state of step
     ``k + 1`` is the CT transition (:func:`~mmslam.model.vehicle_ct`) of step ``k`` with ``(zeta, xi_k)``, so the
-    filter's known inputs describe the true motion exactly, heading included: a polyline route (street
-    centrelines, many short segments) is driven as a smooth curve that rounds each corner by about a metre
-    instead of turning on the spot. On a straight leg the car stays on it. The antenna height follows the
-    route's height profile at the car's progress (3-D waypoints, the terrain); the car stops (speed and turn
-    rate 0) once its progress reaches the last waypoint, the last step shortened to end there. A change of this
-    rule changes :data:`~mmslam.scenes.scenario.WAYPOINT_MOTION` (caches traced with the old one are not resumed).
+    stored speed and turn rate describe the true motion exactly, heading included. A polyline route (street
+    centrelines, many short segments) is driven as a smooth curve that rounds each corner instead of turning on the
+    spot; on a straight leg the car stays on it. The start is the first waypoint, heading towards the route point
+    ``L`` ahead (``heading``, when given, instead). The antenna height is ``z0`` for ``[x, y]`` waypoints, else the
+    route's height profile at the car's progress (the terrain); ``bias`` fills the clock-bias column. The car stops
+    (speed and turn rate 0) once its progress reaches the last waypoint, its last step shortened to the route
+    length left (it ends within about a metre of the last waypoint). A change of this rule changes
+    :data:`~mmslam.scenes.scenario.WAYPOINT_MOTION` (caches traced with the old one are not resumed).
     """
-    wps = np.asarray(v.waypoints, dtype=float)
+    wps = np.asarray(wps, dtype=float)
     seg, seg_len, cum = _route(wps)
     total = float(cum[-1])
-    speed = float(v.initial_state[4])
+    speed = float(speed)
     look = max(LOOKAHEAD_STEPS * speed * dt, MIN_LOOKAHEAD)
-    first = np.nonzero(seg_len > 0)[0]
-    heading = float(np.arctan2(seg[first[0], 1], seg[first[0], 0])) if first.size else float(v.initial_state[3])
+    if heading is None:
+        d0 = _point_at(wps, cum, min(look, total))[:2] - wps[0, :2]
+        heading = float(np.arctan2(d0[1], d0[0])) if np.hypot(*d0) > 0 else 0.0
     s = np.zeros((steps, 7))
-    cur = np.array([wps[0, 0], wps[0, 1], wps[0, 2] if wps.shape[1] == 3 else v.initial_state[2], heading,
-                    0.0, 0.0, v.initial_state[6]])
+    cur = np.array([wps[0, 0], wps[0, 1], wps[0, 2] if wps.shape[1] == 3 else z0, heading, 0.0, 0.0, bias])
     prog = 0.0
     for k in range(steps):
         left = total - prog
-        if left <= 1e-9 or speed <= 0.0:
-            zeta, xi = 0.0, 0.0
-        else:
-            target = _point_at(wps, cum, min(prog + look, total))[:2]
-            d = target - cur[:2]
+        zeta, xi = 0.0, 0.0
+        if left > 1e-9 and speed > 0.0:
+            zeta = min(speed, left / dt)  # the last step: the route length left
+            d = _point_at(wps, cum, min(prog + look, total))[:2] - cur[:2]
             ld = float(np.hypot(*d))
-            a = float(wrap_angle(np.arctan2(d[1], d[0]) - cur[3])) if ld > 0 else 0.0
-            zeta = min(speed, left / dt)  # the last step ends at the route's end
-            xi = float(np.clip(2.0 * zeta * np.sin(a) / ld, -np.pi / dt, np.pi / dt)) if ld > 0 else 0.0
+            if ld > 0:
+                a = float(wrap_angle(np.arctan2(d[1], d[0]) - cur[3]))
+                xi_max = zeta / MIN_TURN_RADIUS
+                xi = (float(np.clip(2.0 * zeta * np.sin(a) / ld, -xi_max, xi_max)) if np.cos(a) >= 0.0
+                      else float(np.copysign(xi_max, a)))  # behind the car: turn round at the tightest circle
         cur[4], cur[5] = zeta, xi
         s[k] = cur
         if k + 1 < steps:
             cur = vehicle_ct(cur, dt)
             cur[3] = wrap_angle(cur[3])
             step = zeta * dt
-            prog = _project(cur[:2], wps, seg, seg_len, cum, prog, min(prog + 2.0 * step + look, total)) if step > 0 else prog
-            if zeta > 0.0 and zeta < speed:  # the shortened last step: at the end
+            if zeta >= speed:
+                prog = _project(cur[:2], cur[3], wps, seg, seg_len, cum, prog, min(prog + 1.5 * step + 0.5, total))
+            elif zeta > 0.0:  # the shortened last step
                 prog = total
             if wps.shape[1] == 3:
                 cur[2] = float(np.interp(prog, cum, wps[:, 2]))
     return s
 
 
-def route_height_step(v: Vehicle, dt: float) -> float:
-    """The largest height change (m) over one step's travel along vehicle ``v``'s route: the road's slope.
+def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
+    """:func:`drive_route` of vehicle ``v``'s waypoints at its plan speed ``initial_state[4]`` (its antenna
+    height ``initial_state[2]`` for ``[x, y]`` waypoints, its initial clock bias)."""
+    return drive_route(np.asarray(v.waypoints, float), float(v.initial_state[4]), steps, dt,
+                       z0=float(v.initial_state[2]), bias=float(v.initial_state[6]))
 
-    ``max_s |z(s + zeta dt) - z(s)|`` over the plan distance ``s`` along the route, ``z(s)`` its piecewise linear
-    height profile, at the plan speed ``zeta`` (m/s, ``initial_state[4]``) and step ``dt`` (s); the whole route's
-    height change if it is shorter than one step. This is the systematic height drift per step that a motion
-    model with a constant height must absorb as noise (a random walk smaller than the drift lags behind until
-    the measurements stop pulling it back). The scene's geometry (the route on the terrain), known before any
-    run: 0 for a ``ct`` vehicle (a planar coordinated turn), for ``[x, y]`` waypoints and on a flat route.
+
+def route_height_step(v: Vehicle, dt: float) -> float:
+    """The largest height change (m) in one step along vehicle ``v``'s route: the road's slope.
+
+    The larger of ``max_s |z(s + zeta dt) - z(s)|`` over the plan distance ``s`` along the route (``z(s)`` its
+    piecewise linear height profile, the plan speed ``zeta`` (m/s, ``initial_state[4]``) and step ``dt`` (s); the
+    whole route's height change if it is shorter than one step) and the largest change in one step of the car
+    driving it (:func:`drive_route`, to its end): on a jagged centreline the car's progress runs up to a fifth
+    ahead of ``zeta dt`` per step (it drives the shorter, smooth curve). This is the systematic height drift per
+    step that a motion model with a constant height must absorb as noise (a random walk smaller than the drift
+    lags behind until the measurements stop pulling it back). The scene's geometry (the route on the terrain and
+    how it is driven), known before any run: 0 for a ``ct`` vehicle (a planar coordinated turn), for ``[x, y]``
+    waypoints and on a flat route.
     """
     wps = np.asarray(v.waypoints, dtype=float)
     if v.motion != "waypoints" or wps.ndim != 2 or wps.shape[1] != 3 or len(wps) < 2:
         return 0.0
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(wps[:, :2], axis=0), axis=1))])
+    s = _route(wps)[2]
     z = wps[:, 2]
     step = float(v.initial_state[4]) * float(dt)
     if step >= s[-1]:
-        return float(abs(z[-1] - z[0]))
-    # |z(s + L) - z(s)| is piecewise linear in s: its maximum lies where s or s + L is a waypoint
-    at = np.clip(np.concatenate([s, s - step]), 0.0, s[-1] - step)
-    return float(np.max(np.abs(np.interp(at + step, s, z) - np.interp(at, s, z))))
+        along = float(abs(z[-1] - z[0]))
+    else:  # |z(s + L) - z(s)| is piecewise linear in s: its maximum lies where s or s + L is a waypoint
+        at = np.clip(np.concatenate([s, s - step]), 0.0, s[-1] - step)
+        along = float(np.max(np.abs(np.interp(at + step, s, z) - np.interp(at, s, z))))
+    driven = drive_route(wps, float(v.initial_state[4]), int(np.ceil(s[-1] / max(step, 1e-9))) + 3, dt)[:, 2]
+    return max(along, float(np.max(np.abs(np.diff(driven)))))
 
 
 def vehicle_trajectories(scn: Scenario, steps: int | None = None,

@@ -194,10 +194,12 @@ def test_trace_refuses_two_cars_on_one_centreline_in_opposite_directions(tmp_pat
 
 @pytest.mark.slow
 def test_random_cars_keep_clear_of_each_other():
-    """n_vehicles = 10 on munich: before, every seed of 0..3 drew two cars driving through each other."""
+    """n_vehicles = 10 on munich: before, every seed of 0..3 drew two cars driving through each other. The draw
+    checks the 6 m gap on the positions the trajectory will have (corners rounded: seed 3 came to 5.50 m when the
+    draw took the polyline's)."""
     import tempfile
 
-    for seed in range(3):
+    for seed in (0, 1, 3):
         with tempfile.TemporaryDirectory() as d:
             toml = Path(d) / "m.toml"
             toml.write_text(f'name = "munich10"\nseed = {seed}\nxml_scene = "sionna:munich"\nbs = [8.5, 21.0, 30.0]\n'
@@ -207,7 +209,7 @@ def test_random_cars_keep_clear_of_each_other():
         assert vehicle_overlaps(scn, st) is None, seed
         d = np.hypot(*(st[:, :, None, :2] - st[:, None, :, :2]).transpose(3, 0, 1, 2))
         d[:, np.arange(10), np.arange(10)] = np.inf
-        assert d.min() >= 6.0 - 0.5, seed  # the 6 m gap of the draw (positions sampled as the trajectory)
+        assert d.min() >= 6.0 - 1e-6, seed  # the 6 m gap of the draw, on the trajectory's positions
 
 
 # ---------------------------------------------------------------- scene show marks

@@ -184,6 +184,8 @@ def unconfirmed_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, pos
     """
     from ..sim.sensor import fov_detect_prob
 
+    if min_steps < 1:
+        raise ValueError(f"min_steps={min_steps}: expected a number of detections >= 1")
     step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
     out = {}
     for spec in evaluated_types():

@@ -76,7 +76,8 @@ def vehicle_process_std(scn: Scenario) -> np.ndarray:
     odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the track in
     either axis, the turn rate's in the heading), with its height entry under ``filter.height_process =
     "route"`` the larger of ``vehicle_noise_std[2]`` and the largest height change over one step's travel along
-    the vehicle's route (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets).
+    the vehicle's route or in one step of the car driving it (:func:`~mmslam.scenes.trajectory.route_height_step`:
+    the road's slope, 0 on flat streets).
     The motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
     """
     from mmslam.scenes.trajectory import route_height_step
