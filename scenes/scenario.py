@@ -29,7 +29,7 @@ from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
 from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
 
 WAYPOINT_MOTION = "pure-pursuit-ct-2"
-"""How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.trajectory.drive_route`),
+"""How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.driving.drive_route`),
 part of :meth:`Scenario.geometry_hash` for a scenario with such a vehicle: a cache traced with another rule
 (before it, cars kept to the polyline and their heading jumped at its corners) is not resumed with this one."""
 
@@ -84,7 +84,7 @@ class Vehicle:
     rad/s, m). The antenna is at ``(x, y, z)``; the car body is a ``length x width x height``
     box whose roof is ``roof_gap`` m below the antenna. ``motion`` is ``ct`` (coordinated turn
     from the initial state) or ``waypoints`` (the ``waypoints`` polyline driven at the plan ``speed`` from the
-    first waypoint, corners rounded: :func:`mmslam.scenes.trajectory.drive_route`).
+    first waypoint, corners rounded: :func:`mmslam.scenes.driving.drive_route`).
     """
 
     name: str

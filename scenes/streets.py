@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mmslam.errors import ConfigError
+from mmslam.scenes.driving import drive_route
 from mmslam.scenes.geometry import StaticGeometry
 
 ROAD_TOL_M = 0.3
@@ -232,9 +233,7 @@ def _truncate(wp: np.ndarray, length: float) -> np.ndarray:
 
 def _driven(wp: np.ndarray, length: float, steps: int) -> np.ndarray:
     """``(steps, 2)`` plan positions of a car driving waypoints ``wp`` ``length`` m in ``steps`` steps, as the
-    trajectory drives it (:func:`mmslam.scenes.trajectory.drive_route`: pure pursuit, corners rounded)."""
-    from mmslam.scenes.trajectory import drive_route  # trajectory imports scenario, which imports this module
-
+    trajectory drives it (:func:`mmslam.scenes.driving.drive_route`: pure pursuit, corners rounded)."""
     return drive_route(wp, length / steps, steps, 1.0)[:, :2]
 
 

@@ -19,7 +19,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
      "mmslam.executor"),  # mmslam: __version__
     ("mmslam.scenes.params",),
     ("mmslam.scenes.meshes",),
-    ("mmslam.scenes.geometry",),
+    ("mmslam.scenes.geometry", "mmslam.scenes.driving"),
     ("mmslam.scenes.streets",),
     ("mmslam.scenes.scenario",),
     ("mmslam.scenes.trajectory", "mmslam.scenes.landmarks"),

@@ -86,7 +86,8 @@ def test_a_jagged_route_is_driven_as_a_smooth_curve_with_consistent_inputs():
     chords would (each about 0.46 rad), keeps its plan speed and stops at the last waypoint; a straight route
     is driven on the line exactly, as before this rule."""
     from mmslam.scenes.scenario import Vehicle
-    from mmslam.scenes.trajectory import _route, _project, _waypoint_trajectory
+    from mmslam.scenes.driving import _project, _route
+    from mmslam.scenes.trajectory import _waypoint_trajectory
     from mmslam.slam.models.dynamics import vehicle_ct
 
     xs = np.arange(0.0, 101.0, 2.0)
@@ -113,7 +114,7 @@ def test_u_turns_and_hairpins_are_driven_round_the_turning_circle():
     its tightest circle (5 m radius: it swings out at most 2 x 5 m), its progress never jumps to the return leg
     (at most 1.5 steps + 0.5 m per step), it ends at the route's end, and its turn rate never exceeds speed / 5 m;
     the stored inputs reproduce every next state (CT model)."""
-    from mmslam.scenes.trajectory import MIN_TURN_RADIUS, _route, drive_route
+    from mmslam.scenes.driving import MIN_TURN_RADIUS, _route, drive_route
     from mmslam.slam.models.dynamics import vehicle_ct
 
     def off_route(wps: np.ndarray, xy: np.ndarray) -> np.ndarray:
