@@ -121,7 +121,8 @@ class SensorParams:
         "clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3, length=7)
     odometry_noise_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of the odometry the filter takes as its known inputs each step: speed, turn rate (white "
-        "noise on the true values; 0: exact, the paper's known inputs; a stopped car reads speed 0); the filter's "
+        "noise on the true values; 0: exact, the paper's known inputs; a stopped car reads speed 0, no car a "
+        "negative one); the filter's "
         "process noise grows to match (mmslam.slam.filter.run.vehicle_process_std)", "m/s, rad/s", lo=0.0, hi=100.0,
         length=2)
     true_process_noise: bool = param(False, "add the process noise (all but the clock bias) to the "

@@ -13,7 +13,8 @@ from mmslam.slam.sim.sensor import odometry_readings
 
 def test_odometry_readings_are_the_true_inputs_plus_white_noise():
     """20 000 draws: the readings' errors have the stated stds (1% of sd at 2.2 sigma) and no mean; a stopped car
-    reads speed 0 exactly and the turn rate's noise; the true states are not touched."""
+    reads speed 0 exactly and the turn rate's noise; a slow car reads 0 where the noise would make its speed
+    negative (P(N(0.02, 0.1) < 0) = 0.42); the true states are not touched."""
     states = np.zeros((10000, 2, 7))
     states[:, 0, 4], states[:, 0, 5] = 7.0, 0.1
     before = states.copy()
@@ -24,6 +25,10 @@ def test_odometry_readings_are_the_true_inputs_plus_white_noise():
     assert np.abs(err.mean(axis=0)).max() < 3 * 0.1 / 100
     assert (got[:, 1, 0] == 0.0).all() and np.std(got[:, 1, 1]) == pytest.approx(0.01, rel=0.03)
     np.testing.assert_array_equal(states, before)
+    slow = np.zeros((10000, 1, 7))
+    slow[..., 4] = 0.02  # the shortened last step of a route: about 42% of its draws fall below 0
+    s = odometry_readings(slow, (0.1, 0.01), np.random.default_rng(1))[..., 0]
+    assert s.min() == 0.0 and np.mean(s == 0.0) == pytest.approx(0.42, abs=0.02)
 
 
 def test_the_filter_process_noise_grows_by_one_step_of_odometry_error():

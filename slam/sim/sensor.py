@@ -331,11 +331,12 @@ def odometry_readings(states: np.ndarray, std: Sequence[float], rng: np.random.G
     """The odometry a vehicle reads, ``(steps, n_veh, 2)`` speed (m/s) and turn rate (rad/s): the true inputs of
     ``states (steps, n_veh, 7)`` (columns 4 and 5) plus white Gaussian noise of ``std = (speed, turn rate)``
     (``sensor.odometry_noise_std``), drawn as one ``(steps, n_veh, 2)`` block from ``rng``; a stopped car
-    (true speed 0) reads speed 0 (a wheel encoder does not creep)."""
+    (true speed 0) reads speed 0 (a wheel encoder does not creep) and no car reads a negative speed (a slow one
+    reads 0 where the noise would take it below)."""
     states = np.asarray(states, dtype=float)
     out = states[..., 4:6].copy()
     out += rng.standard_normal(out.shape) * np.asarray(std, float)
-    out[..., 0] = np.where(states[..., 4] == 0.0, 0.0, out[..., 0])
+    out[..., 0] = np.where(states[..., 4] == 0.0, 0.0, np.maximum(out[..., 0], 0.0))
     return out
 
 
