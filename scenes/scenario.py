@@ -118,7 +118,10 @@ class SensorParams:
                                    lo_open=True, hi=1e6)
     vehicle_noise_std: tuple[float, ...] = param(
         (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2), "process noise std of [x, y, z, heading, speed, turn rate, "
-        "clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3, length=7)
+        "clock bias] per step: the true clock bias's random walk (every scene), the truth's motion noise of a ct car "
+        "with true_process_noise, and the filter's process noise of such a car (a car whose truth drives the motion "
+        "model exactly gets filter.motion_jitter_std in x, y and heading)", "m, m, m, rad, m/s, rad/s, m", lo=0.0,
+        hi=1e3, length=7)
     odometry_noise_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of the odometry the filter takes as its known inputs each step: speed, turn rate (white "
         "noise on the true values; 0: exact, the paper's known inputs; a stopped car reads speed 0, no car a "
@@ -240,6 +243,13 @@ class FilterParams:
         (0.3, 0.3, 0.0, 0.01, 0.0, 0.0, 0.3), "std of the initial vehicle prior around the true state "
         "[x, y, z, heading, speed, turn rate, clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3,
         length=7)
+    motion_jitter_std: tuple[float, ...] = param(
+        (0.1, 1e-3), "the filter's process noise of a vehicle whose truth carries none (every car of a traced scene, "
+        "and any car unless sensor.true_process_noise gives a ct car the sensor's process noise): std per step of "
+        "[x and y, heading], added in quadrature to one step of the odometry's error (sensor.odometry_noise_std); it "
+        "keeps the particle cloud diverse where the car drives its motion model exactly. A ct car whose truth carries "
+        "process noise gets sensor.vehicle_noise_std instead (the paper's model); docs/city-slam.md",
+        "m, rad", lo=0.0, hi=100.0, length=2)
     height_process: str = param("route", "the filter's height (z) process noise of each vehicle: route (the larger "
                                 "of sensor.vehicle_noise_std[2] and the largest height change over one step's travel "
                                 "along the vehicle's route at its speed, or in one step of the car driving it, from the road's slope: "

@@ -51,15 +51,16 @@ def test_vehicle_process_std_takes_the_larger_of_the_sensor_and_the_slope():
     base = np.asarray(scn.sensor.vehicle_noise_std)
     got = vehicle_process_std(scn)
     np.testing.assert_allclose(got[:, 2], 0.05 * 7.0 * 0.5, rtol=1e-12)
-    np.testing.assert_array_equal(np.delete(got, 2, axis=1), np.tile(np.delete(base, 2), (2, 1)))
+    exact = base.copy()  # waypoint cars drive their motion model exactly: x, y, heading from filter.motion_jitter_std
+    exact[[0, 1, 3]] = np.asarray(scn.filter.motion_jitter_std)[[0, 0, 1]]
+    np.testing.assert_array_equal(np.delete(got, 2, axis=1), np.tile(np.delete(exact, 2), (2, 1)))
     np.testing.assert_array_equal(vehicle_process_std(_hill_scenario(**{"filter.height_process": "sensor"})),
-                                  np.tile(base, (2, 1)))
+                                  np.tile(exact, (2, 1)))
     big = _hill_scenario(**{"sensor.vehicle_noise_std": "[0.2, 0.2, 0.5, 0.001, 0, 0, 0.2]"})
     np.testing.assert_allclose(vehicle_process_std(big)[:, 2], 0.5)
-    for name in ("paper", "street", "canyon", "munich"):  # flat: the sensor's noise, as before
+    for name in ("paper", "street", "canyon", "munich"):  # flat: no height noise beyond the sensor's
         flat = load_preset(name)
-        np.testing.assert_array_equal(vehicle_process_std(flat),
-                                      np.tile(flat.sensor.vehicle_noise_std, (len(flat.vehicles), 1)))
+        np.testing.assert_array_equal(vehicle_process_std(flat)[:, 2], flat.sensor.vehicle_noise_std[2])
 
 
 def test_local_filter_propagates_with_its_own_process_std():

@@ -44,6 +44,32 @@ def test_the_filter_process_noise_grows_by_one_step_of_odometry_error():
     np.testing.assert_array_equal(vehicle_process_std(scn), np.tile(scn.sensor.vehicle_noise_std, (len(scn.vehicles), 1)))
 
 
+def test_a_car_that_drives_its_motion_model_exactly_gets_the_jitter_not_the_sensor_process_noise():
+    """The process noise describes how the truth departs from the CT model under the filter's inputs: a ct car with
+    sensor.true_process_noise (paper) gets sensor.vehicle_noise_std; a waypoint car (driven by pure pursuit under the
+    model), or a ct car without true process noise, filter.motion_jitter_std (x, y 0.1 m, heading 0.001 rad by
+    default), grown by the odometry's error: hypot(0.1, 0.1 m/s x 0.5 s) = 0.111803 m, hypot(0.001, 0.005) rad."""
+    from mmslam.slam.filter.run import truth_has_process_noise
+
+    paper = load_preset("paper")
+    assert paper.sensor.true_process_noise and all(v.motion == "ct" for v in paper.vehicles)
+    assert all(truth_has_process_noise(paper, n) for n in range(len(paper.vehicles)))
+    quiet = with_overrides(paper, ["sensor.true_process_noise=false"])
+    assert not any(truth_has_process_noise(quiet, n) for n in range(len(quiet.vehicles)))
+    got = vehicle_process_std(quiet)
+    assert quiet.filter.motion_jitter_std == (0.1, 1e-3)
+    np.testing.assert_array_equal(got[:, [0, 1, 3]], np.tile([0.1, 0.1, 1e-3], (len(quiet.vehicles), 1)))
+    np.testing.assert_array_equal(got[:, [2, 4, 5, 6]], vehicle_process_std(paper)[:, [2, 4, 5, 6]])
+    munich = with_overrides(load_preset("munich"), ["sensor.odometry_noise_std=[0.1, 0.01]",
+                                                    "sensor.true_process_noise=true"])  # waypoint cars: no noise drawn
+    got = vehicle_process_std(munich)
+    np.testing.assert_allclose(got[:, 0:2], 0.11180339887498949, rtol=1e-12)
+    np.testing.assert_allclose(got[:, 3], np.hypot(1e-3, 5e-3), rtol=1e-12)
+    np.testing.assert_array_equal(got[:, 6], munich.sensor.vehicle_noise_std[6])  # the clock's random walk: the sensor's
+    np.testing.assert_array_equal(vehicle_process_std(with_overrides(munich, ["filter.motion_jitter_std=[0.3, 0.02]"]))
+                                  [:, [0, 3]], np.tile([np.hypot(0.3, 0.05), np.hypot(0.02, 5e-3)], (5, 1)))
+
+
 def test_the_filter_takes_the_readings_of_the_run_odometry_stream():
     """Each vehicle's known inputs of step k - 1 are the readings of the run's odometry stream (the last child of the
     seed's SeedSequence, recomputed here by hand); with exact odometry they are the true inputs, and dead reckoning

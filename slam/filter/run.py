@@ -69,27 +69,44 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
     return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
 
 
+def truth_has_process_noise(scn: Scenario, vehicle: int) -> bool:
+    """Whether vehicle ``vehicle``'s true trajectory carries the sensor's process noise: a ``ct`` car with
+    ``sensor.true_process_noise`` (the paper's model; :func:`~mmslam.scenes.trajectory.true_trajectories`). Every
+    other car drives its CT model exactly under its true inputs (a ``waypoints`` car by pure pursuit)."""
+    return bool(scn.sensor.true_process_noise) and scn.vehicles[vehicle].motion == "ct"
+
+
 def vehicle_process_std(scn: Scenario) -> np.ndarray:
     """The filter's process noise std of every vehicle, ``(n_veh, 7)`` (units of ``sensor.vehicle_noise_std``).
 
-    ``sensor.vehicle_noise_std`` for every vehicle, its x, y and heading entries grown by one step's error of the
-    odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the track in
-    either axis, the turn rate's in the heading), with its height entry under ``filter.height_process =
-    "route"`` the larger of ``vehicle_noise_std[2]`` and the largest height change over one step's travel along
-    the vehicle's route or in one step of the car driving it (:func:`~mmslam.scenes.trajectory.route_height_step`:
-    the road's slope, 0 on flat streets).
-    The motion model keeps the height constant; on a hill the car climbs ``grade x speed x dt`` per step.
+    The departure of the vehicle's truth from the CT model (eq. 1) under the inputs the filter reads, per step:
+
+    - x, y and heading: ``sensor.vehicle_noise_std`` where the truth carries that process noise
+      (:func:`truth_has_process_noise`: the paper's model), else ``filter.motion_jitter_std`` (the truth drives
+      the model exactly: a small noise that keeps the particle cloud diverse); either grown by one step's error
+      of the odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the
+      track in either axis, the turn rate's in the heading);
+    - height: under ``filter.height_process = "route"`` the larger of ``vehicle_noise_std[2]`` and the largest
+      height change over one step's travel along the vehicle's route or in one step of the car driving it
+      (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets; the motion model
+      keeps the height constant, on a hill the car climbs ``grade x speed x dt`` per step), else
+      ``vehicle_noise_std[2]``;
+    - speed, turn rate, clock bias: ``sensor.vehicle_noise_std`` (the clock bias's random walk is the sensor's,
+      in every scene).
     """
     from mmslam.scenes.trajectory import route_height_step
 
-    base = np.asarray(scn.sensor.vehicle_noise_std, float).copy()
+    sensor = np.asarray(scn.sensor.vehicle_noise_std, float)
+    jitter = np.asarray(scn.filter.motion_jitter_std, float)
     odo = np.asarray(scn.sensor.odometry_noise_std, float) * float(scn.dt)  # one step's error of the odometry
-    base[0:2] = np.hypot(base[0:2], odo[0])  # the speed error along the track, either axis
-    base[3] = np.hypot(base[3], odo[1])  # the turn rate's error in the heading
-    out = np.tile(base, (len(scn.vehicles), 1))
-    if scn.filter.height_process == "route":
-        for n, v in enumerate(scn.vehicles):
-            out[n, 2] = max(base[2], route_height_step(v, scn.dt))
+    out = np.tile(sensor, (len(scn.vehicles), 1))
+    for n, v in enumerate(scn.vehicles):
+        if not truth_has_process_noise(scn, n):
+            out[n, 0:2], out[n, 3] = jitter[0], jitter[1]
+        out[n, 0:2] = np.hypot(out[n, 0:2], odo[0])  # the speed error along the track, either axis
+        out[n, 3] = np.hypot(out[n, 3], odo[1])  # the turn rate's error in the heading
+        if scn.filter.height_process == "route":
+            out[n, 2] = max(sensor[2], route_height_step(v, scn.dt))
     return out
 
 
@@ -372,6 +389,8 @@ class CooperativeRun:
                               "fusion_start": int(min(scn.fusion.start)), "vs_body_model": self.vs_body_model,
                               "p_detect_from_link": self.p_detect_from_link,
                               "height_process_std": self.process_std[:, 2].tolist(),
+                              "process_std": self.process_std.tolist(),
+                              "exact_truth": [not truth_has_process_noise(scn, n) for n in range(len(scn.vehicles))],
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
         cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
@@ -481,6 +500,13 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", par
                        f"{scn.sensor.model}): " + ", ".join(
                            f"{t} {v['p_detect']:.2f} (mean over {v['paths']} paths in the FOV)"
                            for t, v in res.meta["p_detect_from_link"].items()))
+    exact = res.meta.get("exact_truth") or []
+    if compile_notice is not None and any(exact):
+        ps = np.asarray(res.meta["process_std"], float)[np.asarray(exact, bool)]
+        compile_notice(f"process noise of the {int(np.sum(exact))} car(s) whose truth drives the motion model exactly: "
+                       f"x, y {ps[:, 0].max():.3g} m, heading {ps[:, 3].max():.3g} rad per step (filter.motion_jitter_std "
+                       "with the odometry's error; sensor.vehicle_noise_std only where sensor.true_process_noise "
+                       "gives a ct car's truth that noise)")
     hz = res.meta.get("height_process_std") or []
     if compile_notice is not None and any(h > scn.sensor.vehicle_noise_std[2] for h in hz):
         compile_notice("height process noise from the routes' slope (filter.height_process = route): " + ", ".join(
