@@ -126,7 +126,7 @@ class SensorParams:
         (0.0, 0.0), "std of the odometry the filter takes as its known inputs each step: speed, turn rate (white "
         "noise on the true values; 0: exact, the paper's known inputs; a stopped car reads speed 0, no car a "
         "negative one); the filter's "
-        "process noise grows to match (mmslam.slam.filter.run.vehicle_process_std)", "m/s, rad/s", lo=0.0, hi=100.0,
+        "process noise grows to match (mmslam.slam.filter.process_noise.vehicle_process_std)", "m/s, rad/s", lo=0.0, hi=100.0,
         length=2)
     true_process_noise: bool = param(False, "add the process noise (all but the clock bias) to the "
                                      "true, traced trajectory too (off: the traced trajectory is the truth)")
@@ -244,8 +244,8 @@ class FilterParams:
         "[x, y, z, heading, speed, turn rate, clock bias]", "m, m, m, rad, m/s, rad/s, m", lo=0.0, hi=1e3,
         length=7)
     motion_jitter_std: tuple[float, ...] = param(
-        (0.1, 1e-3), "the filter's process noise of a vehicle whose truth carries none (every car of a traced scene, "
-        "and any car unless sensor.true_process_noise gives a ct car the sensor's process noise): std per step of "
+        (0.1, 1e-3), "the filter's process noise of a vehicle whose truth carries none (every waypoints car, and every ct car "
+        "without sensor.true_process_noise): std per step of "
         "[x and y, heading], added in quadrature to one step of the odometry's error (sensor.odometry_noise_std); it "
         "keeps the particle cloud diverse where the car drives its motion model exactly. A ct car whose truth carries "
         "process noise gets sensor.vehicle_noise_std instead (the paper's model); docs/city-slam.md",

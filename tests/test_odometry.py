@@ -70,6 +70,29 @@ def test_a_car_that_drives_its_motion_model_exactly_gets_the_jitter_not_the_sens
                                   [:, [0, 3]], np.tile([np.hypot(0.3, 0.05), np.hypot(0.02, 5e-3)], (5, 1)))
 
 
+def test_the_rule_is_per_car_in_a_scenario_of_ct_and_waypoint_cars():
+    """paper with its second car on a route (true_process_noise on): the ct car's truth carries the noise (and the
+    filter takes 0.2 m), the waypoint car's does not (0.1 m); the trajectories agree: only the ct car's truth moves
+    when the noise is switched off."""
+    import dataclasses
+
+    from mmslam.scenes.trajectory import true_trajectories as truth
+    from mmslam.slam.filter.run import truth_has_process_noise
+
+    paper = load_preset("paper")
+    v0, v1 = paper.vehicles[0], paper.vehicles[1]
+    route = dataclasses.replace(v1, motion="waypoints",
+                                waypoints=((float(v1.initial_state[0]), float(v1.initial_state[1])),
+                                           (float(v1.initial_state[0]) + 100.0, float(v1.initial_state[1]))))
+    mixed = dataclasses.replace(paper, vehicles=(v0, route))
+    assert [truth_has_process_noise(mixed, n) for n in range(2)] == [True, False]
+    np.testing.assert_array_equal(vehicle_process_std(mixed)[:, [0, 1, 3]], [[0.2, 0.2, 1e-3], [0.1, 0.1, 1e-3]])
+    quiet = with_overrides(mixed, ["sensor.true_process_noise=false"])
+    a, b = truth(mixed, 10), truth(quiet, 10)
+    assert np.abs(a[:, 0, 0:2] - b[:, 0, 0:2]).max() > 0.1  # the ct car's truth carries the noise
+    np.testing.assert_array_equal(a[:, 1], b[:, 1])  # the route car's does not
+
+
 def test_the_filter_takes_the_readings_of_the_run_odometry_stream():
     """Each vehicle's known inputs of step k - 1 are the readings of the run's odometry stream (the last child of the
     seed's SeedSequence, recomputed here by hand); with exact odometry they are the true inputs, and dead reckoning

@@ -5,7 +5,7 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
    states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``);
    particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
-   and process noise ``sensor.vehicle_noise_std`` (height: ``filter.height_process``); each map through its
+   and the vehicle's process noise (:func:`~mmslam.slam.filter.process_noise.vehicle_process_std`); each map through its
    type's ``predict``
    (static: times ``p_S``, eq. 4; VS: coordinated turn with process noise and dithering, eq. 9);
 2. correction with ``Z_k`` (eqs. 5 / 10, CKF per Gaussian, filter noise ``R = r_scale R_true``);
@@ -91,8 +91,8 @@ class LocalFilter:
             that type's map in every particle is replaced by the landmarks ``known_map`` gives this vehicle
             at this step; None (default): every map is estimated.
         process_std: ``(7,)`` the vehicle's process noise std (units of ``sensor.vehicle_noise_std``); None
-            (default): ``scn.sensor.vehicle_noise_std`` (:func:`~mmslam.slam.filter.run.vehicle_process_std`
-            gives each vehicle its own height noise).
+            (default): ``scn.sensor.vehicle_noise_std`` as it stands; a cooperative run passes each vehicle's
+            :func:`~mmslam.slam.filter.process_noise.vehicle_process_std` (the truth's model, the odometry, the slope).
     """
 
     def __init__(self, scn: Scenario, variant: str | VariantSpec, particles: int, prior_mean: np.ndarray,

@@ -35,6 +35,7 @@ from mmslam.scenes.scenario import Scenario, with_overrides
 from ..models.dynamics import wrap_angle
 from ..eval.evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
+from .process_noise import truth_has_process_noise, vehicle_process_std  # noqa: F401  (public here too)
 from ..specs.landmarks import known_codes, landmark_types
 from .known_map import KnownMap
 from .local_filter import LocalFilter, StepEstimate
@@ -67,47 +68,6 @@ def resolve_vs_body(scn: Scenario, source: str | None) -> tuple[Scenario, str]:
     why = ("paths of unknown source" if source is None else
            f"{source} source: {'point scatterers' if model == 'point' else 'car meshes'}")
     return dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, vs_body_model=model)), f"{model} (auto: {why})"
-
-
-def truth_has_process_noise(scn: Scenario, vehicle: int) -> bool:
-    """Whether vehicle ``vehicle``'s true trajectory carries the sensor's process noise: a ``ct`` car with
-    ``sensor.true_process_noise`` (the paper's model; :func:`~mmslam.scenes.trajectory.true_trajectories`). Every
-    other car drives its CT model exactly under its true inputs (a ``waypoints`` car by pure pursuit)."""
-    return bool(scn.sensor.true_process_noise) and scn.vehicles[vehicle].motion == "ct"
-
-
-def vehicle_process_std(scn: Scenario) -> np.ndarray:
-    """The filter's process noise std of every vehicle, ``(n_veh, 7)`` (units of ``sensor.vehicle_noise_std``).
-
-    The departure of the vehicle's truth from the CT model (eq. 1) under the inputs the filter reads, per step:
-
-    - x, y and heading: ``sensor.vehicle_noise_std`` where the truth carries that process noise
-      (:func:`truth_has_process_noise`: the paper's model), else ``filter.motion_jitter_std`` (the truth drives
-      the model exactly: a small noise that keeps the particle cloud diverse); either grown by one step's error
-      of the odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the
-      track in either axis, the turn rate's in the heading);
-    - height: under ``filter.height_process = "route"`` the larger of ``vehicle_noise_std[2]`` and the largest
-      height change over one step's travel along the vehicle's route or in one step of the car driving it
-      (:func:`~mmslam.scenes.trajectory.route_height_step`: the road's slope, 0 on flat streets; the motion model
-      keeps the height constant, on a hill the car climbs ``grade x speed x dt`` per step), else
-      ``vehicle_noise_std[2]``;
-    - speed, turn rate, clock bias: ``sensor.vehicle_noise_std`` (the clock bias's random walk is the sensor's,
-      in every scene).
-    """
-    from mmslam.scenes.trajectory import route_height_step
-
-    sensor = np.asarray(scn.sensor.vehicle_noise_std, float)
-    jitter = np.asarray(scn.filter.motion_jitter_std, float)
-    odo = np.asarray(scn.sensor.odometry_noise_std, float) * float(scn.dt)  # one step's error of the odometry
-    out = np.tile(sensor, (len(scn.vehicles), 1))
-    for n, v in enumerate(scn.vehicles):
-        if not truth_has_process_noise(scn, n):
-            out[n, 0:2], out[n, 3] = jitter[0], jitter[1]
-        out[n, 0:2] = np.hypot(out[n, 0:2], odo[0])  # the speed error along the track, either axis
-        out[n, 3] = np.hypot(out[n, 3], odo[1])  # the turn rate's error in the heading
-        if scn.filter.height_process == "route":
-            out[n, 2] = max(sensor[2], route_height_step(v, scn.dt))
-    return out
 
 
 def link_detect_rate(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray], code: int) -> tuple[float, int]:
