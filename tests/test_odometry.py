@@ -120,3 +120,30 @@ def test_the_filter_takes_the_readings_of_the_run_odometry_stream():
     assert exact.local_inputs(3, 1)[1:3] == (states[2, 1, 4], states[2, 1, 5])
     assert np.asarray(run_filter(exact_scn, states, paths, "odometry", 3, seed=5).vehicles["pos_err"]).max() < 1e-9
     assert np.asarray(run_filter(scn, states, paths, "odometry", 3, seed=5).vehicles["pos_err"]).max() > 0.5
+
+
+def test_mmslam_slam_says_in_one_line_which_cars_take_the_jitter(tmp_path):
+    """run_slam's notice (what ``mmslam slam`` prints): on a cache whose cars drive the CT model exactly (paper
+    traced with sensor.true_process_noise off) one line names how many cars and the x, y and heading noise they get,
+    the jitter's 0.1 m and 0.001 rad, and the run's meta holds the same per car; on paper as published (its truth
+    carries the noise) no such line."""
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.slam.filter.run import run_slam
+
+    out = {}
+    for name, sets in (("quiet", ["sensor.true_process_noise=false"]), ("paper", [])):
+        scn = with_overrides(load_preset("paper"), sets)
+        d = trace_scenario(scn, AnalyticSource(scn), tmp_path / name, steps=3, progress=False)
+        said: list[str] = []
+        r = run_slam(load_cache(d).path, "odometry", particles=5, seed=0, compile_notice=said.append)
+        out[name] = ([s for s in said if s.startswith("process noise of the")], r.meta)
+    lines, meta = out["quiet"]
+    n = len(load_preset("paper").vehicles)
+    assert lines == [f"process noise of the {n} car(s) whose truth drives the motion model exactly: x, y 0.1 m, "
+                     "heading 0.001 rad per step (filter.motion_jitter_std with the odometry's error; "
+                     "sensor.vehicle_noise_std only where sensor.true_process_noise gives a ct car's truth that noise)"]
+    assert meta["exact_truth"] == [True] * n
+    np.testing.assert_array_equal(np.asarray(meta["process_std"])[:, [0, 1, 3]], np.tile([0.1, 0.1, 1e-3], (n, 1)))
+    lines, meta = out["paper"]
+    assert lines == [] and meta["exact_truth"] == [False] * n
