@@ -248,7 +248,8 @@ class FilterParams:
         "without sensor.true_process_noise): std per step of "
         "[x and y, heading], added in quadrature to one step of the odometry's error (sensor.odometry_noise_std); it "
         "keeps the particle cloud diverse where the car drives its motion model exactly. A ct car whose truth carries "
-        "process noise gets sensor.vehicle_noise_std instead (the paper's model); docs/city-slam.md",
+        "process noise gets sensor.vehicle_noise_std instead (the paper's model), except in an entry of 0 there; "
+        "docs/city-slam.md",
         "m, rad", lo=0.0, hi=100.0, length=2)
     height_process: str = param("route", "the filter's height (z) process noise of each vehicle: route (the larger "
                                 "of sensor.vehicle_noise_std[2] and the largest height change over one step's travel "

@@ -96,12 +96,12 @@ def test_the_rule_is_per_car_in_a_scenario_of_ct_and_waypoint_cars():
 def test_the_filter_takes_the_readings_of_the_run_odometry_stream():
     """Each vehicle's known inputs of step k - 1 are the readings of the run's odometry stream (the last child of the
     seed's SeedSequence, recomputed here by hand); with exact odometry they are the true inputs, and dead reckoning
-    with no process or prior noise stays on the truth (1e-9 m), while with noisy odometry it drifts from it."""
+    with no process, jitter or prior noise stays on the truth (1e-9 m), while with noisy odometry it drifts from it."""
     from mmslam.slam.filter.run import CooperativeRun
 
     zero = "[0, 0, 0, 0, 0, 0, 0]"
     scn = with_overrides(load_preset("paper"), [f"sensor.vehicle_noise_std={zero}", f"filter.prior_std={zero}",
-                                                "sensor.odometry_noise_std=[0.5, 0.05]"])
+                                                "filter.motion_jitter_std=[0, 0]", "sensor.odometry_noise_std=[0.5, 0.05]"])
     steps = 12
     states = true_trajectories(scn, steps)
     src = AnalyticSource(scn)
@@ -147,3 +147,16 @@ def test_mmslam_slam_says_in_one_line_which_cars_take_the_jitter(tmp_path):
     np.testing.assert_array_equal(np.asarray(meta["process_std"])[:, [0, 1, 3]], np.tile([0.1, 0.1, 1e-3], (n, 1)))
     lines, meta = out["paper"]
     assert lines == [] and meta["exact_truth"] == [False] * n
+
+
+def test_a_component_the_noisy_truth_drives_exactly_takes_the_jitter():
+    """A ct car with sensor.true_process_noise whose x, y entries are 0 draws no x, y noise in its truth: the filter
+    gives those the jitter (0.1 m), not 0 (a particle cloud that never spreads), and keeps the sensor's heading
+    noise (3e-3 rad); with the heading entry 0 as well, the heading takes the jitter's 0.001 rad."""
+    paper = load_preset("paper")
+    xy0 = with_overrides(paper, ["sensor.vehicle_noise_std=[0, 0, 0, 3e-3, 0, 0, 0.2]"])
+    got = vehicle_process_std(xy0)
+    np.testing.assert_array_equal(got[:, [0, 1, 3, 6]], np.tile([0.1, 0.1, 3e-3, 0.2], (len(paper.vehicles), 1)))
+    h0 = with_overrides(paper, ["sensor.vehicle_noise_std=[0, 0, 0, 0, 0, 0, 0.2]"])
+    np.testing.assert_array_equal(vehicle_process_std(h0)[:, [0, 1, 3]], np.tile([0.1, 0.1, 1e-3], (len(paper.vehicles), 1)))
+    np.testing.assert_array_equal(vehicle_process_std(paper)[:, [0, 1, 3]], np.tile([0.2, 0.2, 1e-3], (len(paper.vehicles), 1)))

@@ -1,7 +1,8 @@
 """The filter's process noise per vehicle: how its truth departs from the CT model (paper eq. (1)) per step.
 
 A ``ct`` car with ``sensor.true_process_noise`` carries ``sensor.vehicle_noise_std`` in its truth (the paper's
-model) and the filter takes the same; every other car drives the CT model exactly under its true inputs (a
+model) and the filter takes the same (but the jitter below in an x, y or heading entry of 0, which that truth
+drives exactly); every other car drives the CT model exactly under its true inputs (a
 ``waypoints`` car by pure pursuit, :mod:`mmslam.scenes.driving`), and the filter takes ``filter.motion_jitter_std``
 in x, y and heading (docs/city-slam.md, "The process noise"). Noisy odometry and a hill's slope add to either.
 """
@@ -25,8 +26,9 @@ def vehicle_process_std(scn: Scenario) -> np.ndarray:
     The departure of the vehicle's truth from the CT model (eq. 1) under the inputs the filter reads, per step:
 
     - x, y and heading: ``sensor.vehicle_noise_std`` where the truth carries that process noise
-      (:func:`truth_has_process_noise`: the paper's model), else ``filter.motion_jitter_std`` (the truth drives
-      the model exactly: a small noise that keeps the particle cloud diverse); either grown by one step's error
+      (:func:`truth_has_process_noise`: the paper's model, and that entry is not 0), else
+      ``filter.motion_jitter_std`` (the truth drives the model exactly in that component: a small noise that keeps
+      the particle cloud diverse); either grown by one step's error
       of the odometry (``sensor.odometry_noise_std`` times ``dt``, added in quadrature: the speed error along the
       track in either axis, the turn rate's in the heading);
     - height: under ``filter.height_process = "route"`` the larger of ``vehicle_noise_std[2]`` and the largest
@@ -44,8 +46,10 @@ def vehicle_process_std(scn: Scenario) -> np.ndarray:
     odo = np.asarray(scn.sensor.odometry_noise_std, float) * float(scn.dt)  # one step's error of the odometry
     out = np.tile(sensor, (len(scn.vehicles), 1))
     for n, v in enumerate(scn.vehicles):
-        if not truth_has_process_noise(scn, n):
-            out[n, 0:2], out[n, 3] = jitter[0], jitter[1]
+        exact = not truth_has_process_noise(scn, n)
+        for i, j in ((0, 0), (1, 0), (3, 1)):  # a component the truth drives exactly (no noise drawn) takes the jitter
+            if exact or sensor[i] == 0.0:
+                out[n, i] = jitter[j]
         out[n, 0:2] = np.hypot(out[n, 0:2], odo[0])  # the speed error along the track, either axis
         out[n, 3] = np.hypot(out[n, 3], odo[1])  # the turn rate's error in the heading
         if scn.filter.height_process == "route":
