@@ -1,0 +1,36 @@
+"""benchmarks/city_va.py's seed lists and paired summaries (the numbers docs/city-slam.md quotes)."""
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("city_va", Path(__file__).parents[1] / "benchmarks" / "city_va.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_seed_lists_take_ranges_and_single_seeds():
+    b = _bench()
+    assert b.seeds_of("0-4") == [0, 1, 2, 3, 4]
+    assert b.seeds_of("1,3") == [1, 3]
+    assert b.seeds_of("0-2,10-11,7") == [0, 1, 2, 10, 11, 7]
+
+
+def test_paired_summary_by_hand():
+    """Differences [-0.2, -0.1, 0.0, 0.15, 0.3, nan]: mean 0.03, half-width t(0.975, 4) x sd / sqrt(5) with sd =
+    sqrt(0.158 / 4); median 0.0; lower on 2 of the 5 finite seeds; above +0.1 on 2 (0.15 and 0.3)."""
+    p = _bench().paired([-0.2, -0.1, 0.0, 0.15, 0.3, math.nan])
+    assert p["mean"] == pytest.approx(0.03, abs=1e-15)
+    sd = math.sqrt((0.23 ** 2 + 0.13 ** 2 + 0.03 ** 2 + 0.12 ** 2 + 0.27 ** 2) / 4)
+    assert sd == pytest.approx(math.sqrt(0.158 / 4), rel=1e-12)
+    assert p["half"] == pytest.approx(stats.t.ppf(0.975, 4) * sd / math.sqrt(5), rel=1e-12)
+    assert (p["median"], p["lower"], p["hurt"]) == (0.0, 0.4, 2.0)
+    assert np.isnan(_bench().paired([math.nan])["median"])
