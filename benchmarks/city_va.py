@@ -40,20 +40,28 @@ import math
 import re
 import sys
 import time
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import stats
 
 
 def seeds_of(s: str) -> list[int]:
-    """``"0-4"`` -> ``[0, 1, 2, 3, 4]``; ``"1,3"`` -> ``[1, 3]``; ``"0-2,10-11"`` -> ``[0, 1, 2, 10, 11]``."""
+    """``"0-4"`` -> ``[0, 1, 2, 3, 4]``; ``"1,3"`` -> ``[1, 3]``; ``"0-2,10-11"`` -> ``[0, 1, 2, 10, 11]``. An empty
+    or reversed range, a repeated seed (it would count twice in the paired statistics) or anything else is
+    argparse's one-line error (exit 2)."""
     out: list[int] = []
-    for part in s.split(","):
-        if "-" in part:
-            a, b = part.split("-")
-            out += range(int(a), int(b) + 1)
-        else:
-            out.append(int(part))
+    try:
+        for part in s.split(","):
+            a, _, b = part.partition("-")
+            lo, hi = int(a), int(b if b else a)
+            if hi < lo:
+                raise ValueError
+            out += range(lo, hi + 1)
+    except ValueError:
+        out = []
+    if not out or len(set(out)) != len(out):
+        raise argparse.ArgumentTypeError(f"{s!r}: expected seeds as ranges and numbers without repeats, e.g. 0-9,100")
     return out
 
 
@@ -118,15 +126,17 @@ def ci(a) -> tuple[float, float]:
     return float(a.mean()), float(stats.t.ppf(0.975, a.size - 1) * a.std(ddof=1) / np.sqrt(a.size))
 
 
-def paired(diffs) -> dict[str, float]:
-    """Summary of per-seed paired differences ``x - y`` (NaNs dropped): ``mean`` and 95% t ``half`` width
-    (:func:`ci`), ``median``, ``lower`` (the share of seeds with ``x < y``) and ``hurt`` (the number of seeds with
-    ``x - y > 0.1``: for an RMSE, those on which ``x`` costs more than 0.1 m)."""
+def paired(diffs: Sequence[float]) -> dict[str, float]:
+    """Summary of per-seed paired differences ``x - y`` (NaNs dropped): ``n`` (the finite ones), ``mean`` and 95% t
+    ``half`` width (:func:`ci`), ``median``, ``lower`` (the share of seeds with ``x < y``) and ``hurt`` (the number of
+    seeds with ``x - y > 0.1``: for an RMSE, those on which ``x`` costs more than 0.1 m); NaN for no finite one."""
     a = np.asarray(diffs, float)
     a = a[np.isfinite(a)]
     mean, half = ci(a)
-    return {"mean": mean, "half": half, "median": float(np.median(a)) if a.size else math.nan,
-            "lower": float(np.mean(a < 0)) if a.size else math.nan, "hurt": float(np.sum(a > 0.1))}
+    if not a.size:
+        return {"n": 0.0, "mean": mean, "half": half, "median": math.nan, "lower": math.nan, "hurt": math.nan}
+    return {"n": float(a.size), "mean": mean, "half": half, "median": float(np.median(a)),
+            "lower": float(np.mean(a < 0)), "hurt": float(np.sum(a > 0.1))}
 
 
 def run_scene(cache: str, a: argparse.Namespace) -> dict:
@@ -149,7 +159,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     known_errors = a.known_va
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
-    for s in seeds_of(a.seeds):
+    for s in a.seeds:
         t0 = time.perf_counter()
         sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev)
         if a.odometry:
@@ -199,14 +209,15 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
         summ[f"{x}-{y}"] = (p["mean"], p["half"])
         summ[f"{x}-{y} spread"] = (p["median"], p["lower"], p["hurt"])
         print(f"  paired {x} - {y}: {p['mean']:+.3f} +- {p['half']:.3f}" + ("  (beyond the spread)" if abs(p["mean"]) > p["half"] else "")
-              + f"; median {p['median']:+.3f}, lower on {p['lower']:.0%} of the seeds, higher by > 0.1 on {p['hurt']:.0f}")
+              + f"; median {p['median']:+.3f}, lower on {p['lower']:.0%} of the seeds, higher by > 0.1 on {p['hurt']:.0f}"
+              + (f" (of {p['n']:.0f} seeds with a value)" if p["n"] < len(rows) else ""))
     return {"scene": c.scenario.name, "cache": cache, "rows": rows, "summary": summ}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("cache", nargs="+")
-    ap.add_argument("--seeds", default="0-4")
+    ap.add_argument("--seeds", type=seeds_of, default="0-4")
     ap.add_argument("--particles", type=int, default=300)
     ap.add_argument("--kmin", type=int, default=10)
     ap.add_argument("--variant", default="proposed")

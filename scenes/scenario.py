@@ -120,7 +120,8 @@ class SensorParams:
         (0.2, 0.2, 0.0, 1e-3, 0.0, 0.0, 0.2), "process noise std of [x, y, z, heading, speed, turn rate, "
         "clock bias] per step: the true clock bias's random walk (every scene), the truth's motion noise of a ct car "
         "with true_process_noise, and the filter's process noise of such a car (a car whose truth drives the motion "
-        "model exactly gets filter.motion_jitter_std in x, y and heading)", "m, m, m, rad, m/s, rad/s, m", lo=0.0,
+        "model exactly gets filter.motion_jitter_std in x, y and heading, and so does such a car in an x, y or heading "
+        "entry of 0 here)", "m, m, m, rad, m/s, rad/s, m", lo=0.0,
         hi=1e3, length=7)
     odometry_noise_std: tuple[float, ...] = param(
         (0.0, 0.0), "std of the odometry the filter takes as its known inputs each step: speed, turn rate (white "

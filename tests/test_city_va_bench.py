@@ -1,6 +1,7 @@
 """benchmarks/city_va.py's seed lists and paired summaries (the numbers docs/city-slam.md quotes)."""
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import math
 from pathlib import Path
@@ -22,6 +23,12 @@ def test_seed_lists_take_ranges_and_single_seeds():
     assert b.seeds_of("0-4") == [0, 1, 2, 3, 4]
     assert b.seeds_of("1,3") == [1, 3]
     assert b.seeds_of("0-2,10-11,7") == [0, 1, 2, 10, 11, 7]
+    for bad in ("", "5-3", "0-5,3", "1,,2", "a-b", "1,"):
+        with pytest.raises(argparse.ArgumentTypeError, match="without repeats"):
+            b.seeds_of(bad)
+    with pytest.raises(SystemExit) as e:
+        b.main(["nowhere", "--seeds", "0-3,2"])
+    assert e.value.code == 2
 
 
 def test_paired_summary_by_hand():
@@ -32,5 +39,6 @@ def test_paired_summary_by_hand():
     sd = math.sqrt((0.23 ** 2 + 0.13 ** 2 + 0.03 ** 2 + 0.12 ** 2 + 0.27 ** 2) / 4)
     assert sd == pytest.approx(math.sqrt(0.158 / 4), rel=1e-12)
     assert p["half"] == pytest.approx(stats.t.ppf(0.975, 4) * sd / math.sqrt(5), rel=1e-12)
-    assert (p["median"], p["lower"], p["hurt"]) == (0.0, 0.4, 2.0)
-    assert np.isnan(_bench().paired([math.nan])["median"])
+    assert (p["n"], p["median"], p["lower"], p["hurt"]) == (5.0, 0.0, 0.4, 2.0)
+    none = _bench().paired([math.nan])
+    assert none["n"] == 0.0 and all(np.isnan(none[k]) for k in ("mean", "median", "lower", "hurt"))

@@ -153,8 +153,14 @@ def test_a_component_the_noisy_truth_drives_exactly_takes_the_jitter():
     """A ct car with sensor.true_process_noise whose x, y entries are 0 draws no x, y noise in its truth: the filter
     gives those the jitter (0.1 m), not 0 (a particle cloud that never spreads), and keeps the sensor's heading
     noise (3e-3 rad); with the heading entry 0 as well, the heading takes the jitter's 0.001 rad."""
+    from mmslam.model import vehicle_ct
+
     paper = load_preset("paper")
     xy0 = with_overrides(paper, ["sensor.vehicle_noise_std=[0, 0, 0, 3e-3, 0, 0, 0.2]"])
+    truth = true_trajectories(xy0, 6)  # x, y: the CT model's step exactly; heading: noise drawn
+    step = np.array([[vehicle_ct(truth[k - 1, n], xy0.dt) for n in range(truth.shape[1])] for k in range(1, 6)])
+    np.testing.assert_allclose(truth[1:, :, 0:2], step[..., 0:2], rtol=0, atol=1e-12)
+    assert np.abs(truth[1:, :, 3] - step[..., 3]).max() > 1e-4
     got = vehicle_process_std(xy0)
     np.testing.assert_array_equal(got[:, [0, 1, 3, 6]], np.tile([0.1, 0.1, 3e-3, 0.2], (len(paper.vehicles), 1)))
     h0 = with_overrides(paper, ["sensor.vehicle_noise_std=[0, 0, 0, 0, 0, 0, 0.2]"])
