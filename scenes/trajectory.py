@@ -36,6 +36,10 @@ def _waypoint_trajectory(v: Vehicle, steps: int, dt: float) -> np.ndarray:
                        z0=float(v.initial_state[2]), bias=float(v.initial_state[6]))
 
 
+MAX_DRIVEN_STEPS = 20_000
+"""The most steps :func:`route_height_step` drives a route for (a few seconds; a 2 km route at 0.2 m/s, dt 0.5 s)."""
+
+
 def route_height_step(v: Vehicle, dt: float) -> float:
     """The largest height change (m) in one step along vehicle ``v``'s route: the road's slope.
 
@@ -47,7 +51,8 @@ def route_height_step(v: Vehicle, dt: float) -> float:
     step that a motion model with a constant height must absorb as noise (a random walk smaller than the drift
     lags behind until the measurements stop pulling it back). The scene's geometry (the route on the terrain and
     how it is driven), known before any run: 0 for a ``ct`` vehicle (a planar coordinated turn), for ``[x, y]``
-    waypoints and on a flat route.
+    waypoints and on a flat route. The car is driven for at most :data:`MAX_DRIVEN_STEPS` steps (a car slower than
+    the route's length in that many steps, mm/s on a street, is driven for its first part only).
     """
     wps = np.asarray(v.waypoints, dtype=float)
     if v.motion != "waypoints" or wps.ndim != 2 or wps.shape[1] != 3 or len(wps) < 2:
@@ -55,12 +60,15 @@ def route_height_step(v: Vehicle, dt: float) -> float:
     s = _route(wps)[2]
     z = wps[:, 2]
     step = float(v.initial_state[4]) * float(dt)
+    if step <= 0.0:  # a car that does not move
+        return 0.0
     if step >= s[-1]:
         along = float(abs(z[-1] - z[0]))
     else:  # |z(s + L) - z(s)| is piecewise linear in s: its maximum lies where s or s + L is a waypoint
         at = np.clip(np.concatenate([s, s - step]), 0.0, s[-1] - step)
         along = float(np.max(np.abs(np.interp(at + step, s, z) - np.interp(at, s, z))))
-    driven = drive_route(wps, float(v.initial_state[4]), int(np.ceil(s[-1] / max(step, 1e-9))) + 3, dt)[:, 2]
+    n = int(min(np.ceil(s[-1] / step) + 3, MAX_DRIVEN_STEPS))
+    driven = drive_route(wps, float(v.initial_state[4]), n, dt)[:, 2]
     return max(along, float(np.max(np.abs(np.diff(driven)))))
 
 

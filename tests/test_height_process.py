@@ -98,3 +98,13 @@ def test_cars_on_a_hill_are_localised_in_height_with_the_route_noise():
     const = np.array([z_rmse(flat, seed) for seed in (0, 1, 2)])
     assert (const > 2.0).all()  # the climb of k >= 10 is 1.75-6.8 m, never followed
     assert (route < 0.3 * const).all()  # 0.85-1.09 m (paper's r_scale 9: its angles are 0.03 rad, ~2 m in height)
+
+
+def test_a_very_slow_car_is_not_driven_for_millions_of_steps():
+    """A 10% grade at 1e-6 m/s and dt 1 s: 1e-7 m per step (the route's 1e8 steps are not driven: at most
+    MAX_DRIVEN_STEPS); a car of speed 0 (built in code: a file refuses it) climbs nothing."""
+    from mmslam.scenes.trajectory import MAX_DRIVEN_STEPS
+
+    assert MAX_DRIVEN_STEPS <= 100_000
+    assert route_height_step(_car("slow", [[0, 0, 0], [100, 0, 10]], 1e-6), 1.0) == pytest.approx(1e-7, rel=1e-9)
+    assert route_height_step(_car("stopped", [[0, 0, 0], [100, 0, 10]], 0.0), 1.0) == 0.0
