@@ -11,7 +11,8 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
 
 - ``va``: the fused VA GOSPA (m), its missed / false parts (m^2), the truth count, ``n_visible`` (VAs some
   vehicle could detect at that step) and ``card``, the fused VA map's PHD mass (its expected number of VAs, to
-  set against the truth count);
+  set against the truth count); ``va_loc``: the rms distance (m) of the truths GOSPA assigned to a fused VA, pooled
+  over those steps (:func:`assigned_rms`): how accurate the map is where it has a VA, to set against ``--known-va``;
 - ``empty``: the same truth's GOSPA with no estimates (``sqrt(c^alpha / 2 n_true)`` per step; computed, no run);
 - ``floor2`` (per scene): the GOSPA of a map that holds every truth VA exactly except those some vehicle could
   detect at one step only so far (:func:`mmslam.slam.eval.evaluation.unconfirmed_counts`): the floor for a filter
@@ -104,6 +105,7 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     out["card"] = mean("card", "fused", "VA")
     sel = (mp == "fused") & (ty == "VA") & (st >= kmin)
     n_true = np.asarray(m["n_true"], float)[sel]
+    out["va_loc"] = assigned_rms(np.asarray(m["loc"], float)[sel], np.asarray(m["missed"], float)[sel], n_true, ev)
     out["empty"] = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * n_true) ** (1 / ev.gospa_p))) if n_true.size else math.nan
     out["vs"], out["vs_others"] = mean("gospa", "fused", "VS"), mean("gospa", "fused_others", "VS")
     v = r.vehicles
@@ -115,6 +117,18 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     out["rmse_nlos"] = float(np.sqrt(np.mean(e[nl] ** 2))) if nl.any() else math.nan
     out["nlos_share"] = float(nl.sum() / max(late.sum(), 1))
     return out
+
+
+def assigned_rms(loc: np.ndarray, missed: np.ndarray, n_true: np.ndarray, ev) -> float:
+    """The fused map's accuracy where it has a landmark: ``(sum loc / sum assigned)^(1/p)`` (m) over the steps given,
+    from GOSPA's own split (``slam/eval/gospa.py``): ``loc`` the summed ``dist^p`` of the truths assigned to an
+    estimate within the cut-off ``c``, ``missed`` ``c^p / alpha`` per truth left unassigned, so ``n_true - missed /
+    (c^p / alpha)`` truths were assigned. NaN when none was, or for ``alpha != 2`` (no such split). Arrays ``(K,)``
+    per step; ``ev``: ``[evaluation]``."""
+    if ev.gospa_alpha != 2.0:
+        return math.nan
+    assigned = float(np.sum(n_true - missed / (ev.gospa_c ** ev.gospa_p / ev.gospa_alpha)))
+    return float((np.sum(loc) / assigned) ** (1.0 / ev.gospa_p)) if assigned > 0.5 else math.nan
 
 
 def ci(a) -> tuple[float, float]:

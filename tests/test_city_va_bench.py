@@ -42,3 +42,16 @@ def test_paired_summary_by_hand():
     assert (p["n"], p["median"], p["lower"], p["hurt"]) == (5.0, 0.0, 0.4, 2.0)
     none = _bench().paired([math.nan])
     assert none["n"] == 0.0 and all(np.isnan(none[k]) for k in ("mean", "median", "lower", "hurt"))
+
+
+def test_assigned_rms_from_gospa_split_by_hand():
+    """c = 20, p = 2, alpha = 2: a missed truth costs 200 m^2. Step 1: 3 truths, one missed (200), the two assigned
+    at 1 m and 2 m (loc 1 + 4 = 5); step 2: 2 truths, both assigned at 3 m (loc 18). Assigned 2 + 2 = 4, rms
+    sqrt((5 + 18) / 4); no truth assigned -> NaN; alpha 1 (no split) -> NaN."""
+    b = _bench()
+    ev = argparse.Namespace(gospa_c=20.0, gospa_p=2.0, gospa_alpha=2.0)
+    r = b.assigned_rms(np.array([5.0, 18.0]), np.array([200.0, 0.0]), np.array([3.0, 2.0]), ev)
+    assert r == pytest.approx(math.sqrt(23.0 / 4.0), rel=1e-14)
+    assert math.isnan(b.assigned_rms(np.array([0.0]), np.array([400.0]), np.array([2.0]), ev))
+    assert math.isnan(b.assigned_rms(np.array([5.0]), np.array([0.0]), np.array([2.0]),
+                                     argparse.Namespace(gospa_c=20.0, gospa_p=2.0, gospa_alpha=1.0)))
