@@ -245,10 +245,17 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     out = [run_scene(c, a) for c in a.cache]
     if a.save:
-        with open(a.save, "w") as f:
-            json.dump(out, f, indent=1)
+        from mmslam.outputs import atomic_write_bytes
+
+        atomic_write_bytes(a.save, json.dumps(out, indent=1).encode(), fsync=False)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from mmslam.errors import MmslamError
+
+    try:
+        sys.exit(main())
+    except MmslamError as e:  # a missing cache, a bad --set: one line, exit 2 (the runs done so far were printed)
+        print(f"city_va.py: error: {e}", file=sys.stderr)
+        sys.exit(2)
