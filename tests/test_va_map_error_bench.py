@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -47,3 +48,37 @@ def test_missing_cache_is_one_line_exit_2(tmp_path, script):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"{script}: error: ") and str(missing) in lines[0]
     assert "mmslam trace" in lines[0]
+
+
+@pytest.fixture(scope="module")
+def paper6(tmp_path_factory):
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.scenes.scenario import load_preset
+
+    scn = load_preset("paper")
+    return load_cache(trace_scenario(scn, AnalyticSource(scn), tmp_path_factory.mktemp("trace") / "c", steps=6,
+                                     progress=False))
+
+
+def test_va_trace_reproduces_run_slam(paper6, capsys):
+    """benchmarks/va_trace.py runs the filter stage by stage; its RMSEs (with VAs and with them ignored) are those
+    of run_slam's vehicle table on the same seed, computed independently from the per-step pos_err column."""
+    from mmslam.slam.filter.run import run_slam
+    from mmslam.slam.specs.landmarks import VA_SPEC, landmark_types
+
+    spec = importlib.util.spec_from_file_location("va_trace", Path(__file__).parents[1] / "benchmarks" / "va_trace.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main([str(paper6.path), "--seed", "3", "--car", "1", "--particles", "20", "--kmin", "2"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    got = [float(x) for x in re.findall(r"([0-9.]+) m", last)[:2]]
+    no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
+    want = []
+    for inc in (None, no_va):
+        v = run_slam(paper6.path, "proposed", 20, 3, include_types=inc).vehicles
+        sel = (np.asarray(v["vehicle"]) == 1) & (np.asarray(v["step"]) >= 2)
+        want.append(float(np.sqrt(np.mean(np.asarray(v["pos_err"], float)[sel] ** 2))))
+    np.testing.assert_allclose(got, want, atol=5e-4)  # printed to 3 decimals
+    assert want[0] != want[1]  # the VA paths reach the filter in one run and not in the other
