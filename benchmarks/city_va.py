@@ -12,7 +12,8 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
 - ``va``: the fused VA GOSPA (m), its missed / false parts (m^2), the truth count, ``n_visible`` (VAs some
   vehicle could detect at that step) and ``card``, the fused VA map's PHD mass (its expected number of VAs, to
   set against the truth count); ``va_loc``: the rms distance (m) of the truths GOSPA assigned to a fused VA, pooled
-  over those steps (:func:`assigned_rms`): how accurate the map is where it has a VA, to set against ``--known-va``;
+  over those steps (:func:`assigned_rms`): how accurate the map is where it has a VA, a 3-D distance (a ``--known-va``
+  error E is a std per axis: sqrt(3) E in 3-D);
 - ``empty``: the same truth's GOSPA with no estimates (``sqrt(c^alpha / 2 n_true)`` per step; computed, no run);
 - ``floor2`` (per scene): the GOSPA of a map that holds every truth VA exactly except those some vehicle could
   detect at one step only so far (:func:`mmslam.slam.eval.evaluation.unconfirmed_counts`): the floor for a filter
@@ -120,7 +121,8 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
 
 
 def assigned_rms(loc: np.ndarray, missed: np.ndarray, n_true: np.ndarray, ev) -> float:
-    """The fused map's accuracy where it has a landmark: ``(sum loc / sum assigned)^(1/p)`` (m) over the steps given,
+    """The fused map's accuracy where it has a landmark: ``(sum loc / sum assigned)^(1/p)`` (m; the rms distance for
+    GOSPA's p = 2, every preset's) over the steps given,
     from GOSPA's own split (``slam/eval/gospa.py``): ``loc`` the summed ``dist^p`` of the truths assigned to an
     estimate within the cut-off ``c``, ``missed`` ``c^p / alpha`` per truth left unassigned, so ``n_true - missed /
     (c^p / alpha)`` truths were assigned. NaN when none was, or for ``alpha != 2`` (no such split). Arrays ``(K,)``
