@@ -147,10 +147,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from mmslam.errors import MmslamError
+    from bench_cli import run
 
-    try:
-        sys.exit(main())
-    except MmslamError as e:  # a missing cache, a bad --set: one line, exit 2
-        print(f"va_map_error.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    run(main, "va_map_error.py")
