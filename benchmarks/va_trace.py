@@ -89,6 +89,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from bench_cli import run
+    from script_entry import run
 
     run(main, "va_trace.py")
