@@ -105,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         seed_err: list[np.ndarray] = []
         run = CooperativeRun(scn, c.states, c.paths, a.variant, a.particles, s, source=c.manifest.get("source"),
                              evaluate=False)
+        if run.center is None:
+            ap.error(f"--variant {a.variant}: no fused map (dead reckoning); use baseline, cm1 or proposed")
         for k in range(run.steps):
             run.step(k)
             if k < a.kmin:
