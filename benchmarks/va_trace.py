@@ -34,7 +34,10 @@ def step_line(k: int, err_va: np.ndarray, err_no: np.ndarray, ess_va: float, ess
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mmslam.model import LandmarkType, wrap_angle
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from city_va import nlos_mask  # noqa: PLC0415 (the same line-of-sight rule as its rmse_nlos)
+
+    from mmslam.model import wrap_angle
     from mmslam.raytrace.cache import load_cache
     from mmslam.scenes.scenario import with_overrides
     from mmslam.slam.filter.precompile import ensure_compiled
@@ -64,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                            evaluate=False)]
     p = {k: np.asarray(v) for k, v in c.paths.items()}
     mine = p["rx"].astype(int) == a.car
+    nlos = nlos_mask(c.paths, runs[0].steps, n_veh)
     print(f"== {scn.name}: {a.variant}, P = {a.particles}, seed {a.seed}, car {a.car} ({scn.vehicle_names[a.car]}); "
           "errors = estimate - truth")
     sq = [[], []]
@@ -78,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
             if k >= a.kmin:
                 sq[i].append(float(np.sum(e[0:3] ** 2)))
         now = mine & (p["step"] == k)
-        los = bool(np.any(p["type"][now] == int(LandmarkType.BS)))
+        los = not nlos[k, a.car]
         va = now & (p["type"] == VA_SPEC.code)
         vas = np.unique(np.stack([p["lm_x"][va], p["lm_y"][va]], -1).astype(float), axis=0)
         print(step_line(k, errs[0], errs[1], ess[0], ess[1], los, vas), flush=True)
