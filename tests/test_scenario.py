@@ -314,3 +314,26 @@ def test_every_declared_parameter_is_read_by_the_code():
             if f.name not in read]
     dead += [f"filter.types.<TYPE>.{f.name}" for f, _ in iter_params(TypeParams) if f.name not in read]
     assert dead == []
+
+
+HELD_OUT = sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "scenes").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", HELD_OUT, ids=lambda p: p.stem)
+def test_held_out_scenes_are_written_as_a_user_would(path):
+    """The held-out city scenarios (docs/city-slam.md) carry the scene only: no [filter] / [fusion] / [sensor]
+    table (the defaults under test), a Sionna city scene, a header saying how they were built, a line in the
+    folder's README; and they load (routes snapped to the streets)."""
+    import tomllib
+
+    text = path.read_text()
+    raw = tomllib.loads(text)
+    assert not {"filter", "fusion", "sensor"} & set(raw), f"{path.name} tunes the filter"
+    assert raw["xml_scene"].startswith("sionna:") and "How it was built" in text
+    assert f"`{path.name}`" in (path.parent / "README.md").read_text()
+    scn = load_scenario(path)
+    assert scn.name == path.stem and len(scn.vehicles) == 3 and scn.filter.r_scale == 1.0
+
+
+def test_the_held_out_scenes_are_all_there():
+    assert [p.stem for p in HELD_OUT] == ["etoile", "etoile2", "florence", "sanfrancisco", "sfhills", "sfhills2"]
