@@ -123,3 +123,75 @@ def check_bs_clearance(scn: Scenario, states: np.ndarray) -> None:
         raise ConfigError(f"{scn.source_file}: vehicle '{scn.vehicles[i].name}' is {d[k, i]:.3g} m from the BS "
                           f"{list(scn.bs)} at step {k} (at least {BS_CLEARANCE_M} m needed); move the BS or the "
                           "vehicle's trajectory")
+
+
+DETOUR_RATIO = 1.5
+"""A route whose streets run more than this many times the straight line through its route points (and
+:data:`DETOUR_SLACK_M` more) is reported by :func:`route_warnings`. Routes written on the streets run 1.02-1.18 times
+it (the held-out scenarios of ``benchmarks/scenes``)."""
+DETOUR_SLACK_M = 20.0
+"""m: the detour a route may take beyond :data:`DETOUR_RATIO` before :func:`route_warnings` reports it (the snap of
+its two ends to the centrelines moves each up to about 10 m)."""
+STOP_SHARE = 0.1
+"""A car that stands still at its route's end for at least this share of the steps (and at least 2) is reported by
+:func:`route_warnings` (a car on a curved route gains up to a fifth on ``speed x dt`` per step, so one whose route is
+just its drive's length ends a step or two early: two of the held-out ``sanfrancisco`` cars)."""
+
+
+def route_warnings(scn: Scenario, traj: np.ndarray, route_points: dict[str, np.ndarray] | None = None,
+                   source: str | None = None) -> list[str]:
+    """One line per ``waypoints`` vehicle whose drive is not what its scenario file asks for.
+
+    - **A detour**: the streets join its route points (the file's ``route``, ``(k, 2)`` m) by a planned path
+      (its waypoints) longer than :data:`DETOUR_RATIO` times the straight line through them plus
+      :data:`DETOUR_SLACK_M`. A point on a street with no free space for a car (too narrow: ``mmslam scene
+      streets`` draws the free space) is moved to the nearest drivable street, and the route then runs along
+      streets the user did not choose.
+    - **A stop**: the car reaches the end of its route before the last step and stands still (speed 0) from then
+      on, for at least :data:`STOP_SHARE` of the steps (the route is shorter than ``speed x dt x steps``).
+
+    Args:
+        scn: the scenario.
+        traj: ``(steps, n_veh, 7)`` its true states (:func:`true_trajectories`).
+        route_points: vehicle name -> its route points ``(k, 2)`` (m); None or a missing name: no detour check.
+        source: how to name the file in the advice (default ``scn.source_file``).
+    """
+    out = []
+    where = source or scn.source_file
+    for i, v in enumerate(scn.vehicles):
+        if v.motion != "waypoints":
+            continue
+        wps = np.asarray(v.waypoints, float)
+        pts = None if route_points is None else route_points.get(v.name)
+        if pts is not None and len(pts) >= 2 and len(wps) >= 2:
+            plan = float(_route(wps)[2][-1])
+            straight = float(np.hypot(*np.diff(np.asarray(pts, float)[:, :2], axis=0).T).sum())
+            if plan > DETOUR_RATIO * straight + DETOUR_SLACK_M:
+                out.append(f"{v.name}: the streets join its route points by a {plan:.0f} m path, "
+                           f"{plan / max(straight, 1e-9):.1f}x the {straight:.0f} m straight line through them (a point "
+                           f"on a street too narrow to drive is moved to the nearest drivable one); draw the routes "
+                           f"with `mmslam scene streets {where} --out routes.png`")
+        speed = traj[:, i, 4]
+        moving = np.flatnonzero(speed != 0.0)
+        last = int(moving[-1]) + 1 if len(moving) else 0  # the first step of the trailing stop
+        n_stop = traj.shape[0] - last
+        if n_stop >= max(2.0, STOP_SHARE * traj.shape[0]) and float(v.initial_state[4]) > 0.0:
+            out.append(f"{v.name}: reaches the end of its route at step {last} and stands still for its last "
+                       f"{n_stop} of {traj.shape[0]} steps (its route is {float(_route(wps)[2][-1]):.0f} m; it drives "
+                       f"{float(v.initial_state[4]) * scn.dt * traj.shape[0]:.0f} m in that time); extend its route")
+    return out
+
+
+def file_route_points(path: str | None) -> dict[str, np.ndarray]:
+    """Vehicle name -> the ``route`` points ``(k, 2)`` (m) of a scenario ``.toml`` file as written (before they are
+    snapped to the streets); empty for another file, a missing one or one without routes."""
+    import tomllib
+    from pathlib import Path
+
+    p = Path(path) if path else None
+    if p is None or p.suffix != ".toml" or not p.is_file():
+        return {}
+    with open(p, "rb") as f:
+        data = tomllib.load(f)
+    return {str(v["name"]): np.asarray(v["route"], float) for v in data.get("vehicles", [])
+            if isinstance(v, dict) and "name" in v and isinstance(v.get("route"), list)}

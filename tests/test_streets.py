@@ -122,3 +122,60 @@ def test_every_scenario_file_key_is_in_the_reference():
     assert not {k for k in S._TOP_KEYS if k not in documented}
     assert not {k for k in S._ROUTE_KEYS if f"vehicles[].{k}" not in keys
                 and not any(g.startswith(f"vehicles[].{k}") for g in keys)}
+
+
+def _canyon_route(tmp_path, speed: float, route: str, steps: int = 30):
+    toml = tmp_path / "r.toml"
+    toml.write_text(f"""
+name = "routed"
+xml_scene = "sionna:simple_street_canyon"
+bs = [-33.0, -10.0, 25.0]
+steps = {steps}
+[[vehicles]]
+name = "car_r"
+speed = {speed}
+route = {route}
+""")
+    return toml
+
+
+def test_route_warnings_name_a_detour_and_a_car_that_stops(tmp_path):
+    """A route the streets join by a long detour (a point off every drivable street is moved to the nearest one),
+    and a car that reaches its route's end early and stands still, are each one line; a route driven as written
+    is none."""
+    from mmslam.scenes.trajectory import DETOUR_RATIO, file_route_points, route_warnings
+
+    toml = _canyon_route(tmp_path, 5.0, "[[-60.0, -3.0], [24.0, 0.0], [24.0, 40.0]]")
+    scn = load_scenario(toml)
+    traj = true_trajectories(scn)
+    pts = file_route_points(str(toml))
+    np.testing.assert_allclose(pts["car_r"], [[-60.0, -3.0], [24.0, 0.0], [24.0, 40.0]])
+    assert route_warnings(scn, traj, pts) == []  # 5 m/s x 0.5 s x 30 steps = 75 m of a ~124 m route
+    wp = np.asarray(scn.vehicles[0].waypoints)
+    plan = float(np.sum(np.hypot(*np.diff(wp[:, :2], axis=0).T)))  # the planned path, summed by hand
+    # the same waypoints against route points 10 m apart: the streets "join" them by the whole planned path
+    short = {"car_r": np.array([[-60.0, -3.0], [-50.0, -3.0]])}
+    assert plan > DETOUR_RATIO * 10.0 + 20.0
+    (line,) = route_warnings(scn, traj, short, source="r.toml")
+    assert line.startswith("car_r: the streets join its route points by a ") and f"{plan:.0f} m path" in line
+    assert f"{plan / 10.0:.1f}x the 10 m straight line" in line and "mmslam scene streets r.toml" in line
+    # a fast car on the first leg only (~84 m): 10 m/s x 0.5 s = 5 m per step, the end after about 17 steps
+    fast = load_scenario(_canyon_route(tmp_path, 10.0, "[[-60.0, -3.0], [24.0, 0.0]]"))
+    ft = true_trajectories(fast)
+    speed = ft[:, 0, 4]
+    n_stop = 0
+    while n_stop < len(speed) and speed[len(speed) - 1 - n_stop] == 0.0:
+        n_stop += 1
+    fwp = np.asarray(fast.vehicles[0].waypoints)
+    length = float(np.sum(np.hypot(*np.diff(fwp[:, :2], axis=0).T)))
+    assert abs((30 - n_stop) - length / 5.0) <= 2.0  # it stops where its route ends
+    (line,) = route_warnings(fast, ft, file_route_points(str(tmp_path / "r.toml")))
+    assert line.startswith(f"car_r: reaches the end of its route at step {30 - n_stop} and stands still for its "
+                           f"last {n_stop} of 30 steps") and line.endswith("extend its route")
+
+
+def test_scene_show_prints_the_route_warning(tmp_path, capsys):
+    toml = _canyon_route(tmp_path, 10.0, "[[-60.0, -3.0], [24.0, 0.0]]")
+    assert main(["scene", "show", str(toml), "--out", str(tmp_path / "plan.png")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning: car_r: reaches the end of its route") == 1
