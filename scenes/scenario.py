@@ -856,6 +856,9 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
                            f"(x {x0:.0f}..{x1:.0f} m, y {y0:.0f}..{y1:.0f} m); choose a point inside it "
                            "(points inside are snapped to the nearest street)")
         wp = ctx.route(xy, ah)
+        if len(wp) < 2:  # every point snapped to one street cell: no route to drive
+            raise _err(src, w + "route", "its points all snap to one place on the streets; give points along a "
+                       "street, farther apart (mmslam scene streets draws them)")
         rest = {k: v[k] for k in v if k not in ("route", "speed", "clock_bias", "antenna_height")}
         out.append(_waypoint_vehicle(rest, wp, speed, bias))
     if n_rand:

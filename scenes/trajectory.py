@@ -140,20 +140,24 @@ just its drive's length ends a step or two early: two of the held-out ``sanfranc
 
 def route_warnings(scn: Scenario, traj: np.ndarray, route_points: dict[str, np.ndarray] | None = None,
                    source: str | None = None) -> list[str]:
-    """One line per ``waypoints`` vehicle whose drive is not what its scenario file asks for.
+    """One line per problem of each vehicle with a ``route`` in its scenario file whose drive is not what the file
+    asks for (cars drawn by ``n_vehicles`` and explicit ``waypoints`` are not checked: their routes are not the
+    user's points).
 
     - **A detour**: the streets join its route points (the file's ``route``, ``(k, 2)`` m) by a planned path
       (its waypoints) longer than :data:`DETOUR_RATIO` times the straight line through them plus
       :data:`DETOUR_SLACK_M`. A point on a street with no free space for a car (too narrow: ``mmslam scene
       streets`` draws the free space) is moved to the nearest drivable street, and the route then runs along
-      streets the user did not choose.
+      streets the user did not choose (streets winding between two points far apart do it too: a line, not an
+      error).
     - **A stop**: the car reaches the end of its route before the last step and stands still (speed 0) from then
       on, for at least :data:`STOP_SHARE` of the steps (the route is shorter than ``speed x dt x steps``).
 
     Args:
         scn: the scenario.
         traj: ``(steps, n_veh, 7)`` its true states (:func:`true_trajectories`).
-        route_points: vehicle name -> its route points ``(k, 2)`` (m); None or a missing name: no detour check.
+        route_points: vehicle name -> its route points ``(k, 2)`` (m) (:func:`file_route_points`); a vehicle not
+            in it is not checked.
         source: how to name the file in the advice (default ``scn.source_file``).
     """
     out = []
@@ -163,22 +167,23 @@ def route_warnings(scn: Scenario, traj: np.ndarray, route_points: dict[str, np.n
             continue
         wps = np.asarray(v.waypoints, float)
         pts = None if route_points is None else route_points.get(v.name)
-        if pts is not None and len(pts) >= 2 and len(wps) >= 2:
-            plan = float(_route(wps)[2][-1])
-            straight = float(np.hypot(*np.diff(np.asarray(pts, float)[:, :2], axis=0).T).sum())
-            if plan > DETOUR_RATIO * straight + DETOUR_SLACK_M:
-                out.append(f"{v.name}: the streets join its route points by a {plan:.0f} m path, "
-                           f"{plan / max(straight, 1e-9):.1f}x the {straight:.0f} m straight line through them (a point "
-                           f"on a street too narrow to drive is moved to the nearest drivable one); draw the routes "
-                           f"with `mmslam scene streets {where} --out routes.png`")
+        if pts is None or len(pts) < 2 or len(wps) < 2:
+            continue
+        plan = float(_route(wps)[2][-1])
+        straight = float(np.hypot(*np.diff(np.asarray(pts, float)[:, :2], axis=0).T).sum())
+        if plan > DETOUR_RATIO * straight + DETOUR_SLACK_M:
+            out.append(f"{v.name}: the streets join its route points by a {plan:.0f} m path, "
+                       f"{plan / max(straight, 1e-9):.1f}x the {straight:.0f} m straight line through them (perhaps a "
+                       f"point on a street too narrow to drive, moved to the nearest drivable one); draw the routes "
+                       f"with `mmslam scene streets {where} --out routes.png`")
         speed = traj[:, i, 4]
         moving = np.flatnonzero(speed != 0.0)
         last = int(moving[-1]) + 1 if len(moving) else 0  # the first step of the trailing stop
         n_stop = traj.shape[0] - last
         if n_stop >= max(2.0, STOP_SHARE * traj.shape[0]) and float(v.initial_state[4]) > 0.0:
             out.append(f"{v.name}: reaches the end of its route at step {last} and stands still for its last "
-                       f"{n_stop} of {traj.shape[0]} steps (its route is {float(_route(wps)[2][-1]):.0f} m; it drives "
-                       f"{float(v.initial_state[4]) * scn.dt * traj.shape[0]:.0f} m in that time); extend its route")
+                       f"{n_stop} of {traj.shape[0]} steps, about {float(v.initial_state[4]) * scn.dt * n_stop:.0f} m of "
+                       f"its drive at {float(v.initial_state[4]):g} m/s; extend its route by at least that")
     return out
 
 

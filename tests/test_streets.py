@@ -171,7 +171,37 @@ def test_route_warnings_name_a_detour_and_a_car_that_stops(tmp_path):
     assert abs((30 - n_stop) - length / 5.0) <= 2.0  # it stops where its route ends
     (line,) = route_warnings(fast, ft, file_route_points(str(tmp_path / "r.toml")))
     assert line.startswith(f"car_r: reaches the end of its route at step {30 - n_stop} and stands still for its "
-                           f"last {n_stop} of 30 steps") and line.endswith("extend its route")
+                           f"last {n_stop} of 30 steps, about {5 * n_stop} m of its drive at 10 m/s")
+    assert line.endswith("extend its route by at least that")
+    assert route_warnings(fast, ft, {}) == []  # a car without route points in the file (n_vehicles) is not checked
+
+
+def test_a_route_point_on_a_street_too_narrow_to_drive_gives_the_detour_line(tmp_path, capsys):
+    """Florence: the narrow street north of the block at x -60..-42 has no free space for a car; a route from it
+    to the avenue 65 m east is moved onto drivable streets that join the two by a path more than twice as long
+    (the case a helper hit writing benchmarks/scenes/florence2.toml)."""
+    toml = tmp_path / "narrow.toml"
+    toml.write_text("""
+name = "narrow"
+xml_scene = "sionna:florence"
+bs = [-55.0, 19.0, 20.5]
+[[vehicles]]
+name = "car_b"
+speed = 6.5
+route = [[-54.0, 57.0], [10.0, 45.0]]
+""")
+    assert main(["scene", "show", str(toml), "--out", str(tmp_path / "plan.png")]) == 0
+    err = capsys.readouterr().err
+    straight = float(np.hypot(64.0, 12.0))  # 65.1 m
+    assert "warning: car_b: the streets join its route points by a " in err
+    assert f"x the {straight:.0f} m straight line through them" in err and err.count("car_b: the streets") == 1
+
+
+def test_route_points_that_snap_to_one_place_are_refused_in_one_line(tmp_path):
+    toml = _canyon_route(tmp_path, 5.0, "[[0.0, 0.5], [0.0, 0.5]]")
+    with pytest.raises(ConfigError, match=r"vehicles\[0\]\.route.*snap to one place") as e:
+        load_scenario(toml)
+    assert "\n" not in str(e.value)
 
 
 def test_scene_show_prints_the_route_warning(tmp_path, capsys):
