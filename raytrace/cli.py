@@ -145,9 +145,10 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         check_cache_root(out, force)  # before the scene is built
         scn = resolve_scenario(scenario)
         check_scene(scn, steps)  # before the (slow) scene load of the source
-        from mmslam.scenes.trajectory import file_route_points, route_warnings, true_trajectories
+        from mmslam.scenes.scenario import scenario_route_points
+        from mmslam.scenes.trajectory import route_warnings, true_trajectories
 
-        for line in route_warnings(scn, true_trajectories(scn, steps), file_route_points(scn.source_file)):
+        for line in route_warnings(scn, true_trajectories(scn, steps), scenario_route_points(scn)):
             typer.echo(f"warning: {line}", err=True)
         ex = None
         if executor == "dask":

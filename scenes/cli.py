@@ -65,10 +65,10 @@ def register(app: typer.Typer) -> typer.Typer:
         """Plot a top-down plan: BS, buildings, SPs, VAs, trajectories and FOV circles."""
         from mmslam.outputs import check_figure_target
         from mmslam.scenes.plan import plot_plan
-        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.scenario import resolve_scenario, scenario_route_points
 
         from mmslam.scenes.geometry import inside_report
-        from mmslam.scenes.trajectory import file_route_points, route_warnings, vehicle_trajectories
+        from mmslam.scenes.trajectory import route_warnings, vehicle_trajectories
 
         check_figure_target(out, force)
         scn = resolve_scenario(scenario)
@@ -78,7 +78,7 @@ def register(app: typer.Typer) -> typer.Typer:
             at = "" if k < 0 else f" at step {k}"
             typer.echo(f"warning: {who}{at} (x={p[0]:.1f}, y={p[1]:.1f}, z={p[2]:.1f}) is inside object '{obj}'; "
                        "marked on the plan, and refused by mmslam trace", err=True)
-        for line in route_warnings(scn, traj, file_route_points(scn.source_file)):
+        for line in route_warnings(scn, traj, scenario_route_points(scn)):
             typer.echo(f"warning: {line}", err=True)
         typer.echo(f"wrote {plot_plan(scn, out, inside=inside)}")
 
@@ -104,9 +104,9 @@ def register(app: typer.Typer) -> typer.Typer:
         from mmslam.errors import ConfigError
         from mmslam.outputs import check_figure_target, check_npz_target, resolve_link
         from mmslam.scenes.geometry import xml_geometry
-        from mmslam.scenes.scenario import resolve_scenario
+        from mmslam.scenes.scenario import resolve_scenario, scenario_route_points
         from mmslam.scenes.streets import NPZ_KIND, plot_streets, save_street_map, street_map
-        from mmslam.scenes.trajectory import file_route_points, route_warnings, true_trajectories
+        from mmslam.scenes.trajectory import route_warnings, true_trajectories
 
         if not 0.25 <= res <= 20.0:
             raise ConfigError(f"--res {res}: expected 0.25 .. 20 m")
@@ -128,7 +128,7 @@ def register(app: typer.Typer) -> typer.Typer:
             geom, title, bs = xml_geometry(scn.xml_scene, scn.source_file), f"{scn.name} ({scn.xml_scene})", scn.bs_array
             traj = true_trajectories(scn)
             routes = {v.name: traj[:, i, :2] for i, v in enumerate(scn.vehicles)}
-            for line in route_warnings(scn, traj, file_route_points(scn.source_file)):
+            for line in route_warnings(scn, traj, scenario_route_points(scn)):
                 typer.echo(f"warning: {line}", err=True)
         sm = street_map(geom, res=res, clearance=clearance)
         typer.echo(f"wrote {plot_streets(sm, out, f'streets of {title}', routes, bs)} "

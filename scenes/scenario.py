@@ -1079,9 +1079,8 @@ def default_settings() -> dict[str, Any]:
     return json.loads(json.dumps({s: dataclasses.asdict(cls()) for s, cls in PARAM_SECTIONS.items()}))
 
 
-def scenario_settings(scn: Scenario) -> dict[str, Any] | None:
-    """The parameter tables (``[sensor]``, ``[filter]``, ``[fusion]``, ``[evaluation]``) as ``scn``'s own
-    file writes them (a preset's or a TOML file's; only the keys it sets), or None when ``scn`` did not
+def _scenario_file_data(scn: Scenario) -> dict[str, Any] | None:
+    """The TOML data of ``scn``'s own file as written (a preset's or a TOML file's), or None when ``scn`` did not
     come from a readable file (built in memory)."""
     src = scn.source_file or ""
     if src.startswith("preset:"):
@@ -1091,10 +1090,28 @@ def scenario_settings(scn: Scenario) -> dict[str, Any] | None:
     else:
         return None
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError):
         return None
+
+
+def scenario_settings(scn: Scenario) -> dict[str, Any] | None:
+    """The parameter tables (``[sensor]``, ``[filter]``, ``[fusion]``, ``[evaluation]``) as ``scn``'s own
+    file writes them (a preset's or a TOML file's; only the keys it sets), or None when ``scn`` did not
+    come from a readable file (built in memory)."""
+    data = _scenario_file_data(scn)
+    if data is None:
+        return None
     return json.loads(json.dumps({s: data[s] for s in PARAM_SECTIONS if isinstance(data.get(s), dict)}, default=str))
+
+
+def scenario_route_points(scn: Scenario) -> dict[str, np.ndarray]:
+    """Vehicle name -> the ``route`` points ``(k, 2)`` (m) of ``scn``'s own file as written, before they are snapped
+    to the streets (:func:`mmslam.scenes.trajectory.route_warnings`); empty without a readable file or routes."""
+    data = _scenario_file_data(scn) or {}
+    vehicles = data.get("vehicles", [])
+    return {str(v["name"]): np.asarray(v["route"], float) for v in (vehicles if isinstance(vehicles, list) else [])
+            if isinstance(v, dict) and "name" in v and isinstance(v.get("route"), list)}
 
 
 def _explicit_keys(tables: dict[str, Any]) -> dict[str, set[str]]:

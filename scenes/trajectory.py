@@ -156,7 +156,7 @@ def route_warnings(scn: Scenario, traj: np.ndarray, route_points: dict[str, np.n
     Args:
         scn: the scenario.
         traj: ``(steps, n_veh, 7)`` its true states (:func:`true_trajectories`).
-        route_points: vehicle name -> its route points ``(k, 2)`` (m) (:func:`file_route_points`); a vehicle not
+        route_points: vehicle name -> its route points ``(k, 2)`` (m) (:func:`mmslam.scenes.scenario.scenario_route_points`); a vehicle not
             in it is not checked.
         source: how to name the file in the advice (default ``scn.source_file``).
     """
@@ -186,17 +186,3 @@ def route_warnings(scn: Scenario, traj: np.ndarray, route_points: dict[str, np.n
                        f"its drive at {float(v.initial_state[4]):g} m/s; extend its route by at least that")
     return out
 
-
-def file_route_points(path: str | None) -> dict[str, np.ndarray]:
-    """Vehicle name -> the ``route`` points ``(k, 2)`` (m) of a scenario ``.toml`` file as written (before they are
-    snapped to the streets); empty for another file, a missing one or one without routes."""
-    import tomllib
-    from pathlib import Path
-
-    p = Path(path) if path else None
-    if p is None or p.suffix != ".toml" or not p.is_file():
-        return {}
-    with open(p, "rb") as f:
-        data = tomllib.load(f)
-    return {str(v["name"]): np.asarray(v["route"], float) for v in data.get("vehicles", [])
-            if isinstance(v, dict) and "name" in v and isinstance(v.get("route"), list)}

@@ -333,10 +333,11 @@ def test_held_out_scenes_are_written_as_a_user_would(path):
     assert f"`{path.name}`" in (path.parent / "README.md").read_text()
     scn = load_scenario(path)
     assert scn.name == path.stem and len(scn.vehicles) == 3 and scn.filter.r_scale == 1.0
-    from mmslam.scenes.trajectory import file_route_points, route_warnings, true_trajectories
+    from mmslam.scenes.scenario import scenario_route_points
+    from mmslam.scenes.trajectory import route_warnings, true_trajectories
 
     # every car drives its route as written, to the last step (no detour, no stop)
-    assert route_warnings(scn, true_trajectories(scn), file_route_points(str(path))) == []
+    assert route_warnings(scn, true_trajectories(scn), scenario_route_points(scn)) == []
 
 
 def test_the_held_out_scenes_are_all_there():

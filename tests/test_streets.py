@@ -143,12 +143,13 @@ def test_route_warnings_name_a_detour_and_a_car_that_stops(tmp_path):
     """A route the streets join by a long detour (a point off every drivable street is moved to the nearest one),
     and a car that reaches its route's end early and stands still, are each one line; a route driven as written
     is none."""
-    from mmslam.scenes.trajectory import DETOUR_RATIO, file_route_points, route_warnings
+    from mmslam.scenes.scenario import scenario_route_points
+    from mmslam.scenes.trajectory import DETOUR_RATIO, route_warnings
 
     toml = _canyon_route(tmp_path, 5.0, "[[-60.0, -3.0], [24.0, 0.0], [24.0, 40.0]]")
     scn = load_scenario(toml)
     traj = true_trajectories(scn)
-    pts = file_route_points(str(toml))
+    pts = scenario_route_points(scn)
     np.testing.assert_allclose(pts["car_r"], [[-60.0, -3.0], [24.0, 0.0], [24.0, 40.0]])
     assert route_warnings(scn, traj, pts) == []  # 5 m/s x 0.5 s x 30 steps = 75 m of a ~124 m route
     wp = np.asarray(scn.vehicles[0].waypoints)
@@ -169,7 +170,7 @@ def test_route_warnings_name_a_detour_and_a_car_that_stops(tmp_path):
     fwp = np.asarray(fast.vehicles[0].waypoints)
     length = float(np.sum(np.hypot(*np.diff(fwp[:, :2], axis=0).T)))
     assert abs((30 - n_stop) - length / 5.0) <= 2.0  # it stops where its route ends
-    (line,) = route_warnings(fast, ft, file_route_points(str(tmp_path / "r.toml")))
+    (line,) = route_warnings(fast, ft, scenario_route_points(fast))
     assert line.startswith(f"car_r: reaches the end of its route at step {30 - n_stop} and stands still for its "
                            f"last {n_stop} of 30 steps, about {5 * n_stop} m of its drive at 10 m/s")
     assert line.endswith("extend its route by at least that")
