@@ -33,6 +33,17 @@ def step_line(k: int, err_va: np.ndarray, err_no: np.ndarray, ess_va: float, ess
             f" | VAs seen: {seen}")
 
 
+def seed_arg(s: str) -> int:
+    """``--seed``: a run seed, an integer >= 0 (argparse's one-line error otherwise)."""
+    try:
+        v = int(s)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{s!r}: expected a seed, an integer >= 0")
+    return v
+
+
 def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     from city_va import nlos_mask  # noqa: PLC0415 (the same line-of-sight rule as its rmse_nlos)
@@ -46,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("cache")
-    ap.add_argument("--seed", type=int, required=True)
+    ap.add_argument("--seed", type=seed_arg, required=True)
     ap.add_argument("--car", type=int, required=True, help="vehicle index (0-based)")
     ap.add_argument("--particles", type=int, default=300)
     ap.add_argument("--variant", default="proposed")

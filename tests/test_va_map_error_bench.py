@@ -82,3 +82,14 @@ def test_va_trace_reproduces_run_slam(paper6, capsys):
         want.append(float(np.sqrt(np.mean(np.asarray(v["pos_err"], float)[sel] ** 2))))
     np.testing.assert_allclose(got, want, atol=5e-4)  # printed to 3 decimals
     assert want[0] != want[1]  # the VA paths reach the filter in one run and not in the other
+
+
+def test_va_trace_negative_seed_is_argparse_one_line_error(capsys):
+    spec = importlib.util.spec_from_file_location("va_trace", Path(__file__).parents[1] / "benchmarks" / "va_trace.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    with pytest.raises(SystemExit) as e:
+        mod.main(["some_cache", "--seed", "-1", "--car", "0"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("argument --seed: '-1': expected a seed, an integer >= 0")
