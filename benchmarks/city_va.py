@@ -245,12 +245,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--known-va", type=errors_of, default=[], help="mapping errors (m) of known VA maps, e.g. 0,0.3,1")
     ap.add_argument("--save", default=None)
     a = ap.parse_args(argv)
+    if a.save:
+        check_save_target(a.save)  # before any run: a refused --save loses no computation
     out = [run_scene(c, a) for c in a.cache]
     if a.save:
         from mmslam.outputs import atomic_write_bytes
 
         atomic_write_bytes(a.save, json.dumps(out, indent=1).encode(), fsync=False)
     return 0
+
+
+def is_city_va_save(path) -> bool:
+    """True if ``path`` is a file an earlier ``--save`` wrote: JSON, a list of scenes, each a dict with ``scene``,
+    ``cache``, ``rows`` and ``summary`` (what :func:`run_scene` returns)."""
+    try:
+        with open(path, "rb") as f:
+            data = json.loads(f.read())
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, list) and bool(data) and all(
+        isinstance(d, dict) and {"scene", "cache", "rows", "summary"} <= set(d) for d in data)
+
+
+def check_save_target(path: str) -> None:
+    """``--save``: a new file in an existing folder, or one an earlier ``--save`` wrote (replaced); anything else (a
+    user's file, a folder) is a one-line :class:`~mmslam.errors.MmslamError`, exit 2 (:func:`script_entry.run`)."""
+    from pathlib import Path
+
+    from mmslam.errors import MmslamError
+    from mmslam.outputs import check_target, resolve_link
+
+    if not resolve_link(Path(path), "--save").parent.is_dir():
+        raise MmslamError(f"--save {path}: the directory {Path(path).parent} does not exist; create it first")
+    check_target(path, "city_va", option="--save", is_dir=False, recognise=is_city_va_save)
 
 
 if __name__ == "__main__":

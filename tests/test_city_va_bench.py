@@ -55,3 +55,42 @@ def test_assigned_rms_from_gospa_split_by_hand():
     assert math.isnan(b.assigned_rms(np.array([0.0]), np.array([400.0]), np.array([2.0]), ev))
     assert math.isnan(b.assigned_rms(np.array([5.0]), np.array([0.0]), np.array([2.0]),
                                      argparse.Namespace(gospa_c=20.0, gospa_p=2.0, gospa_alpha=1.0)))
+
+
+def test_save_refuses_a_users_file_before_any_run(tmp_path):
+    """--save onto a file city_va.py did not write: one line on stderr, exit 2, the file untouched, and no run
+    started (the cache given does not even exist: the check comes first). A folder is refused too."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).parents[1] / "benchmarks" / "city_va.py"
+    mine = tmp_path / "notes.json"
+    mine.write_text('{"my": "numbers"}')
+    for target in (mine, tmp_path):
+        p = subprocess.run([sys.executable, str(script), str(tmp_path / "no-cache"), "--save", str(target)],
+                           capture_output=True, text=True)
+        assert p.returncode == 2
+        err = p.stderr.strip().splitlines()
+        assert len(err) == 1 and "--save" in err[0] and str(target) in err[0], p.stderr
+    assert mine.read_text() == '{"my": "numbers"}'
+
+
+def test_save_recognises_only_its_own_files(tmp_path):
+    """An earlier --save (a list of scenes with scene, cache, rows, summary) may be replaced; other JSON, a broken
+    file or an empty list may not; a missing file in an existing folder may be written."""
+    b = _bench()
+    own = tmp_path / "run.json"
+    own.write_text('[{"scene": "canyon", "cache": "C", "rows": [], "summary": {}}]')
+    assert b.is_city_va_save(own)
+    b.check_save_target(str(own))
+    b.check_save_target(str(tmp_path / "new.json"))
+    from mmslam.errors import MmslamError
+
+    for text in ('{"scene": "canyon"}', "[]", "[{\"scene\": 1}]", "not json"):
+        other = tmp_path / "other.json"
+        other.write_text(text)
+        assert not b.is_city_va_save(other)
+        with pytest.raises(MmslamError, match="did not write"):
+            b.check_save_target(str(other))
+    with pytest.raises(MmslamError, match="does not exist"):
+        b.check_save_target(str(tmp_path / "nowhere" / "x.json"))
