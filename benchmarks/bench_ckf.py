@@ -40,12 +40,12 @@ def capture(steps: int, particles: int = 300, variant: str = "baseline", first: 
     record = [False]
 
     def spy(geometry: int):  # noqa: ANN202
-        def kernel(w, pd, m, P, st, b, extent, Z, R, det_index, *rest):  # noqa: ANN001, ANN202
-            code = orig[geometry](w, pd, m, P, st, b, extent, Z, R, det_index, *rest)
+        def kernel(w, pd, m, P, st, b, extent, body, Z, R, det_index, *rest):  # noqa: ANN001, ANN202
+            code = orig[geometry](w, pd, m, P, st, b, extent, body, Z, R, det_index, *rest)
             p, q = np.nonzero(det_index >= 0)  # numbered in this order
             if record[0] and p.size:
                 calls.append(dict(m=m[p, q], P=P[p, q], states=st[p], geometry=geometry, bs=np.array(b),
-                                  Z=np.array(Z), R=np.array(R), extent=np.array(extent)))
+                                  Z=np.array(Z), R=np.array(R), extent=np.array(extent), body=np.array(body)))
             return code
         return kernel
 
@@ -80,7 +80,7 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
             J = c["Z"].shape[0]
             R = c["R"].reshape(-1, MEAS_DIM, MEAS_DIM)
             args.append((np.ascontiguousarray(c["m"]), np.ascontiguousarray(c["P"]), np.ascontiguousarray(c["states"]),
-                         c["bs"], c["extent"], np.ascontiguousarray(c["Z"]), np.ascontiguousarray(R),
+                         c["bs"], c["extent"], c["body"], np.ascontiguousarray(c["Z"]), np.ascontiguousarray(R),
                          np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d)), workspace(d)))
         kernel = _CKF_BATCH[sel[0]["geometry"]]
         for a in args[:1]:
@@ -96,7 +96,11 @@ def time_batches(calls: list[dict], repeats: int) -> dict[str, tuple[float, int]
     return out
 
 
-def main() -> None:
+SAVE_KIND = "bench_ckf_batches"
+"""The kind tag of a ``--save`` file (:func:`mmslam.outputs.npz_bytes`): only such a file is replaced by a later ``--save``."""
+
+
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--first", type=int, default=5, help="first captured step (as bench_filter's --warmup)")
@@ -105,19 +109,28 @@ def main() -> None:
     ap.add_argument("--save", help="save the captured batches (npz)")
     ap.add_argument("--load", help="time batches saved by --save instead of capturing")
     a = ap.parse_args()
+    if a.save:  # before the capture: a refused --save loses nothing; a user's file is never replaced
+        from mmslam.outputs import check_npz_target
+
+        check_npz_target(a.save, SAVE_KIND, option="--save")
     if a.load:
         with np.load(a.load) as f:
             k = int(f["count"])
             calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
-                      for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent")} for i in range(k)]
+                      for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent", "body")} for i in range(k)]
     else:
         calls = capture(a.steps, variant=a.variant, first=a.first)
     if a.save:
+        from mmslam.outputs import atomic_write_bytes, npz_bytes
+
         flat = {f"{i}_{key}": v for i, c in enumerate(calls) for key, v in c.items()}
-        np.savez(a.save, count=len(calls), **flat)
+        atomic_write_bytes(a.save, npz_bytes(SAVE_KIND, count=len(calls), **flat), fsync=False)
     for name, (ns, total) in time_batches(calls, a.repeats).items():
         print(f"{name:8s} {total:7d} Gaussians  {ns:7.1f} ns/Gaussian (median of {a.repeats}, thread CPU time)")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    from script_entry import run
+
+    run(main, "bench_ckf.py")

@@ -1,0 +1,43 @@
+"""benchmarks/bench_ckf.py: its capture follows the correction kernels' signature, and --save never replaces a
+file it did not write."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).parents[1] / "benchmarks" / "bench_ckf.py"
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--steps", "7", "--first", "6", "--repeats", "1", *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def _counts(out: str) -> dict[str, int]:
+    return {m[0]: int(m[1]) for m in re.findall(r"^(\w+)\s+(\d+) Gaussians", out, re.M)}
+
+
+def test_capture_save_and_load_time_the_same_batches(tmp_path):
+    """A capture of step 6 of the paper run times VA (mirror) and SP (scatter) batches; --save then --load of the
+    same file times the same number of Gaussians per geometry, and a second --save may replace the first."""
+    f = tmp_path / "batches.npz"
+    a = _run("--save", str(f))
+    assert a.returncode == 0, a.stderr
+    got = _counts(a.stdout)
+    assert got.get("mirror", 0) > 0 and got.get("scatter", 0) > 0, a.stdout
+    b = _run("--load", str(f))
+    assert b.returncode == 0, b.stderr
+    assert _counts(b.stdout) == got
+    assert _run("--save", str(f)).returncode == 0
+
+
+def test_save_refuses_a_users_file_before_the_capture(tmp_path):
+    mine = tmp_path / "mine.npz"
+    mine.write_bytes(b"not mmslam's")
+    p = _run("--save", str(mine))
+    assert p.returncode == 2
+    assert len(p.stderr.strip().splitlines()) == 1 and "--save" in p.stderr and "did not write" in p.stderr
+    assert mine.read_bytes() == b"not mmslam's"
+    assert p.stdout == ""
