@@ -33,17 +33,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="default: all cores")
     ap.add_argument("--executor", default="local", choices=("local", "dask"))
     ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--keep", type=Path, default=None, help="keep the results in this directory")
+    ap.add_argument("--keep", type=Path, default=None, help="keep the last repetition's ablation in this directory (new, "
+                    "empty, or an ablation kept before: nothing else is replaced)")
     a = ap.parse_args(argv)
+    if a.keep is not None:  # before any work: a user's folder is refused, not deleted
+        from mmslam.outputs import check_target
+        from mmslam.pipelines.ablate.store import ABLATION_FILE, ABLATION_KIND
+
+        check_target(a.keep, ABLATION_KIND, option="--keep", accept=lambda p: (p / ABLATION_FILE).is_file())
 
     root = Path(tempfile.mkdtemp(prefix="mmslam-bench-ablation-"))
     try:
         cache = prepare_cache("paper", "analytic", root / "trace", steps=a.steps, progress=False)
         times = []
         for i in range(a.repeat):
-            out = root / f"run{i}"
-            shutil.copytree(root / "trace" / "cache", out / "cache")
-            cache_i = out / "cache" / cache.name
+            out = root / f"run{i}"  # the ablation's own folder: nothing else in it (an ablation refuses a foreign one)
+            shutil.copytree(root / "trace" / "cache", root / f"cache{i}")
+            cache_i = root / f"cache{i}" / cache.name
             t0 = time.perf_counter()
             run = run_ablation(cache_i, out, VARIANTS, mc=a.mc, particles=a.particles, steps=a.steps,
                                executor=a.executor, workers=a.workers, progress=sys.stderr.isatty())
@@ -54,9 +60,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run {i}: {dt:.1f} s wall for {len(run.ran)} jobs ({run.executor}); mean filter time per "
                   f"job by variant: " + ", ".join(f"{v} {t:.2f} s" for v, t in zip(VARIANTS, per_job)))
             if a.keep is not None and i == a.repeat - 1:
-                if a.keep.exists():
-                    shutil.rmtree(a.keep)
-                shutil.copytree(out, a.keep)
+                from mmslam.outputs import replace_dir
+
+                tmp = a.keep.with_name(f".{a.keep.name}.new-{os.getpid()}")
+                shutil.copytree(out, tmp)
+                replace_dir(tmp, a.keep, ABLATION_KIND)
         med = statistics.median(times)
         print(f"bench_ablation: {len(VARIANTS)} variants x {a.mc} runs x {a.steps} steps x 2 vehicles, "
               f"P = {a.particles}, {os.cpu_count()} cores: median wall time {med:.1f} s "
@@ -67,4 +75,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from script_entry import run
+
+    run(main, "bench_ablation.py")

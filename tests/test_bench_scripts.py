@@ -1,5 +1,5 @@
-"""benchmarks/bench_ckf.py: its capture follows the correction kernels' signature, and --save never replaces a
-file it did not write."""
+"""The benchmark scripts `make bench` runs, on tiny sizes: they run against the current library, and their output
+options (bench_ckf --save, bench_ablation --keep) never replace what they did not write."""
 from __future__ import annotations
 
 import re
@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 SCRIPT = Path(__file__).parents[1] / "benchmarks" / "bench_ckf.py"
+ABLATION = Path(__file__).parents[1] / "benchmarks" / "bench_ablation.py"
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
@@ -41,3 +42,27 @@ def test_save_refuses_a_users_file_before_the_capture(tmp_path):
     assert len(p.stderr.strip().splitlines()) == 1 and "--save" in p.stderr and "did not write" in p.stderr
     assert mine.read_bytes() == b"not mmslam's"
     assert p.stdout == ""
+
+
+def _ablation(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ABLATION), "--mc", "1", "--steps", "6", "--particles", "20",
+                           "--workers", "1", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_ablation_bench_runs_and_keeps_only_its_own_folder(tmp_path):
+    """bench_ablation runs the 4 x 1 grid; --keep onto a user's folder is refused before any work (exit 2, one line,
+    the folder untouched); a new --keep folder receives the ablation, and a second run replaces it."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    p = _ablation("--keep", str(mine))
+    assert p.returncode == 2 and p.stdout == ""
+    assert len(p.stderr.strip().splitlines()) == 1 and "--keep" in p.stderr
+    assert [f.name for f in mine.iterdir()] == ["notes.txt"] and (mine / "notes.txt").read_text() == "keep me"
+    kept = tmp_path / "kept"
+    for _ in range(2):
+        p = _ablation("--keep", str(kept))
+        assert p.returncode == 0, p.stderr
+        assert "4 jobs" in p.stdout
+        assert (kept / "ablation.json").is_file() and (kept / "summary.json").is_file()
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["kept", "mine"]  # no temporary sibling left
