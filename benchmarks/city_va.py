@@ -21,7 +21,11 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
 - ``rmse``: the position RMSE (m) over all vehicles and those steps, and ``rmse_nlos`` over the (vehicle, step)
   pairs without a line-of-sight path in the cache (the car that lost the BS);
 - ``vs`` / ``vs_others``: the fused VS GOSPA against every vehicle, and of the fused map's non-ego Gaussians
-  against the vehicles another vehicle could see (map ``fused_others``; NaN without labels).
+  against the vehicles another vehicle could see (map ``fused_others``; NaN without labels);
+- ``sp`` / ``sp_false``: the fused SP GOSPA (m) and its false part (m^2): on a city scene without scatterers every
+  SP is false, most of them a wall bounce taken for a scatter point at its reflection point (docs/city-slam.md);
+- per scene, from the cache alone (:func:`va_path_stats`): the VA paths per vehicle-step and the share of the
+  vehicle-steps without line of sight that have a VA path (what any VA map can act on).
 
 ``--known-va E1,E2,...``: the variant once per mapping error ``E`` (m) with a known VA map instead of the one it
 estimates (:mod:`mmslam.slam.filter.known_map`: every vehicle given, before each correction, the true VAs it
@@ -89,6 +93,21 @@ def nlos_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
     return ~los
 
 
+def va_path_stats(paths: dict, steps: int, n_veh: int, kmin: int) -> tuple[float, float]:
+    """What a VA map can act on, from the cache alone: ``(VA paths per vehicle-step, share of the vehicle-steps
+    without a line-of-sight path that have at least one VA path)`` over steps ``kmin <= k < steps`` (NaN for a share
+    with no such step). A vehicle-step without a VA path gets nothing from any VA map, known or estimated."""
+    from mmslam.slam.specs.landmarks import VA_SPEC
+
+    st, rx, ty = (np.asarray(paths[c]) for c in ("step", "rx", "type"))
+    n_va = np.zeros((steps, n_veh))
+    sel = (ty == VA_SPEC.code) & (st < steps)
+    np.add.at(n_va, (st[sel], rx[sel]), 1.0)
+    n_va, dark = n_va[kmin:], nlos_mask(paths, steps, n_veh)[kmin:]
+    per_step = float(n_va.mean()) if n_va.size else math.nan
+    return per_step, float(np.mean(n_va[dark] > 0)) if dark.any() else math.nan
+
+
 def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     """One run's scores, averaged over steps ``k >= kmin`` (module docstring); ``ev``: ``[evaluation]``."""
     m = r.metrics
@@ -109,6 +128,7 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     out["va_loc"] = assigned_rms(np.asarray(m["loc"], float)[sel], np.asarray(m["missed"], float)[sel], n_true, ev)
     out["empty"] = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * n_true) ** (1 / ev.gospa_p))) if n_true.size else math.nan
     out["vs"], out["vs_others"] = mean("gospa", "fused", "VS"), mean("gospa", "fused_others", "VS")
+    out["sp"], out["sp_false"] = mean("gospa", "fused", "SP"), mean("false", "fused", "SP")
     v = r.vehicles
     k, n = np.asarray(v["step"]), np.asarray(v["vehicle"]).astype(int)
     e = np.asarray(v["pos_err"], float)
@@ -175,6 +195,9 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     known_errors = a.known_va
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
+    va_per_step, nlos_va = va_path_stats(c.paths, steps, n_veh, a.kmin)
+    print(f"  VA paths per vehicle-step: {va_per_step:.2f}; vehicle-steps without line of sight that have one: "
+          f"{nlos_va:.0%}", flush=True)
     for s in a.seeds:
         t0 = time.perf_counter()
         sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev)
@@ -209,6 +232,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
                                 float(ev.va_resolution))[VA_SPEC.code][a.kmin:]
     floor2 = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * unconf) ** (1 / ev.gospa_p))) if unconf.size else math.nan
     summ["floor2"] = (floor2, 0.0)
+    summ["va_paths_per_step"], summ["nlos_with_va"] = (va_per_step, 0.0), (nlos_va, 0.0)
     print(f"  two-detection floor (truths seen at one step so far: {unconf.mean():.1f} per step): {floor2:.3f} m, "
           f"{floor2 / emp:.3f} of the empty map")
     pairs = []

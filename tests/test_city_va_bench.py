@@ -94,3 +94,19 @@ def test_save_recognises_only_its_own_files(tmp_path):
             b.check_save_target(str(other))
     with pytest.raises(MmslamError, match="does not exist"):
         b.check_save_target(str(tmp_path / "nowhere" / "x.json"))
+
+
+def test_va_path_stats_by_hand():
+    """Two vehicles, steps 0-3, kmin 1 (steps 1-3: six vehicle-steps). VA paths (type 1): vehicle 0 at steps 1 and 3
+    (two at step 3), vehicle 1 at step 0 (before kmin) and step 2. LOS paths (type 0): vehicle 0 at steps 1 and 2,
+    vehicle 1 at step 3. VA paths per vehicle-step: (1 + 2 + 1) / 6. Vehicle-steps without LOS in 1-3: (0, 3) with
+    VAs, (1, 1) without, (1, 2) with: 2 of 3. An SP path (type 2) counts for neither."""
+    b = _bench()
+    paths = {"step": np.array([1, 3, 3, 0, 2, 1, 2, 3, 2]), "rx": np.array([0, 0, 0, 1, 1, 0, 0, 1, 1]),
+             "type": np.array([1, 1, 1, 1, 1, 0, 0, 0, 2])}
+    per_step, share = b.va_path_stats(paths, 4, 2, 1)
+    assert per_step == pytest.approx(4 / 6)
+    assert share == pytest.approx(2 / 3)
+    lit = {"step": np.array([1, 2, 3, 1, 2, 3]), "rx": np.array([0, 0, 0, 1, 1, 1]), "type": np.zeros(6, int)}
+    per_step, share = b.va_path_stats(lit, 4, 2, 1)
+    assert per_step == 0.0 and math.isnan(share)
