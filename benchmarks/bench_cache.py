@@ -45,8 +45,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", action="append", default=[], help="also time reloading this cache dir")
     ap.add_argument("--sionna-trace-s", type=float, default=None,
                     help="Sionna trace time of the --cache trace (s), for the reload speed-up ratio")
-    ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    ap.add_argument("--json", type=Path, default=None, help="write the results here (a new file, or one an earlier "
+                    "--json wrote: nothing else is replaced)")
     a = ap.parse_args(argv)
+    if a.json is not None:  # before any timing: a user's file is refused, never replaced
+        from mmslam.errors import MmslamError
+        from mmslam.outputs import check_target, resolve_link
+
+        if not resolve_link(a.json, "--json").parent.is_dir():
+            raise MmslamError(f"--json {a.json}: the directory {a.json.parent} does not exist; create it first")
+        check_target(a.json, "bench_cache", option="--json", is_dir=False, recognise=is_bench_cache_json)
 
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.raytrace.cache import load_cache
@@ -56,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
 
     scn = resolve_scenario(a.scenario)
     steps = scn.steps if a.steps is None else a.steps
-    res: dict = {"scenario": scn.name, "steps": steps, "vehicles": len(scn.vehicles)}
+    res: dict = {"benchmark": "bench_cache", "scenario": scn.name, "steps": steps, "vehicles": len(scn.vehicles)}
     src = AnalyticSource(scn)
     states = vehicle_trajectories(scn, steps)
 
@@ -100,9 +108,24 @@ def main(argv: list[str] | None = None) -> int:
             line += f"; sionna trace / load = {r['trace_over_load']:.0f} x"
         print(line)
     if a.json is not None:
-        a.json.write_text(json.dumps(res, indent=1) + "\n")
+        from mmslam.outputs import atomic_write_bytes
+
+        atomic_write_bytes(a.json, (json.dumps(res, indent=1) + "\n").encode(), fsync=False)
     return 0
 
 
+def is_bench_cache_json(path: Path) -> bool:
+    """True if ``path`` holds the JSON an earlier ``--json`` wrote (its ``"benchmark": "bench_cache"`` entry, or, from
+    before that entry, its ``analytic_trace_s``, ``load_s`` and ``trace_over_load`` results)."""
+    try:
+        data = json.loads(Path(path).read_bytes())
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and (data.get("benchmark") == "bench_cache"
+                                       or {"analytic_trace_s", "load_s", "trace_over_load"} <= set(data))
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    from script_entry import run
+
+    run(main, "bench_cache.py")

@@ -2,6 +2,7 @@
 options (bench_ckf --save, bench_ablation --keep) never replace what they did not write."""
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -66,3 +67,25 @@ def test_ablation_bench_runs_and_keeps_only_its_own_folder(tmp_path):
         assert "4 jobs" in p.stdout
         assert (kept / "ablation.json").is_file() and (kept / "summary.json").is_file()
     assert sorted(f.name for f in tmp_path.iterdir()) == ["kept", "mine"]  # no temporary sibling left
+
+
+def test_cache_bench_json_replaces_only_its_own_file(tmp_path):
+    """bench_cache --json onto a user's file: exit 2, one line, the file untouched, nothing timed; a new file gets
+    the results (tagged), and a second run may replace it."""
+    script = Path(__file__).parents[1] / "benchmarks" / "bench_cache.py"
+
+    def run(target: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, str(script), "--steps", "3", "--repeats", "1", "--json", str(target)],
+                              capture_output=True, text=True, timeout=300)
+
+    mine = tmp_path / "mine.json"
+    mine.write_text('{"mine": 1}')
+    p = run(mine)
+    assert p.returncode == 2 and p.stdout == "" and len(p.stderr.strip().splitlines()) == 1 and "--json" in p.stderr
+    assert mine.read_text() == '{"mine": 1}'
+    out = tmp_path / "res.json"
+    for _ in range(2):
+        p = run(out)
+        assert p.returncode == 0, p.stderr
+        data = json.loads(out.read_text())
+        assert data["benchmark"] == "bench_cache" and data["steps"] == 3
