@@ -4,7 +4,8 @@ Reads an ablation run with ``--grid sensor.model=link,estimated`` and prints, pe
 mean over seeds of the per-run fused-map GOSPA per type (mean over steps >= fusion start), the fused
 VS map's PHD mass and estimate count at the last step, the vehicles' position RMSE; then the paired
 difference estimated - link of the fused VA GOSPA with its 95 % CI (Student t over seeds); and the
-estimator's evaluation counts (estimates, detected, merged, false, missed per vehicle-step).
+estimator's evaluation counts per vehicle-step (the columns the runs store: estimates, detected, merged, false,
+missed, suppressed).
 
     .venv/bin/mmslam ablate paper --source sionna --variants proposed --grid sensor.model=link,estimated \\
         --mc 10 --out out/abl_paper
@@ -43,13 +44,15 @@ def main() -> None:
     a = ap.parse_args()
     jobs = load_jobs(a.out_dir, variants=[a.variant])
     arms: dict[str, dict[int, dict]] = {}
-    counts = []
+    counts, columns = [], None
     for job, r in jobs.items():
         arm = dict(kv.split("=", 1) for kv in job.arm).get("sensor.model", "?")
         fs = int(r.meta.get("fusion_start", 0))
         arms.setdefault(arm, {})[job.seed] = per_run(r, fs)
-        if "estimator_counts" in r.meta:
-            counts.append(np.asarray(r.meta["estimator_counts"]["per_step_vehicle"], float))
+        if "estimator_counts" in r.meta:  # (steps, vehicles, columns), the columns named in the run's meta
+            ec = r.meta["estimator_counts"]
+            columns = list(ec["columns"])
+            counts.append(np.asarray(ec["per_step_vehicle"], float).reshape(-1, len(columns)))
     res: dict = {}
     for arm, runs in sorted(arms.items()):
         keys = next(iter(runs.values())).keys()
@@ -65,9 +68,8 @@ def main() -> None:
             res[f"diff_{k}"] = (m, h, len(common))
             print(f"paired estimated - link, fused {k}: {m:+.2f} +- {h:.2f} (95 % CI, {len(common)} seeds)")
     if counts:
-        c = np.concatenate([x.reshape(-1, 5) for x in counts])
-        res["estimator_counts_mean_per_vehicle_step"] = dict(zip(
-            ("estimates", "detected", "merged", "false", "missed"), c.mean(0).round(2).tolist()))
+        c = np.concatenate(counts)
+        res["estimator_counts_mean_per_vehicle_step"] = dict(zip(columns, c.mean(0).round(2).tolist()))
         print("estimator counts per vehicle-step (mean):", res["estimator_counts_mean_per_vehicle_step"])
     print(json.dumps(res, default=float))
 

@@ -89,3 +89,23 @@ def test_cache_bench_json_replaces_only_its_own_file(tmp_path):
         assert p.returncode == 0, p.stderr
         data = json.loads(out.read_text())
         assert data["benchmark"] == "bench_cache" and data["steps"] == 3
+
+
+def test_compare_estimated_reads_the_stored_estimator_columns(tmp_path):
+    """compare_estimated.py on a tiny `--grid sensor.model=link,estimated` ablation of the analytic paper scene: both
+    arms and the paired differences are printed, and the estimator's counts carry the columns the runs stored (it
+    assumed five and crashed on the sixth, `suppressed`)."""
+    out = tmp_path / "abl"
+    p = subprocess.run([sys.executable, "-m", "mmslam", "ablate", "paper", "--variants", "proposed", "--grid",
+                        "sensor.model=link,estimated", "--mc", "2", "--steps", "6", "--particles", "20", "--workers",
+                        "1", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    script = Path(__file__).parents[1] / "benchmarks" / "compare_estimated.py"
+    p = subprocess.run([sys.executable, str(script), str(out)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    assert res["link"]["runs"] == 2 and res["estimated"]["runs"] == 2
+    assert res["diff_pos_rmse"][2] == 2
+    counts = res["estimator_counts_mean_per_vehicle_step"]
+    assert list(counts) == ["estimates", "detected", "merged", "false", "missed", "suppressed"]
+    assert counts["detected"] <= counts["estimates"]
