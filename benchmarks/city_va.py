@@ -197,7 +197,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
     va_per_step, nlos_va = va_path_stats(c.paths, steps, n_veh, a.kmin)
     print(f"  VA paths per vehicle-step: {va_per_step:.2f}; vehicle-steps without line of sight that have one: "
-          f"{nlos_va:.0%}", flush=True)
+          + ("none without line of sight" if math.isnan(nlos_va) else f"{nlos_va:.0%}"), flush=True)
     for s in a.seeds:
         t0 = time.perf_counter()
         sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev)
