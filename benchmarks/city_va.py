@@ -19,7 +19,8 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
   detect at one step only so far (:func:`mmslam.slam.eval.evaluation.unconfirmed_counts`): the floor for a filter
   that confirms a landmark from its second detection on;
 - ``rmse``: the position RMSE (m) over all vehicles and those steps, and ``rmse_nlos`` over the (vehicle, step)
-  pairs without a line-of-sight path in the cache (the car that lost the BS);
+  pairs without a line-of-sight path in the cache (the car that lost the BS), ``rmse_nlos_va`` over those of them with
+  a VA path in the cache (where a VA map can act without the BS);
 - ``vs`` / ``vs_others``: the fused VS GOSPA against every vehicle, and of the fused map's non-ego Gaussians
   against the vehicles another vehicle could see (map ``fused_others``; NaN without labels);
 - ``sp`` / ``sp_false``: the fused SP GOSPA (m) and its false part (m^2): on a city scene without scatterers every
@@ -93,6 +94,17 @@ def nlos_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
     return ~los
 
 
+def va_path_mask(paths: dict, steps: int, n_veh: int) -> np.ndarray:
+    """``(steps, n_veh)`` bool: the vehicle has at least one VA path in the cache at that step."""
+    from mmslam.slam.specs.landmarks import VA_SPEC
+
+    has = np.zeros((steps, n_veh), bool)
+    st, rx, ty = (np.asarray(paths[c]) for c in ("step", "rx", "type"))
+    sel = (ty == VA_SPEC.code) & (st < steps)
+    has[st[sel], rx[sel]] = True
+    return has
+
+
 def va_path_stats(paths: dict, steps: int, n_veh: int, kmin: int) -> tuple[float, float]:
     """What a VA map can act on, from the cache alone: ``(VA paths per vehicle-step, share of the vehicle-steps
     without a line-of-sight path that have at least one VA path)`` over steps ``kmin <= k < steps`` (NaN for a share
@@ -108,8 +120,9 @@ def va_path_stats(paths: dict, steps: int, n_veh: int, kmin: int) -> tuple[float
     return per_step, float(np.mean(n_va[dark] > 0)) if dark.any() else math.nan
 
 
-def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
-    """One run's scores, averaged over steps ``k >= kmin`` (module docstring); ``ev``: ``[evaluation]``."""
+def scores(r, kmin: int, nlos: np.ndarray, ev, nlos_va: np.ndarray | None = None) -> dict[str, float]:
+    """One run's scores, averaged over steps ``k >= kmin`` (module docstring); ``ev``: ``[evaluation]``; ``nlos_va``
+    ``(steps, n_veh)``: the vehicle-steps of ``rmse_nlos_va`` (without line of sight, with a VA path), or None."""
     m = r.metrics
     mp, ty, st = np.asarray(m["map"]).astype(str), np.asarray(m["type"]).astype(str), np.asarray(m["step"])
     out: dict[str, float] = {}
@@ -136,6 +149,9 @@ def scores(r, kmin: int, nlos: np.ndarray, ev) -> dict[str, float]:
     out["rmse"] = float(np.sqrt(np.mean(e[late] ** 2)))
     nl = late & nlos[k, n]
     out["rmse_nlos"] = float(np.sqrt(np.mean(e[nl] ** 2))) if nl.any() else math.nan
+    if nlos_va is not None:
+        nv = late & nlos_va[k, n]
+        out["rmse_nlos_va"] = float(np.sqrt(np.mean(e[nv] ** 2))) if nv.any() else math.nan
     out["nlos_share"] = float(nl.sum() / max(late.sum(), 1))
     return out
 
@@ -188,6 +204,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     steps = c.states.shape[0] if a.steps is None else a.steps
     n_veh = c.states.shape[1]
     nlos = nlos_mask(c.paths, c.states.shape[0], n_veh)
+    nlos_va = nlos & va_path_mask(c.paths, c.states.shape[0], n_veh)  # where a VA map can act without the BS
     run_scn = with_overrides(c.scenario, a.set)  # the runs' sensor and evaluation settings (--set)
     ev = run_scn.evaluation
     no_va = tuple(s.code for s in landmark_types() if s.code != VA_SPEC.code)
@@ -195,28 +212,29 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
     known_errors = a.known_va
     rows = []
     print(f"== {c.scenario.name} ({cache}), {a.variant}, P = {a.particles}, k >= {a.kmin}, --set {a.set}", flush=True)
-    va_per_step, nlos_va = va_path_stats(c.paths, steps, n_veh, a.kmin)
+    va_per_step, nlos_va_share = va_path_stats(c.paths, steps, n_veh, a.kmin)
     print(f"  VA paths per vehicle-step: {va_per_step:.2f}; vehicle-steps without line of sight that have one: "
-          + ("none without line of sight" if math.isnan(nlos_va) else f"{nlos_va:.0%}"), flush=True)
+          + ("none without line of sight" if math.isnan(nlos_va_share) else f"{nlos_va_share:.0%}"), flush=True)
     for s in a.seeds:
         t0 = time.perf_counter()
-        sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev)
+        sc = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set), a.kmin, nlos, ev, nlos_va)
         if a.odometry:
             sc["odo_rmse"] = scores(run_slam(cache, "odometry", a.particles, s, steps=steps, overrides=a.set),
-                                    a.kmin, nlos, ev)["rmse"]
+                                    a.kmin, nlos, ev, nlos_va)["rmse"]
         if a.ignore_va:
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, include_types=no_va,
-                                overrides=a.set), a.kmin, nlos, ev)
-            sc["noVA_rmse"], sc["noVA_rmse_nlos"] = o["rmse"], o["rmse_nlos"]
+                                overrides=a.set), a.kmin, nlos, ev, nlos_va)
+            sc["noVA_rmse"], sc["noVA_rmse_nlos"], sc["noVA_rmse_nlos_va"] = o["rmse"], o["rmse_nlos"], o["rmse_nlos_va"]
         if cmp_sets:
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set + cmp_sets),
-                       a.kmin, nlos, ev)
+                       a.kmin, nlos, ev, nlos_va)
             sc.update({f"cmp_{k}": v for k, v in o.items()})
         for e in known_errors:
             km = known_map(c.paths, VA_SPEC.code, e, float(c.scenario.sensor.p_detect), np.random.default_rng([s, 1]))
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set, known_map=km),
-                       a.kmin, nlos, ev)
-            sc[f"known{e:g}_rmse"], sc[f"known{e:g}_rmse_nlos"] = o["rmse"], o["rmse_nlos"]
+                       a.kmin, nlos, ev, nlos_va)
+            for key in ("rmse", "rmse_nlos", "rmse_nlos_va"):
+                sc[f"known{e:g}_{key}"] = o[key]
         sc["seed"] = s
         rows.append(sc)
         print(f"seed {s}: " + "  ".join(f"{k} {v:.3f}" for k, v in sc.items() if k != "seed")
@@ -232,7 +250,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
                                 float(ev.va_resolution))[VA_SPEC.code][a.kmin:]
     floor2 = float(np.mean((ev.gospa_c ** ev.gospa_p / ev.gospa_alpha * unconf) ** (1 / ev.gospa_p))) if unconf.size else math.nan
     summ["floor2"] = (floor2, 0.0)
-    summ["va_paths_per_step"], summ["nlos_with_va"] = (va_per_step, 0.0), (nlos_va, 0.0)
+    summ["va_paths_per_step"], summ["nlos_with_va"] = (va_per_step, 0.0), (nlos_va_share, 0.0)
     print(f"  two-detection floor (truths seen at one step so far: {unconf.mean():.1f} per step): {floor2:.3f} m, "
           f"{floor2 / emp:.3f} of the empty map")
     pairs = []
@@ -240,8 +258,8 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
         pairs.append(("rmse", "odo_rmse"))
         print(f"  RMSE / odometry: {summ['rmse'][0] / summ['odo_rmse'][0]:.3f}")
     if a.ignore_va:
-        pairs += [("rmse", "noVA_rmse"), ("rmse_nlos", "noVA_rmse_nlos")]
-        pairs += [(f"known{e:g}_{k}", f"noVA_{k}") for e in known_errors for k in ("rmse", "rmse_nlos")]
+        pairs += [("rmse", "noVA_rmse"), ("rmse_nlos", "noVA_rmse_nlos"), ("rmse_nlos_va", "noVA_rmse_nlos_va")]
+        pairs += [(f"known{e:g}_{k}", f"noVA_{k}") for e in known_errors for k in ("rmse", "rmse_nlos", "rmse_nlos_va")]
     if cmp_sets:
         pairs += [(k, f"cmp_{k}") for k in ("va", "rmse", "vs", "vs_others")]
     for x, y in pairs:

@@ -107,6 +107,10 @@ def test_va_path_stats_by_hand():
     per_step, share = b.va_path_stats(paths, 4, 2, 1)
     assert per_step == pytest.approx(4 / 6)
     assert share == pytest.approx(2 / 3)
+    has = b.va_path_mask(paths, 4, 2)
+    assert has.tolist() == [[False, True], [True, False], [False, True], [True, False]]
+    # rmse_nlos_va's vehicle-steps: without LOS and with a VA path
+    assert (b.nlos_mask(paths, 4, 2) & has).tolist() == [[False, True], [False, False], [False, True], [True, False]]
     lit = {"step": np.array([1, 2, 3, 1, 2, 3]), "rx": np.array([0, 0, 0, 1, 1, 1]), "type": np.zeros(6, int)}
     per_step, share = b.va_path_stats(lit, 4, 2, 1)
     assert per_step == 0.0 and math.isnan(share)
