@@ -25,6 +25,39 @@ from mmslam.pipelines.ablate import VARIANTS, prepare_cache, run_ablation
 TARGET_S = 60.0
 
 
+def _keep_names() -> tuple[str, ...]:
+    """What an ablation folder holds (its marker aside): a kept folder holding anything else is refused, so a
+    file the user added to it is never deleted."""
+    from mmslam.pipelines.ablate.options import ABLATION_FILE, JOBS_DIR, SUMMARY_JSON, SUMMARY_PARQUET
+
+    return (ABLATION_FILE, JOBS_DIR, SUMMARY_JSON, SUMMARY_PARQUET)
+
+
+def check_keep(keep: Path) -> Path:
+    """``--keep``: a new or empty folder, or one an earlier ``--keep`` wrote (its marker, nothing else in it); else
+    a one-line :class:`~mmslam.errors.MmslamError`. Returns the folder to write (a link's target)."""
+    from mmslam.outputs import check_target
+    from mmslam.pipelines.ablate.store import ABLATION_KIND
+
+    return check_target(keep, ABLATION_KIND, option="--keep", own_names=_keep_names())
+
+
+def keep_ablation(out: Path, keep: Path) -> None:
+    """Copy the finished ablation ``out`` to ``keep``, replacing an earlier kept one atomically (checked again:
+    the folder may have changed during the run); the temporary copy is removed if anything fails."""
+    from mmslam.outputs import make_temp_dir, replace_dir
+    from mmslam.pipelines.ablate.store import ABLATION_KIND
+
+    real = check_keep(keep)
+    tmp = make_temp_dir(real.parent, real.name)
+    try:
+        shutil.copytree(out, tmp, dirs_exist_ok=True)
+        replace_dir(tmp, real, ABLATION_KIND, own_names=_keep_names())
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mc", type=int, default=10)
@@ -37,10 +70,7 @@ def main(argv: list[str] | None = None) -> int:
                     "empty, or an ablation kept before: nothing else is replaced)")
     a = ap.parse_args(argv)
     if a.keep is not None:  # before any work: a user's folder is refused, not deleted
-        from mmslam.outputs import check_target
-        from mmslam.pipelines.ablate.store import ABLATION_FILE, ABLATION_KIND
-
-        check_target(a.keep, ABLATION_KIND, option="--keep", accept=lambda p: (p / ABLATION_FILE).is_file())
+        check_keep(a.keep)
 
     root = Path(tempfile.mkdtemp(prefix="mmslam-bench-ablation-"))
     try:
@@ -60,11 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run {i}: {dt:.1f} s wall for {len(run.ran)} jobs ({run.executor}); mean filter time per "
                   f"job by variant: " + ", ".join(f"{v} {t:.2f} s" for v, t in zip(VARIANTS, per_job)))
             if a.keep is not None and i == a.repeat - 1:
-                from mmslam.outputs import replace_dir
-
-                tmp = a.keep.with_name(f".{a.keep.name}.new-{os.getpid()}")
-                shutil.copytree(out, tmp)
-                replace_dir(tmp, a.keep, ABLATION_KIND)
+                keep_ablation(out, a.keep)
         med = statistics.median(times)
         print(f"bench_ablation: {len(VARIANTS)} variants x {a.mc} runs x {a.steps} steps x 2 vehicles, "
               f"P = {a.particles}, {os.cpu_count()} cores: median wall time {med:.1f} s "

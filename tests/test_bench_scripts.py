@@ -43,6 +43,8 @@ def test_save_refuses_a_users_file_before_the_capture(tmp_path):
     assert len(p.stderr.strip().splitlines()) == 1 and "--save" in p.stderr and "did not write" in p.stderr
     assert mine.read_bytes() == b"not mmslam's"
     assert p.stdout == ""
+    p = _run("--load", str(mine))  # not a batch file: one line naming it and the fix
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "--load" in p.stderr
 
 
 def _ablation(*args: str) -> subprocess.CompletedProcess:
@@ -67,6 +69,19 @@ def test_ablation_bench_runs_and_keeps_only_its_own_folder(tmp_path):
         assert "4 jobs" in p.stdout
         assert (kept / "ablation.json").is_file() and (kept / "summary.json").is_file()
     assert sorted(f.name for f in tmp_path.iterdir()) == ["kept", "mine"]  # no temporary sibling left
+    # a file the user adds to the kept ablation makes it theirs: refused before any work, nothing deleted
+    (kept / "notes.txt").write_text("mine now")
+    p = _ablation("--keep", str(kept))
+    assert p.returncode == 2 and p.stdout == "" and "notes.txt" in p.stderr
+    assert (kept / "notes.txt").read_text() == "mine now" and (kept / "ablation.json").is_file()
+    # a folder that only looks like an ablation (no marker) is refused before any work too
+    lookalike = tmp_path / "lookalike"
+    lookalike.mkdir()
+    (lookalike / "ablation.json").write_text("{}")
+    p = _ablation("--keep", str(lookalike))
+    assert p.returncode == 2 and p.stdout == "" and "--keep" in p.stderr
+    assert [f.name for f in lookalike.iterdir()] == ["ablation.json"]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["kept", "lookalike", "mine"]
 
 
 def test_cache_bench_json_replaces_only_its_own_file(tmp_path):
