@@ -114,10 +114,17 @@ def main() -> int:
 
         check_npz_target(a.save, SAVE_KIND, option="--save")
     if a.load:
-        with np.load(a.load) as f:
-            k = int(f["count"])
-            calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
-                      for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent", "body")} for i in range(k)]
+        from mmslam.errors import MmslamError
+
+        try:
+            with np.load(a.load) as f:
+                k = int(f["count"])
+                calls = [{key: (int(f[f"{i}_{key}"]) if key == "geometry" else f[f"{i}_{key}"])
+                          for key in ("m", "P", "states", "geometry", "bs", "Z", "R", "extent", "body")}
+                         for i in range(k)]
+        except (OSError, ValueError, KeyError) as e:
+            raise MmslamError(f"--load {a.load}: not a batch file of this bench_ckf.py ({e}); capture and --save "
+                              "it again") from None
     else:
         calls = capture(a.steps, variant=a.variant, first=a.first)
     if a.save:

@@ -67,14 +67,18 @@ def test_sionna_trace_reproduces_stored_paths():
     scn = mg.paper()
     states, paths = mg.sionna_trace(scn)
     w_states, w_paths = mg.load_paths(GOLDEN / "sionna_paths.npz")
-    got = {"states": states, **{k: (v.astype(str) if v.dtype == object else v) for k, v in paths.items()}}
-    want = {"states": w_states, **{k: (v.astype(str) if v.dtype == object else v) for k, v in w_paths.items()}}
+    assert not mg.compare({"states": states}, {"states": w_states}), "the vehicles' true states differ"
+    got = {k: (v.astype(str) if v.dtype == object else v) for k, v in paths.items()}
+    want = {k: (v.astype(str) if v.dtype == object else v) for k, v in w_paths.items()}
     bad = mg.compare(got, want, rtol=mg.SIONNA_TRACE_RTOL, atol=mg.SIONNA_TRACE_ATOL)
     assert not bad, "\n".join(bad)
-    if not mg.compare(got, want, rtol=0.0, atol=0.0):
-        # the same float32 trace bit for bit: the filter on it must give the stored run (the stored-trace tests
-        # above check the filter on the stored paths wherever a re-trace differs by float32 ulps)
-        _check(mg.snapshot(scn, states, paths, **mg.SIONNA_CASES["proposed"]), GOLDEN / "sionna_proposed.npz")
+    run = mg.snapshot(scn, states, paths, **mg.SIONNA_CASES["proposed"])
+    if not mg.compare(got, want, rtol=0.0, atol=0.0):  # the same float32 trace bit for bit: the stored run at 1e-9
+        _check(run, GOLDEN / "sionna_proposed.npz")
+    else:  # float32 ulps apart (another CPU or build): the same run to 1e-3 (the stored-path runs above keep 1e-9)
+        bad = mg.compare(run, mg.load(GOLDEN / "sionna_proposed.npz"), rtol=mg.RETRACE_RUN_RTOL,
+                         atol=mg.RETRACE_RUN_ATOL)
+        assert not bad, "the filter on the re-trace:\n" + "\n".join(bad[:20])
 
 
 def test_sionna_trace_tolerance_is_float32_not_looser():
