@@ -114,3 +114,29 @@ def test_va_path_stats_by_hand():
     lit = {"step": np.array([1, 2, 3, 1, 2, 3]), "rx": np.array([0, 0, 0, 1, 1, 1]), "type": np.zeros(6, int)}
     per_step, share = b.va_path_stats(lit, 4, 2, 1)
     assert per_step == 0.0 and math.isnan(share)
+
+
+def test_scores_rmse_over_the_masked_vehicle_steps_by_hand():
+    """scores(): steps 0-2, two vehicles, kmin 1. Position errors (step, vehicle): (1, 0) 3, (1, 1) 4, (2, 0) 1,
+    (2, 1) 2 (step 0's 100 m are before kmin). Without LOS: (1, 1), (2, 0), (2, 1); of those with a VA path: (2, 1).
+    rmse = sqrt((9 + 16 + 1 + 4) / 4), rmse_nlos = sqrt((16 + 1 + 4) / 3), rmse_nlos_va = 2; the fused SP GOSPA
+    and its false part are the means of the SP rows at k >= 1."""
+    from types import SimpleNamespace
+
+    b = _bench()
+    steps = np.array([0, 1, 2])
+    metrics = {"map": np.array(["fused"] * 6), "type": np.array(["VA"] * 3 + ["SP"] * 3),
+               "step": np.concatenate([steps, steps]), "gospa": np.array([1.0, 2.0, 4.0, 9.0, 3.0, 5.0]),
+               "loc": np.zeros(6), "missed": np.zeros(6), "false": np.array([0.0, 0, 0, 7, 2, 6]),
+               "n_true": np.full(6, 2.0), "n_visible": np.ones(6), "card": np.ones(6)}
+    vehicles = {"step": np.array([0, 0, 1, 1, 2, 2]), "vehicle": np.array([0, 1, 0, 1, 0, 1]),
+                "pos_err": np.array([100.0, 100.0, 3.0, 4.0, 1.0, 2.0])}
+    nlos = np.array([[True, True], [False, True], [True, True]])
+    nlos_va = np.array([[True, False], [False, False], [False, True]])
+    ev = argparse.Namespace(gospa_c=20.0, gospa_p=2.0, gospa_alpha=2.0)
+    out = b.scores(SimpleNamespace(metrics=metrics, vehicles=vehicles), 1, nlos, ev, nlos_va)
+    assert out["rmse"] == pytest.approx(math.sqrt(30 / 4))
+    assert out["rmse_nlos"] == pytest.approx(math.sqrt(21 / 3))
+    assert out["rmse_nlos_va"] == pytest.approx(2.0)
+    assert out["va"] == pytest.approx(3.0) and out["sp"] == pytest.approx(4.0) and out["sp_false"] == pytest.approx(4.0)
+    assert "rmse_nlos_va" not in b.scores(SimpleNamespace(metrics=metrics, vehicles=vehicles), 1, nlos, ev)
