@@ -48,12 +48,9 @@ def main(argv: list[str] | None = None) -> int:
                     "--json wrote: nothing else is replaced)")
     a = ap.parse_args(argv)
     if a.json is not None:  # before any timing: a user's file is refused, never replaced
-        from mmslam.errors import MmslamError
-        from mmslam.outputs import check_target, resolve_link
+        from mmslam.outputs import check_file_target
 
-        if not resolve_link(a.json, "--json").parent.is_dir():
-            raise MmslamError(f"--json {a.json}: the directory {a.json.parent} does not exist; create it first")
-        check_target(a.json, "bench_cache", option="--json", is_dir=False, recognise=is_bench_cache_json)
+        check_file_target(a.json, "bench_cache", is_bench_cache_json, option="--json")
 
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.raytrace.cache import load_cache

@@ -312,14 +312,9 @@ def is_city_va_save(path) -> bool:
 def check_save_target(path: str) -> None:
     """``--save``: a new file in an existing folder, or one an earlier ``--save`` wrote (replaced); anything else (a
     user's file, a folder) is a one-line :class:`~mmslam.errors.MmslamError`, exit 2 (:func:`script_entry.run`)."""
-    from pathlib import Path
+    from mmslam.outputs import check_file_target
 
-    from mmslam.errors import MmslamError
-    from mmslam.outputs import check_target, resolve_link
-
-    if not resolve_link(Path(path), "--save").parent.is_dir():
-        raise MmslamError(f"--save {path}: the directory {Path(path).parent} does not exist; create it first")
-    check_target(path, "city_va", option="--save", is_dir=False, recognise=is_city_va_save)
+    check_file_target(path, "city_va", is_city_va_save, option="--save")
 
 
 if __name__ == "__main__":

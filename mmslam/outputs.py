@@ -211,6 +211,17 @@ def is_mmslam_figure(path: str | Path) -> bool:
         return False
 
 
+def check_file_target(path: str | Path, kind: str, recognise: "Callable[[Path], bool]", option: str = "--out",
+                      protect: tuple[Path, ...] = ()) -> Path:
+    """Check a file target before any computation: its directory exists, and the file is missing or one
+    ``recognise(path)`` says mmslam wrote as ``kind`` (:func:`check_target`); a one-line :class:`MmslamError`
+    otherwise. Returns the path to write (a link's target)."""
+    p = Path(path)
+    if not resolve_link(p, option).parent.is_dir():
+        raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
+    return check_target(p, kind, option=option, protect=protect, is_dir=False, recognise=recognise)
+
+
 def check_figure_target(path: str | Path, force: bool = False, option: str = "--out",
                         formats: tuple[str, ...] = FIGURE_FORMATS) -> str:
     """Check a figure file target before any computation; returns its format.
@@ -219,11 +230,8 @@ def check_figure_target(path: str | Path, force: bool = False, option: str = "--
     file, a directory, or what a symbolic link points to when it is no mmslam figure is refused,
     with or without ``force`` (see the module docstring). The parent directory must exist.
     """
-    p = Path(path)
-    fmt = figure_format(p, option, formats)
-    if not resolve_link(p, option).parent.is_dir():
-        raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
-    check_target(p, "figure", force, option=option, is_dir=False, recognise=is_mmslam_figure)
+    fmt = figure_format(path, option, formats)
+    check_file_target(path, "figure", is_mmslam_figure, option=option)
     return fmt
 
 
@@ -251,10 +259,7 @@ def check_npz_target(path: str | Path, kind: str, force: bool = False, option: s
     p = Path(path)
     if p.suffix != ".npz":
         raise MmslamError(f"{option} {p}: expected a file name ending in .npz")
-    if not resolve_link(p, option).parent.is_dir():
-        raise MmslamError(f"{option} {p}: the directory {p.parent} does not exist; create it first")
-    return check_target(p, kind, force, option=option, protect=protect, is_dir=False,
-                        recognise=lambda q: npz_kind(q) == kind)
+    return check_file_target(p, kind, lambda q: npz_kind(q) == kind, option=option, protect=protect)
 
 
 def npz_bytes(kind: str, compressed: bool = False, **arrays: object) -> bytes:
