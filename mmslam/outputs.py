@@ -3,12 +3,15 @@
 The one policy of every writing command: **mmslam writes into, replaces or deletes only what it
 wrote itself.** A directory is mmslam's when it carries the marker file :data:`MARKER` (a small
 JSON object ``{"kind": ..., "format": ...}``) naming the kind of output; a file when it carries
-mmslam's tag (:data:`FIGURE_TOKEN` in a figure's metadata, :data:`NPZ_TAG` in an ``.npz``). An
+mmslam's tag (:data:`FIGURE_TOKEN` in a figure's metadata, :data:`NPZ_TAG` in an ``.npz``). A marker
+also records the digest (SHA-256) of every file mmslam wrote there (:func:`write_marker`, :func:`record_files`), so
+a file the user edited or added under one of mmslam's names after the fact is recognised as the user's. An
 existing target is used only when it is empty or a previous output of the same kind; anything else
 (a user's folder or file, the folder or file a symbolic link points to, another kind of mmslam
 output such as the cache just read) is refused with one line, **with or without** ``--force``.
 A directory that is replaced as a whole (a SLAM result) must moreover hold nothing but the files
-that kind writes, so a file the user added to it is never deleted. ``--force`` never widens what
+that kind writes, so a file the user added to it is never deleted; and a file mmslam is about to replace
+must be the one it wrote (its recorded digest), so a file the user edited there is never overwritten. ``--force`` never widens what
 may be touched: it only asks ``mmslam trace`` to rebuild a cache mmslam wrote.
 
 Checks run before any computation (:func:`check_target`) and again at the moment of writing
@@ -39,13 +42,74 @@ def output_kind(path: Path) -> str | None:
         return None
 
 
-def write_marker(path: Path, kind: str) -> None:
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of the file's bytes, hex (read in 1 MiB blocks)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _write_record(path: Path, kind: str, files: dict[str, str] | None) -> None:
+    rec: dict[str, object] = {"kind": kind, "format": 1 if files is None else 2}
+    if files is not None:
+        rec["files"] = dict(sorted(files.items()))
+    atomic_write_bytes(Path(path) / MARKER, (json.dumps(rec, indent=1) + "\n").encode(), fsync=False)
+
+
+def write_marker(path: Path, kind: str, files: Collection[str] | None = None) -> None:
     """Mark directory ``path`` as an mmslam output of ``kind``.
 
     Only for a directory mmslam created or found empty (or one already marked ``kind``): a marker
-    makes everything in the directory count as mmslam's.
+    makes the directory mmslam's. ``files``: the names (relative paths) of the files mmslam wrote there;
+    their digests are recorded (:func:`file_digest`; names not present are skipped), and only a recorded
+    file with its recorded content may later be replaced (:func:`edited_entries`). None: a marker without
+    a record (format 1, as written before records existed: every file in it counts as mmslam's).
     """
-    atomic_write_bytes(Path(path) / MARKER, (json.dumps({"kind": kind, "format": 1}) + "\n").encode(), fsync=False)
+    p = Path(path)
+    _write_record(p, kind, None if files is None else
+                  {n: file_digest(p / n) for n in files if (p / n).is_file()})
+
+
+def recorded_files(path: str | Path) -> dict[str, str] | None:
+    """The marker's record ``{name: digest}`` of the files mmslam wrote in ``path`` (None: no record)."""
+    try:
+        files = json.loads((Path(path) / MARKER).read_text()).get("files")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return {str(k): str(v) for k, v in files.items()} if isinstance(files, dict) else None
+
+
+def record_files(path: str | Path, kind: str, names: Collection[str]) -> None:
+    """Add (or update) the digests of ``names``, just written by mmslam into ``path``, to its marker's record.
+
+    A marker without a record (format 1) first records every file then in the folder: under the old rule each
+    of them counted as mmslam's, so an upgrade takes nothing away that a rebuild could replace before.
+    """
+    p = Path(path)
+    rec = recorded_files(p)
+    if rec is None:
+        rec = {f.relative_to(p).as_posix(): file_digest(f) for f in sorted(p.rglob("*"))
+               if f.is_file() and f.name != MARKER and not f.name.startswith(".")}
+    rec.update({n: file_digest(p / n) for n in names if (p / n).is_file()})
+    _write_record(p, kind, rec)
+
+
+def edited_entries(path: str | Path, names: Collection[str]) -> list[str]:
+    """The names among ``names`` present in ``path`` that mmslam did not write as they are now (sorted).
+
+    A name counts as mmslam's when the marker's record holds it with the file's current digest; a file
+    edited after mmslam wrote it, or one the user put there under a name mmslam writes, does not. A folder
+    whose marker has no record (format 1) cannot tell: nothing is reported.
+    """
+    p = Path(path)
+    rec = recorded_files(p)
+    if rec is None:
+        return []
+    return sorted(n for n in names if (p / n).is_file() and rec.get(n) != file_digest(p / n))
 
 
 def foreign_entries(path: Path, own_names: Collection[str]) -> list[str]:
@@ -67,12 +131,13 @@ def resolve_link(path: str | Path, option: str = "--out") -> Path:
 def check_target(path: str | Path, kind: str, force: bool = False, *, protect: tuple[Path, ...] = (),
                  option: str = "--out", accept: "Callable[[Path], bool] | None" = None,
                  own_names: Collection[str] | None = None, is_dir: bool = True,
-                 recognise: "Callable[[Path], bool] | None" = None) -> Path:
+                 recognise: "Callable[[Path], bool] | None" = None, writes: Collection[str] = ()) -> Path:
     """Raise a one-line :class:`MmslamError` unless ``path`` may be (re)written as a ``kind`` output.
 
     Directory outputs (``is_dir``): allowed are a missing path, an empty directory, or a directory
     whose marker says ``kind`` (with ``own_names``: holding nothing else than those names, for an
-    output replaced as a whole). ``accept(path)`` may recognise outputs of ``kind`` written before
+    output replaced as a whole; and each of ``writes``, the names the command is about to write, absent
+    or as mmslam wrote it: :func:`edited_entries`). ``accept(path)`` may recognise outputs of ``kind`` written before
     markers existed (e.g. a folder of caches). File outputs (``not is_dir``): a missing path or a
     file ``recognise(path)`` says mmslam wrote. A symbolic link is followed (:func:`resolve_link`).
     The paths in ``protect`` (e.g. the input cache) and their ancestors or descendants are never
@@ -100,6 +165,11 @@ def check_target(path: str | Path, kind: str, force: bool = False, *, protect: t
             if extra:
                 raise MmslamError(f"{option} {shown}: holds {', '.join(extra[:3])}{' ...' if len(extra) > 3 else ''}, "
                                   f"which mmslam did not write; move them out or choose another path ({NEVER})")
+            edited = edited_entries(real, writes)
+            if edited:
+                raise MmslamError(f"{option} {shown}: {', '.join(edited[:3])}{' ...' if len(edited) > 3 else ''} "
+                                  f"changed or appeared after mmslam wrote this folder; move "
+                                  f"{'it' if len(edited) == 1 else 'them'} out or choose another path ({NEVER})")
             return real
         if mine is None and not any(real.iterdir()):
             return real
@@ -114,14 +184,15 @@ def check_target(path: str | Path, kind: str, force: bool = False, *, protect: t
 
 
 def replace_dir(tmp: Path, out: Path, kind: str, force: bool = False, *,
-                own_names: Collection[str] | None = None) -> None:
+                own_names: Collection[str] | None = None, writes: Collection[str] = ()) -> None:
     """Move the finished directory ``tmp`` to ``out``, replacing ``out`` only as :func:`check_target` allows.
 
     ``own_names``: the names an output of ``kind`` holds; an old ``out`` holding anything else is
-    refused (so only files mmslam wrote are deleted). A symbolic link at ``out`` stays and then
-    points to the new directory.
+    refused (so only files mmslam wrote are deleted), and so is one whose files among ``writes`` differ from
+    what mmslam wrote (:func:`edited_entries`). A symbolic link at ``out`` stays and then points to the new
+    directory.
     """
-    real = check_target(out, kind, force, own_names=own_names)
+    real = check_target(out, kind, force, own_names=own_names, writes=writes)
     if os.path.lexists(real):
         old = real.with_name(f".{real.name}.old-{os.getpid()}")
         os.replace(real, old)

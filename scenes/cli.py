@@ -36,21 +36,26 @@ def register(app: typer.Typer) -> typer.Typer:
     def build_cmd(
         scenario: str = typer.Argument(..., help="Preset name (paper, street) or a scenario .toml file."),
         out: Path = typer.Option(..., "--out", help="Output folder for meshes/*.ply and <scenario>.xml; an "
-                                 "existing one must be empty or a previous scene build."),
+                                 "existing one must be empty or a previous scene build whose files this "
+                                 "build replaces are as mmslam wrote them."),
         force: bool = typer.Option(False, "--force/--no-force", help="Accepted for old scripts; changes nothing: "
                                    "a folder mmslam did not write is never written into."),
     ) -> None:
         """Write one PLY per object and a Mitsuba XML that Sionna RT loads (merge_shapes=False)."""
-        from mmslam.outputs import check_target, locked, output_kind, write_marker
-        from mmslam.scenes.meshes import SCENE_KIND, build_scene
+        from mmslam.outputs import check_target, locked, output_kind, record_files, write_marker
+        from mmslam.scenes.meshes import SCENE_KIND, build_scene, scene_files
         from mmslam.scenes.scenario import resolve_scenario
 
         scn = resolve_scenario(scenario)
+        names = scene_files(scn)
         with locked(out, "scene build"):
-            check_target(out, SCENE_KIND, force)  # before the meshes are made
+            # before the meshes are made: each file this build writes is absent or as an earlier build wrote it
+            check_target(out, SCENE_KIND, force, writes=names)
             xml = build_scene(scn, out)
             if output_kind(out) != SCENE_KIND:
-                write_marker(out, SCENE_KIND)
+                write_marker(out, SCENE_KIND, files=names)
+            else:
+                record_files(out, SCENE_KIND, names)
         n = len(scn.buildings) + len(scn.scatterers) + len(scn.vehicles) + (scn.ground is not None)
         typer.echo(f"wrote {xml} ({n} scenario objects, meshes in {xml.parent / 'meshes'})")
 

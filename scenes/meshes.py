@@ -212,6 +212,14 @@ SCENE_KIND = "scene"
 """Output-marker kind of a ``mmslam scene build`` folder (:mod:`mmslam.outputs`)."""
 
 
+def scene_files(scn: Scenario) -> list[str]:
+    """The files :func:`build_scene` writes, relative to its folder: ``meshes/<object>.ply`` per scenario
+    object (:func:`scene_objects`' names) and ``<scenario>.xml``."""
+    names = [b.name for b in scn.buildings] + [s.name for s in scn.scatterers]
+    names += ["ground"] * (scn.ground is not None) + [v.name for v in scn.vehicles]
+    return [f"meshes/{n}.ply" for n in names] + [f"{scn.name}.xml"]
+
+
 def build_scene(scn: Scenario, out_dir: str | Path) -> Path:
     """Write ``<out_dir>/meshes/<name>.ply`` per object and ``<out_dir>/<scenario>.xml``.
 

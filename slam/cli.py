@@ -99,7 +99,8 @@ def register(app: typer.Typer) -> None:
 
             check_animation_target(animate, force)  # before the computation
         with locked(out, "slam"):
-            check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES)  # before the computation
+            check_target(out, RESULT_KIND, force, protect=(cache,), own_names=RESULT_FILES,
+                         writes=RESULT_FILES)  # before the computation
             try:
                 res = run_slam(cache, variant=variant, particles=particles, seed=seed, steps=steps,
                                overrides=tuple(sets), include_types=include, compile_notice=lambda m: Console().print(

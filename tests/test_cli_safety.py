@@ -88,6 +88,72 @@ def test_rewriting_previous_outputs_of_the_same_kind_works(tmp_path):
         assert main(["trace", "paper", "--source", "analytic", "--steps", "2", "--quiet", "--out", str(cache)]) == 0
 
 
+def test_scene_build_never_overwrites_a_file_the_user_edited_or_added_in_its_folder(tmp_path, capsys):
+    """A scene folder is mmslam's, but not every file in it: before the record of digests, a later build replaced
+    a ``street.xml`` the user had put into a paper build's folder and a mesh the user had edited there (exit 0)."""
+    out = tmp_path / "scn"
+    assert main(["scene", "build", "paper", "--out", str(out)]) == 0
+    capsys.readouterr()
+    (out / "street.xml").write_text("<my own street scene/>")
+    before = _tree(out)
+    assert main(["scene", "build", "street", "--out", str(out)]) == 2
+    assert _one_error_line(capsys).startswith(f"error: --out {out}: street.xml changed or appeared after mmslam")
+    assert _tree(out) == before  # refused before any mesh was written
+    (out / "street.xml").unlink()
+    (out / "meshes" / "wall_east.ply").write_text("MY EDITED WALL")
+    assert main(["scene", "build", "street", "--out", str(out)]) == 0  # street writes no wall_east.ply
+    capsys.readouterr()
+    assert main(["scene", "build", "paper", "--out", str(out)]) == 2
+    assert "meshes/wall_east.ply changed or appeared after mmslam wrote this folder" in _one_error_line(capsys)
+    assert (out / "meshes" / "wall_east.ply").read_text() == "MY EDITED WALL"
+    (out / "meshes" / "wall_east.ply").unlink()
+    assert main(["scene", "build", "paper", "--out", str(out)]) == 0  # its own files, as it wrote them: replaced
+
+
+def test_scene_build_upgrades_a_folder_marked_before_digests_were_recorded(tmp_path):
+    """A folder built by an older mmslam (marker without a record: every file counted as mmslam's) is rebuilt,
+    and from then on its files are recorded, those of the earlier build included."""
+    out = tmp_path / "scn"
+    assert main(["scene", "build", "paper", "--out", str(out)]) == 0
+    (out / ".mmslam-output.json").write_text(json.dumps({"kind": "scene", "format": 1}))
+    assert main(["scene", "build", "street", "--out", str(out)]) == 0
+    files = json.loads((out / ".mmslam-output.json").read_text())["files"]
+    assert "paper.xml" in files and "street.xml" in files and "meshes/wall_east.ply" in files
+    assert main(["scene", "build", "paper", "--out", str(out)]) == 0
+
+
+def test_scene_files_are_the_files_build_scene_writes(tmp_path):
+    """``scene_files`` (the names checked before a build) against the files a build leaves, for two presets."""
+    from mmslam.scenes.meshes import build_scene, scene_files
+    from mmslam.scenes.scenario import load_preset
+
+    for name in ("paper", "street"):
+        scn = load_preset(name)
+        out = tmp_path / name
+        build_scene(scn, out)
+        assert sorted(scene_files(scn)) == sorted(_tree(out))
+
+
+def test_slam_never_replaces_a_result_whose_files_the_user_edited(tmp_path, capsys):
+    """Before the record of digests a re-run replaced a result folder whose metrics.parquet the user had
+    overwritten with a table of their own (exit 0, the table lost)."""
+    cache = tmp_path / "cache"
+    assert main(["trace", "paper", "--source", "analytic", "--steps", "4", "--quiet", "--out", str(cache)]) == 0
+    c = str(next(cache.glob("paper-analytic-*")))
+    res = tmp_path / "res"
+    run = ["slam", c, "--out", str(res), "--steps", "4", "--particles", "10"]
+    assert main(run) == 0 and main(run) == 0  # its own result is replaced
+    capsys.readouterr()
+    for name in ("metrics.parquet", "meta.json"):
+        keep = (res / name).read_bytes()
+        (res / name).write_bytes(b"MY OWN TABLE")
+        assert main(run) == 2
+        assert _one_error_line(capsys).startswith(f"error: --out {res}: {name} changed or appeared after mmslam")
+        assert (res / name).read_bytes() == b"MY OWN TABLE"
+        (res / name).write_bytes(keep)
+    assert main(run) == 0
+
+
 def test_cache_root_written_before_markers_is_still_accepted(tmp_path):
     cache = tmp_path / "cache"
     assert main(["trace", "paper", "--source", "analytic", "--steps", "2", "--quiet", "--out", str(cache)]) == 0

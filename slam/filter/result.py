@@ -58,8 +58,8 @@ class Result:
         """Write atomically to ``out_dir``. Returns the path.
 
         An existing ``out_dir`` is replaced only when it is empty or a previous result holding
-        nothing but a result's files (:data:`RESULT_FILES`); anything else (a user's folder, a file
-        the user added to a result) raises a one-line :class:`~mmslam.errors.MmslamError`, whatever
+        nothing but a result's files (:data:`RESULT_FILES`), each as mmslam wrote it (the marker's digests); anything
+        else (a user's folder, a file the user added to a result or edited there) raises a one-line :class:`~mmslam.errors.MmslamError`, whatever
         ``force`` (kept for callers; :mod:`mmslam.outputs`). A symbolic link is followed and kept.
         """
         import pyarrow as pa
@@ -67,7 +67,7 @@ class Result:
 
         out = Path(out_dir)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out = check_target(out, RESULT_KIND, force, own_names=RESULT_FILES)
+        out = check_target(out, RESULT_KIND, force, own_names=RESULT_FILES, writes=RESULT_FILES)
         tmp = make_temp_dir(out.parent, out.name)
         try:
             for name in TABLES:
@@ -76,8 +76,8 @@ class Result:
                                               else np.asarray(v)) for k, v in cols.items()})
                 pq.write_table(table, tmp / f"{name}.parquet")
             (tmp / "meta.json").write_text(json.dumps(self.meta, indent=2, default=_jsonable))
-            write_marker(tmp, RESULT_KIND)
-            replace_dir(tmp, out, RESULT_KIND, force, own_names=RESULT_FILES)
+            write_marker(tmp, RESULT_KIND, files=RESULT_FILES)
+            replace_dir(tmp, out, RESULT_KIND, force, own_names=RESULT_FILES, writes=RESULT_FILES)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
