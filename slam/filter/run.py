@@ -36,7 +36,7 @@ from ..models.dynamics import wrap_angle
 from ..eval.evaluation import LM_DT, MET_DT, MapScorer, Table
 from .fusion_center import FusionCenter, ego_gaussian, filter_detect_probs
 from .process_noise import truth_has_process_noise, vehicle_process_std  # noqa: F401  (public here too)
-from ..specs.landmarks import known_codes, landmark_types
+from ..specs.landmarks import check_type_rows, known_codes, landmark_types
 from .known_map import KnownMap
 from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
@@ -182,6 +182,7 @@ class CooperativeRun:
         from ..sim.sensor import fov_detect_prob, odometry_readings, simulate_measurements
 
         self.t0 = time.perf_counter()
+        check_type_rows(scn)
         scn, self.vs_body_model = resolve_vs_body(scn, source)
         retain_freed_memory()  # no page faults per step for the maps' arrays (slam/core/memory.py)
         self.variant = get_variant(variant)

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from mmslam.errors import MmslamError
+from mmslam.errors import ConfigError, MmslamError
 from mmslam.model import OTHER, Bounce, LandmarkType
 
 from ..phd.birth import birth_from_moments
@@ -401,6 +401,15 @@ def unregister_landmark_type(name: str) -> None:
     _REGISTRY.pop(name, None)
     _CODES.clear()
     _CODES.update({s.code: s for s in _REGISTRY.values()})
+
+
+def check_type_rows(scn: "Scenario") -> None:
+    """Every ``[filter.types.<TYPE>]`` row of ``scn`` (from a file, ``--set`` or ``--grid``) names a registered
+    type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently. One-line ConfigError."""
+    unknown = sorted(set(scn.filter.types) - set(_REGISTRY))
+    if unknown:
+        raise ConfigError(f"filter.types.{unknown[0]}: no landmark type {unknown[0]!r} is registered; use one of "
+                          f"{', '.join(_REGISTRY)} (names are case-sensitive)")
 
 
 def landmark_types() -> tuple[LandmarkSpec, ...]:
