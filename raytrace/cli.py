@@ -267,6 +267,9 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         if cir and l_min > subcarriers - 1:  # the CIR taps are l_min .. subcarriers - 1 (there is no --l-max)
             raise ConfigError(f"--l-min {l_min}: expected at most --subcarriers - 1 = {subcarriers - 1} (the CIR "
                               "taps are l_min .. subcarriers - 1); lower --l-min or raise --subcarriers")
+        if cir and subcarriers - min(l_min, 0) > MAX_SUBCARRIERS:  # the taps l_min .. subcarriers - 1
+            raise ConfigError(f"--l-min {l_min}: the CIR would have {subcarriers - min(l_min, 0)} taps (l_min .. "
+                              f"subcarriers - 1), at most {MAX_SUBCARRIERS}; raise --l-min or lower --subcarriers")
         c = load_cache(cache_dir)
         step_sel = parse_steps(steps, c.steps)
         rx_sel = parse_rx(rx, list(c.vehicle_names))
@@ -277,8 +280,9 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         size = n_steps * n_rx * ants * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
-                              f"--time-steps x --subcarriers{' x antennas' if with_arrays else ''}); at most {MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower "
-                              "--subcarriers or --time-steps")
+                              f"--time-steps x {'taps' if cir else '--subcarriers'}{' x antennas' if with_arrays else ''}); at most "
+                              f"{MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower --subcarriers or --time-steps"
+                              f"{', raise --l-min' if cir and l_min < 0 else ''}, or export fewer --steps / --rx")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,
                                       n_subcarriers=subcarriers, steps=step_sel, l_min=l_min,
                                       num_time_steps=time_steps, normalize_delays=not no_normalize_delays,

@@ -147,6 +147,19 @@ def test_set_errors_name_the_option_not_a_literal_manifest(tmp_path, capsys):
     assert "<" not in err and "manifest" not in err
 
 
+def test_export_far_negative_l_min_is_a_one_line_error_before_any_work(tmp_path, capsys, clean_cache):
+    # before: --l-min -100000000 passed the size guard and ran out of memory (38.7 GiB), and the message then
+    # named --particles, --steps and --workers
+    out = tmp_path / "h.npz"
+    assert main(["export", str(clean_cache), "--cir", "--l-min", "-100000000", "--out", str(out)]) == 2
+    one_line(capsys, "--l-min -100000000", "100001024 taps", f"at most {1 << 20}", "raise --l-min")
+    assert not out.exists()
+    # the bound counts the taps: l_min .. subcarriers - 1 with 2^20 taps in all is allowed past this check
+    assert main(["export", str(clean_cache), "--cir", "--subcarriers", "1024", "--l-min", str(1024 - (1 << 20)),
+                 "--steps", "0", "--rx", "0", "--out", str(out)]) == 0
+    capsys.readouterr()
+
+
 def test_export_l_min_error_names_existing_options(tmp_path, capsys, clean_cache):
     # before: "error: --l-max 1023 < --l-min 2000: ..." although export has no --l-max option
     assert main(["export", str(clean_cache), "--cir", "--l-min", "2000", "--out", str(tmp_path / "h.npz")]) == 2
