@@ -117,9 +117,14 @@ def register(app: typer.Typer) -> None:
         tab.add_column("map")
         tab.add_column("type")
         tab.add_column("mean GOSPA [m]", justify="right")
-        for mp, t, g in summarize(res):
+        rows = summarize(res)
+        for mp, t, g in rows:
             tab.add_row(mp, t, f"{g:.2f}")
         con.print(tab)
+        if not rows:  # e.g. --steps 4 on `paper`, whose first upload is at step 5: localisation only
+            con.print(f"note: the run has {res.meta['steps']} steps and the first map fusion is at step "
+                      f"{res.meta.get('fusion_start', 0)}: no map was fused or scored; run more steps, or set an "
+                      "earlier fusion.start (--set fusion.start=[...])", highlight=False, soft_wrap=True)
         v = res.vehicles
         names = res.meta.get("vehicle_names", [])
         for i in np.unique(v["vehicle"]):

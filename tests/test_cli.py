@@ -128,6 +128,23 @@ def test_slam_set_overrides_a_filter_parameter_and_refuses_an_unknown_one(tmp_pa
     assert not (tmp_path / "r2").exists()
 
 
+def test_slam_says_when_the_run_ends_before_the_first_fusion(tmp_path, capsys):
+    """Before: a run shorter than the first upload (paper's fusion.start [5, 6], --steps 4) printed an empty GOSPA
+    table and nothing else. Now a note says why, and a run that reaches the fusion prints none."""
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.scenes.scenario import load_preset
+
+    scn = load_preset("paper")
+    cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "c", steps=7, progress=False)
+    assert main(["slam", str(cache), "--particles", "5", "--steps", "4", "--out", str(tmp_path / "r")]) == 0
+    out = capsys.readouterr().out
+    assert "note: the run has 4 steps and the first map fusion is at step 5: no map was fused or scored" in out
+    assert main(["slam", str(cache), "--particles", "5", "--steps", "7", "--out", str(tmp_path / "r2")]) == 0
+    out = capsys.readouterr().out
+    assert "note:" not in out and "fused" in out
+
+
 def test_slam_ignore_types_leaves_those_paths_out_of_the_measurements(tmp_path, capsys):
     """--ignore-types VA: the run's include_types lack VA (1) and keep BS, SP, VS; an unknown name is one line,
     exit 2, naming the option."""
