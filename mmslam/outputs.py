@@ -301,6 +301,9 @@ def check_figure_target(path: str | Path, force: bool = False, option: str = "--
     file, a directory, or what a symbolic link points to when it is no mmslam figure is refused,
     with or without ``force`` (see the module docstring). The parent directory must exist.
     """
+    if resolve_link(Path(path), option).is_dir():  # before the suffix: a folder has none to name
+        raise MmslamError(f"{option} {path}: is a folder; give a figure file name ending in "
+                          f"{', '.join('.' + f for f in formats)}")
     fmt = figure_format(path, option, formats)
     check_file_target(path, "figure", is_mmslam_figure, option=option)
     return fmt

@@ -302,6 +302,9 @@ def find_cache_dir(path: str | Path, source: str | None = None) -> Path:
     With ``source`` (``sionna`` / ``analytic``), the only sub-directory traced by that source.
     """
     p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise CacheError(f"{p}: is a file, not a cache folder; give the folder `mmslam trace --out` wrote, or one "
+                         "cache folder in it")
     if not p.is_dir():
         raise CacheError(f"{p}: no such cache directory; run `mmslam trace <scenario> --out {p}` first")
     if (p / MANIFEST).is_file():
@@ -312,8 +315,15 @@ def find_cache_dir(path: str | Path, source: str | None = None) -> Path:
     if len(cands) == 1:
         return cands[0]
     if not cands:
-        what = f"a cache traced by '{source}'" if source is not None else MANIFEST
-        raise CacheError(f"{p}: no {what} here or in its sub-directories; run `mmslam trace` to create a cache")
+        what = f"cache traced by '{source}'" if source is not None else MANIFEST
+        deeper = [c for d in sorted(p.iterdir()) if d.is_dir() for c in list_caches(d)
+                  if source is None or _cache_source(c) == source]
+        if deeper:  # e.g. an ablation's folder, whose caches are in its cache/ folder
+            found = f"{', '.join(str(c) for c in deeper[:2])}{' ...' if len(deeper) > 2 else ''}"
+            raise CacheError(f"{p}: no {what} here or directly under it, but {len(deeper)} "
+                             f"cache{'s' if len(deeper) > 1 else ''} a level further down ({found}); give "
+                             f"{'one of them' if len(deeper) > 1 else 'that folder'}")
+        raise CacheError(f"{p}: no {what} here or directly under it; run `mmslam trace` to create a cache")
     raise CacheError(f"{p}: holds {len(cands)} caches ({', '.join(c.name for c in cands)}); give one of them")
 
 

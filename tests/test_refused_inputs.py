@@ -166,3 +166,50 @@ def test_export_l_min_error_names_existing_options(tmp_path, capsys, clean_cache
     err = one_line(capsys, "--l-min 2000", "--subcarriers - 1 = 1023")
     assert "--l-max" not in err
     assert not (tmp_path / "h.npz").exists()
+
+
+# ============================================================ the wrong kind of path: the right diagnosis
+def test_a_file_given_as_a_cache_is_named_a_file(tmp_path, capsys):
+    # before: "no such cache directory; run `mmslam trace <scenario> --out f.txt`", which would be refused
+    f = tmp_path / "f.txt"
+    f.write_text("hi")
+    assert main(["paths", str(f)]) == 2
+    err = one_line(capsys, f"{f}: is a file, not a cache folder")
+    assert "mmslam trace <scenario> --out" not in err
+    assert f.read_text() == "hi"
+
+
+def test_a_cache_root_without_that_source_reads_well(capsys, clean_cache):
+    # before: "no a cache traced by 'sionna'"
+    assert main(["paths", str(clean_cache.parent), "--source", "sionna"]) == 2
+    one_line(capsys, "no cache traced by 'sionna' here or directly under it")
+
+
+def test_a_cache_two_levels_down_is_pointed_to(tmp_path, capsys, clean_cache):
+    # before: "no manifest.json here or in its sub-directories" for an ablation's folder, whose cache is in cache/
+    import shutil
+
+    top = tmp_path / "abl"
+    shutil.copytree(clean_cache, top / "cache" / clean_cache.name)
+    assert main(["slam", str(top), "--out", str(tmp_path / "r")]) == 2
+    one_line(capsys, f"{top}: no manifest.json here or directly under it, but 1 cache a level further down "
+                     f"({top / 'cache' / clean_cache.name}); give that folder")
+    assert not (tmp_path / "r").exists()
+
+
+def test_report_on_a_cache_says_it_is_a_cache(capsys, clean_cache):
+    # before: "not an ablation results directory; run `mmslam ablate <scenario> --out <the cache>`", which would be
+    # refused (the folder is a cache)
+    assert main(["report", str(clean_cache)]) == 2
+    err = one_line(capsys, f"{clean_cache}: is a path cache, not an ablation's results")
+    assert f"--out {clean_cache}" not in err
+
+
+@pytest.mark.parametrize("argv", [["scene", "show", "paper", "--out", "{d}"], ["paths", "{c}", "--plot", "{d}"]])
+def test_a_folder_given_as_a_figure_is_named_a_folder(tmp_path, capsys, clean_cache, argv):
+    # before: "unknown figure format '.'"
+    d = tmp_path / "figs"
+    d.mkdir()
+    assert main([a.replace("{d}", str(d)).replace("{c}", str(clean_cache)) for a in argv]) == 2
+    one_line(capsys, f"--{'out' if 'show' in argv else 'plot'} {d}: is a folder; give a figure file name")
+    assert list(d.iterdir()) == []

@@ -34,6 +34,9 @@ def read_ablation(out_dir: str | Path) -> dict[str, Any]:
         raise CacheError(f"{p}: no such results directory; run `mmslam ablate <scenario> --out {p}` "
                          "(or `mmslam demo`) first")
     if not f.is_file():
+        if (p / "manifest.json").is_file():  # a path cache: an ablation into it would be refused
+            raise CacheError(f"{p}: is a path cache, not an ablation's results (no {ABLATION_FILE}); run "
+                             "`mmslam ablate <scenario> --out <new folder>` and give that folder")
         raise CacheError(f"{p}: not an ablation results directory (no {ABLATION_FILE}); run "
                          f"`mmslam ablate <scenario> --out {p}` first")
     try:
