@@ -40,6 +40,30 @@ BS, VA, SP, VS, OTHER = (int(t) for t in LandmarkType)
 TYPE_NAMES: dict[int, str] = {int(t): t.name for t in LandmarkType}
 TYPE_CODES: dict[str, int] = {v: k for k, v in TYPE_NAMES.items()}
 
+_LANDMARK_NAMES: list[str] = [t.name for t in LandmarkType if t != LandmarkType.OTHER]
+"""The names a ``[filter.types.<TYPE>]`` row may carry: the built-in types, then those registered since
+(:func:`mmslam.slam.specs.landmarks.register_landmark_type` adds and removes them here, so the scenario loader,
+a lower layer, can refuse a misspelt row)."""
+
+
+def landmark_type_names() -> tuple[str, ...]:
+    """The registered landmark type names (BS, VA, SP, VS, then any added ones)."""
+    return tuple(_LANDMARK_NAMES)
+
+
+def set_landmark_type_name(name: str, present: bool) -> None:
+    """Add (``present``) or remove a registered type's name (the registry's bookkeeping; idempotent)."""
+    if present and name not in _LANDMARK_NAMES:
+        _LANDMARK_NAMES.append(name)
+    elif not present and name in _LANDMARK_NAMES:
+        _LANDMARK_NAMES.remove(name)
+
+
+def unknown_type_row(name: str) -> str:
+    """The message for a ``[filter.types.<name>]`` row of an unregistered type (one line)."""
+    return (f"no landmark type {name!r} is registered; use one of {', '.join(_LANDMARK_NAMES)} (names are "
+            "case-sensitive; register a new type before loading a scenario that sets it)")
+
 
 class Bounce(IntEnum):
     """Geometry of a single-interaction path (how ``h(s, x)`` maps a landmark point to ``z``)."""

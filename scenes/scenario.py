@@ -26,6 +26,7 @@ import numpy as np
 
 from mmslam.errors import ConfigError
 from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
+from mmslam.model import landmark_type_names, unknown_type_row
 from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
 
 WAYPOINT_MOTION = "pure-pursuit-ct-2"
@@ -619,6 +620,8 @@ def _filter_params(src: str, table: Any) -> FilterParams:
     rows: dict[str, dict[str, Any]] = {}
     for name, row in given.items():
         _name(src, "filter.types", name)
+        if name not in landmark_type_names():  # a misspelt row would set nothing, silently
+            raise _err(src, f"filter.types.{name}", unknown_type_row(name))
         if not isinstance(row, dict):
             raise _err(src, f"filter.types.{name}", "expected a table (p_detect, threshold, merge)")
         rows[name] = {k: v for k, v in row.items() if v is not None}  # None: not set (a resolved scenario's JSON)

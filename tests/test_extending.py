@@ -98,3 +98,23 @@ def test_the_documented_new_type_runs_and_behaves_as_the_type_it_copies(example)
 
 def test_the_example_cleans_up_after_itself():
     assert "LP" not in {s.name for s in L.landmark_types()} and "cm1_lp" not in V.variant_names()
+
+
+def test_a_registered_type_may_have_its_own_row_and_leaves_none_behind(example):
+    """The doc's ``[filter.types.LP]`` / ``--set filter.types.LP.p_detect=0.9`` works once LP is registered; the
+    loader refuses that row for a name nobody registered (a misspelt row would set nothing)."""
+    from mmslam.errors import ConfigError
+    from mmslam.model import landmark_type_names
+    from mmslam.scenes.scenario import load_preset, with_overrides
+
+    assert landmark_type_names()[-1] == "LP"
+    scn = with_overrides(load_preset("paper"), ["filter.types.LP.p_detect=0.9"])
+    assert scn.filter.types["LP"].p_detect == 0.9
+    with pytest.raises(ConfigError, match="no landmark type 'LQ' is registered; use one of BS, VA, SP, VS, LP"):
+        with_overrides(load_preset("paper"), ["filter.types.LQ.p_detect=0.9"])
+
+
+def test_unregistering_a_type_removes_its_row_name():
+    from mmslam.model import landmark_type_names
+
+    assert landmark_type_names() == ("BS", "VA", "SP", "VS")  # the example fixture's LP is gone

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from mmslam.errors import ConfigError, MmslamError
-from mmslam.model import OTHER, Bounce, LandmarkType
+from mmslam.model import OTHER, Bounce, LandmarkType, set_landmark_type_name, unknown_type_row
 
 from ..phd.birth import birth_from_moments
 from ..core.gm import NO_LABEL, GM, concat, concat_label, concat_pd_beta, ego_label
@@ -389,6 +389,7 @@ def register_landmark_type(spec: LandmarkSpec, *, replace: bool = False) -> Land
     if spec.mapped and None in (spec.predict, spec.birth, spec.fuse, spec.reduce_fused):
         raise MmslamError(f"landmark type {spec.name!r}: a mapped type needs predict, birth, fuse and reduce_fused")
     _REGISTRY[spec.name] = spec
+    set_landmark_type_name(spec.name, True)
     _CODES.clear()
     _CODES.update({s.code: s for s in _REGISTRY.values()})
     return spec
@@ -399,17 +400,18 @@ def unregister_landmark_type(name: str) -> None:
     if name in BUILTIN_TYPES:
         raise MmslamError(f"landmark type {name!r} is built in and cannot be removed")
     _REGISTRY.pop(name, None)
+    set_landmark_type_name(name, False)
     _CODES.clear()
     _CODES.update({s.code: s for s in _REGISTRY.values()})
 
 
 def check_type_rows(scn: "Scenario") -> None:
     """Every ``[filter.types.<TYPE>]`` row of ``scn`` (from a file, ``--set`` or ``--grid``) names a registered
-    type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently. One-line ConfigError."""
+    type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently. One-line ConfigError. (The
+    scenario loader refuses such a row already; this guards a Scenario built in code.)"""
     unknown = sorted(set(scn.filter.types) - set(_REGISTRY))
     if unknown:
-        raise ConfigError(f"filter.types.{unknown[0]}: no landmark type {unknown[0]!r} is registered; use one of "
-                          f"{', '.join(_REGISTRY)} (names are case-sensitive)")
+        raise ConfigError(f"filter.types.{unknown[0]}: {unknown_type_row(unknown[0])}")
 
 
 def landmark_types() -> tuple[LandmarkSpec, ...]:
