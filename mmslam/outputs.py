@@ -10,9 +10,10 @@ existing target is used only when it is empty or a previous output of the same k
 (a user's folder or file, the folder or file a symbolic link points to, another kind of mmslam
 output such as the cache just read) is refused with one line, **with or without** ``--force``.
 A directory that is replaced as a whole (a SLAM result) must moreover hold nothing but the files
-that kind writes, so a file the user added to it is never deleted; and a file mmslam is about to replace
-must be the one it wrote (its recorded digest), so a file the user edited there is never overwritten. ``--force`` never widens what
-may be touched: it only asks ``mmslam trace`` to rebuild a cache mmslam wrote.
+that kind writes, so a file the user added to it is never deleted; and a file mmslam is about to
+replace must be the one it wrote (its recorded digest), so a file the user edited there is never
+overwritten. ``--force`` never widens what may be touched: it only asks ``mmslam trace`` to rebuild a
+cache mmslam wrote.
 
 Checks run before any computation (:func:`check_target`) and again at the moment of writing
 (:func:`replace_dir`), since the target can change in between. A symbolic link at the target is

@@ -280,7 +280,8 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
         size = n_steps * n_rx * ants * time_steps * (subcarriers - min(l_min, 0)) * 8  # complex64
         if size > MAX_EXPORT_BYTES:
             raise ConfigError(f"mmslam export: the response would take {size / 2**30:.1f} GiB (steps x receivers x "
-                              f"--time-steps x {'taps' if cir else '--subcarriers'}{' x antennas' if with_arrays else ''}); at most "
+                              f"--time-steps x {'taps' if cir else '--subcarriers'}"
+                              f"{' x antennas' if with_arrays else ''}); at most "
                               f"{MAX_EXPORT_BYTES / 2**30:.0f} GiB: lower --subcarriers or --time-steps"
                               f"{', raise --l-min' if cir and l_min < 0 else ''}, or export fewer --steps / --rx")
         resp = cache_channel_response(c, kind="cir" if cir else "cfr", bandwidth_hz=bandwidth,

@@ -400,7 +400,8 @@ def test_check_type_rows_accepts_every_registered_type():
 
     scn = with_overrides(load_preset("paper"), [f"filter.types.{t}.threshold=0.6" for t in ("BS", "VA", "SP", "VS")])
     check_type_rows(scn)
-    bad = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, types={**scn.filter.types, "vs": TypeParams()}))
+    rows = {**scn.filter.types, "vs": TypeParams()}
+    bad = dataclasses.replace(scn, filter=dataclasses.replace(scn.filter, types=rows))
     with pytest.raises(ConfigError, match=r"^filter\.types\.vs: no landmark type 'vs' is registered"):
         check_type_rows(bad)
 

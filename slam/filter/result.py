@@ -58,9 +58,10 @@ class Result:
         """Write atomically to ``out_dir``. Returns the path.
 
         An existing ``out_dir`` is replaced only when it is empty or a previous result holding
-        nothing but a result's files (:data:`RESULT_FILES`), each as mmslam wrote it (the marker's digests); anything
-        else (a user's folder, a file the user added to a result or edited there) raises a one-line :class:`~mmslam.errors.MmslamError`, whatever
-        ``force`` (kept for callers; :mod:`mmslam.outputs`). A symbolic link is followed and kept.
+        nothing but a result's files (:data:`RESULT_FILES`), each as mmslam wrote it (the marker's
+        digests); anything else (a user's folder, a file the user added to a result or edited there)
+        raises a one-line :class:`~mmslam.errors.MmslamError`, whatever ``force`` (kept for callers;
+        :mod:`mmslam.outputs`). A symbolic link is followed and kept.
         """
         import pyarrow as pa
         import pyarrow.parquet as pq
