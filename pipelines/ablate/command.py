@@ -33,19 +33,16 @@ def check_overrides(info: dict[str, Any] | Any, sets: Sequence[str], arms: Seque
     :class:`~mmslam.scenes.scenario.Scenario` to be traced (the CLI checks the values before any work).
     """
     from mmslam.scenes.scenario import Scenario, scenario_from_resolved, with_overrides
-    from mmslam.slam.specs.landmarks import check_type_rows
 
     base = info if isinstance(info, Scenario) else scenario_from_resolved(
         info["scenario"], str(Path(info["cache_dir"]) / "manifest.json"))
-    common = with_overrides(base, list(sets))  # an error here is --set's
-    check_type_rows(common)
+    with_overrides(base, list(sets))  # an error here is --set's (a misspelt type row too: the loader's)
     for arm in arms:
         try:
             scn = with_overrides(base, list(sets) + list(arm))
         except ConfigError as e:  # the arm's own values come from --grid
             msg = str(e)
             raise ConfigError("--grid" + msg[len("--set"):] if msg.startswith("--set") else msg) from None
-        check_type_rows(scn)
         if scn.geometry_hash() != base.geometry_hash():
             raise ConfigError(f"--set/--grid {', '.join(list(sets) + list(arm))}: changes the traced scenario "
                               "(the cache's truth); write it in a scenario file and trace a new cache")
