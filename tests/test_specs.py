@@ -123,13 +123,22 @@ def test_the_per_type_table_in_a_file_and_its_aliases():
         data["filter"].update(filt)
         return scenario_from_dict(data, "test.toml")
 
-    scn = load(merge_va=-1, p_detect_sp=0.4, types={"VA": {"merge": 4.0}, "LP": {"p_detect": 0.3}})
+    from mmslam.model import set_landmark_type_name
+
+    with pytest.raises(ConfigError, match="filter.types.LP': no landmark type 'LP' is registered"):
+        load(types={"LP": {"p_detect": 0.3}})  # a row of a type nobody registered (a misspelt row) is refused
+    set_landmark_type_name("LP", True)  # what registering a type "LP" does for the loader (docs/extending.md)
+    try:
+        scn = load(merge_va=-1, p_detect_sp=0.4, types={"VA": {"merge": 4.0}, "LP": {"p_detect": 0.3}})
+        resolved = scenario_from_resolved(scn.to_dict()).filter
+    finally:
+        set_landmark_type_name("LP", False)
     from mmslam.scenes.scenario import DEFAULT_TYPE_PARAMS
 
     builtin_va = DEFAULT_TYPE_PARAMS["VA"].threshold  # 0.5 since issue 22 (the paper's 0.7 is in paper.toml's row)
     assert scn.filter.types["VA"].merge == 4.0 and scn.filter.types["VA"].threshold == builtin_va == 0.5
     assert scn.filter.types["SP"].p_detect == 0.4 and scn.filter.types["LP"].p_detect == 0.3
-    assert scenario_from_resolved(scn.to_dict()).filter == scn.filter
+    assert resolved == scn.filter
     assert load(merge_va=-1).filter.types["VA"].merge == 49.0  # paper.toml's row pins its gate
     data = tomllib.loads(text)
     del data["filter"]["types"]["VA"]["merge"]
