@@ -203,6 +203,14 @@ class TypeParams:
                              "landmark: marginal association probabilities by belief propagation, as in BP-SLAM; "
                              "a second measurement near a landmark then births a second landmark instead of pulling "
                              "the first; docs/city-slam.md)", choices=("phd", "exclusive"))
+    tail_weight: float = param(0.0, "weight e of a heavy tail in the likelihood of a measurement given one of the "
+                               "type's Gaussians: (1 - e) N(z; zhat, S(P)) + e N(z; zhat, S(tail_scale P)), each "
+                               "the CKF update of the Gaussian with P or tail_scale P, the posterior the two "
+                               "moment-matched into one Gaussian (a landmark mapped further off than its covariance "
+                               "says then pulls a car less); 0: the paper's Gaussian likelihood (off; measured in "
+                               "docs/city-slam.md, not a default: it costs canyon's VA map)", "", lo=0.0, hi=0.5)
+    tail_scale: float = param(4.0, "factor on the Gaussian's covariance in the tail of the likelihood (tail_weight > "
+                              "0; 4: twice the standard deviation)", "", lo=1.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 9 (3 sigma), keeps apart image sources "
                                 "that U = 49 joins (canyon: two 1.53 m apart); with exclusive association the "

@@ -127,6 +127,9 @@ class LocalFilter:
         """type code -> its missed-detection rule (``filter.types.<T>.missed``)"""
         self._association = {t: s.type_params(scn).association for t, s in self.specs.items()}
         """type code -> its measurement association (``filter.types.<T>.association``)"""
+        self._tail = {t: (s.type_params(scn).tail_weight, s.type_params(scn).tail_scale) for t, s in self.specs.items()}
+        """type code -> the heavy tail ``(e, K)`` of its likelihood (``filter.types.<T>.tail_weight``, ``tail_scale``)
+        """
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
@@ -191,7 +194,7 @@ class LocalFilter:
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
-                                  self._body, self._missed, self._association)
+                                  self._body, self._missed, self._association, self._tail)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 

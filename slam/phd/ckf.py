@@ -417,3 +417,34 @@ def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, st
     inn = innovate(np.asarray(m, float)[None], np.asarray(P, float)[None], np.asarray(state, float)[None],
                    geometry, bs, np.asarray(z, float)[None], R, "kalman_update", extent, body)
     return inn.m_post[0, 0], inn.P_post[0, 0], float(inn.loglik[0, 0])
+
+
+def tail_mixture(core: Innovation, wide: Innovation, e: float) -> Innovation:
+    """The CKF update of one Gaussian under a heavy-tailed likelihood, from its updates with ``P`` and ``K P``.
+
+    For one Gaussian ``N(x; m, P)`` and one measurement ``z`` (units of eq. (5), the global frame): the likelihood
+    ``(1 - e) N(z; zhat, S_1) + e N(z; zhat, S_K)``, with ``S_1``, ``S_K`` the innovation covariances of ``P`` and
+    ``K P``; its log ``l = logaddexp(log(1 - e) + l_1, log(e) + l_K)``; the posterior, the mixture of the two updates
+    ``N(m_1, P_1)``, ``N(m_K, P_K)`` with weights ``a = (1 - e) exp(l_1 - l)`` and ``1 - a``, moment-matched:
+    ``m' = a m_1 + (1 - a) m_K``, ``P' = a (P_1 + d_1 d_1^T) + (1 - a) (P_K + d_K d_K^T)``, ``d_i = m_i - m'``.
+    A Gaussian scale mixture (a Student-t-like tail); ``e = 0`` or ``K = 1`` give the Gaussian update.
+
+    Args:
+        core, wide: the :class:`Innovation` of the same ``N`` Gaussians and ``J`` measurements with ``P`` and
+            ``K P`` (``loglik (N, J)``, ``m_post (N, J, d)``, ``P_post (N, 1 or J, d, d)``).
+        e: the tail's weight in ``(0, 1]``.
+
+    Returns:
+        The mixture's :class:`Innovation`, ``P_post (N, J, d, d)``.
+    """
+    lc = np.log1p(-e) + core.loglik if e < 1.0 else np.full_like(core.loglik, -np.inf)
+    lk = math.log(e) + wide.loglik
+    ll = np.logaddexp(lc, lk)
+    a = np.where(np.isfinite(ll), np.exp(lc - ll), 0.0)[..., None]  # (N, J, 1)
+    shape = core.m_post.shape + core.m_post.shape[-1:]
+    P1, PK = np.broadcast_to(core.P_post, shape), np.broadcast_to(wide.P_post, shape)
+    m = a * core.m_post + (1.0 - a) * wide.m_post
+    d1, dK = core.m_post - m, wide.m_post - m
+    P = a[..., None] * (P1 + d1[..., :, None] * d1[..., None, :]) + (1.0 - a)[..., None] * (
+        PK + dK[..., :, None] * dK[..., None, :])
+    return Innovation(ll, np.ascontiguousarray(m), np.ascontiguousarray(0.5 * (P + np.swapaxes(P, -1, -2))))

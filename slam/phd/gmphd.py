@@ -29,7 +29,7 @@ import numpy as np
 from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
-from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
@@ -42,7 +42,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             kinds: Mapping[int, LandmarkKind],
             bodies: Mapping[int, np.ndarray | None] | None = None,
             missed: Mapping[int, str] | None = None,
-            association: Mapping[int, str] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            association: Mapping[int, str] | None = None,
+            tails: Mapping[int, tuple[float, float]] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -91,6 +92,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         association: type code -> ``phd`` (the shares of eq. (5)) or ``exclusive`` (each Gaussian one landmark
             with at most one measurement: the detected and missed weights of
             :func:`~mmslam.slam.phd.association.exclusive_terms`; None or a type not in it: ``phd``).
+        tails: type code -> ``(e, K)``, the heavy tail of the type's likelihood
+            (:func:`~mmslam.slam.phd.ckf.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)``.
@@ -102,14 +105,16 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     """
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
-    bodies, missed, association = bodies or {}, missed or {}, association or {}
+    bodies, missed, association, tails = bodies or {}, missed or {}, association or {}, tails or {}
     for t in maps:
         if association.get(t, "phd") not in ("phd", "exclusive"):
             raise ValueError(f"association {association[t]!r}: expected 'phd' or 'exclusive'")
     exclusive = {t for t in maps if association.get(t, "phd") == "exclusive"}
-    # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
+    # an exclusive type's detected weights are not the shares, and a tailed type's terms are mixtures: every
+    # posterior is computed (no skip floors)
+    plain = {t for t in maps if t not in exclusive and not tails.get(t, (0.0, 1.0))[0] > 0.0}
     terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
-                        None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"))
+                        prune if t in plain else None, bodies.get(t), missed.get(t, "phd"), tails.get(t))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -195,7 +200,8 @@ class TypeCorrection:
 def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
-               prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd") -> TypeCorrection:
+               prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd",
+               tail: tuple[float, float] | None = None) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -227,6 +233,9 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         missed: the missed-detection weight: ``phd``, ``(1 - p_D) w`` (eq. (5)), or ``bernoulli``, the Gaussian
             as one landmark that exists with probability ``min(w, 1)``
             (:func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`).
+        tail: ``(e, K)`` with ``e > 0``: the likelihood of ``z_j`` given the Gaussian is the scale mixture
+            ``(1 - e) N(z_j; zhat, S(P)) + e N(z_j; zhat, S(K P))`` (:func:`~mmslam.slam.phd.ckf.tail_mixture`;
+            ``filter.types.<T>.tail_weight``, ``tail_scale``); None or ``e = 0``: the Gaussian likelihood of eq. (5).
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -276,13 +285,28 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext, body_array(body),
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
                                              loglik, m_post, P_post, floor_q, floor_post, workspace(d))
+    _raise_on(code, name)
+    inn = Innovation(loglik, m_post, P_post)
+    if tail is not None and tail[0] > 0.0 and n and J:
+        e, K = float(tail[0]), float(tail[1])
+        lq2, lk2, mp2 = np.empty((P_, Q, J)), np.empty((n, J)), np.empty((n, J, d))
+        Pp2 = np.empty((n, R.shape[0], d, d))
+        _raise_on(_TYPE_TERMS[geometry](g.w, pd, g.m, c(g.P * K), c(states, dtype=float), c(bs, dtype=float), ext,
+                                        body_array(body), c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index,
+                                        lq2, lk2, mp2, Pp2, -np.inf, -np.inf, workspace(d)), name)
+        inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
+        rows = det_index >= 0  # logq = log(p_D w) + log of the mixture likelihood
+        logq[rows] += (inn.loglik - loglik)[det_index[rows]]
+    return TypeCorrection(g, lm_type, logq, missed_w, inn, det_index, pred_mass, name, pd, missed)
+
+
+def _raise_on(code: int, name: str) -> None:
+    """The FloatingPointError of a failure code of the CKF kernels (``OK``: nothing)."""
     if code == BAD_POSITION_COV:
         raise FloatingPointError(f"covariance not positive definite in {name} correction")
     if code == BAD_INNOVATION_COV:
         raise FloatingPointError(
             f"covariance not positive definite in {name} correction (innovation covariance)")
-    return TypeCorrection(g, lm_type, logq, missed_w, Innovation(loglik, m_post, P_post), det_index, pred_mass,
-                          name, pd, missed)
 
 
 NEGLIGIBLE_LOG = -40.0

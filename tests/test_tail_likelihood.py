@@ -1,0 +1,121 @@
+"""The heavy-tailed likelihood of a type's Gaussians (``filter.types.<T>.tail_weight``, ``tail_scale``;
+slam/phd/ckf.py ``tail_mixture``, used by gmphd.type_terms): by hand, against two plain CKF updates, and end to
+end (off by default)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mmslam.model import Bounce
+from mmslam.slam.core.gm import GM
+from mmslam.slam.models.measurement import measure
+from mmslam.slam.phd.ckf import Innovation, tail_mixture
+from mmslam.slam.phd.gmphd import type_terms
+from mmslam.slam.specs.landmarks import landmark_type
+
+BS_POS = np.array([0.0, 0.0, 40.0])
+R = np.diag([0.3, 0.03, 0.03, 0.03, 0.03]) ** 2
+
+
+def test_tail_mixture_by_hand():
+    """One Gaussian, one measurement, 1-D state: core N(m=1, P=1) with log-likelihood -2, wide N(m=3, P=4) with
+    -3, e = 0.25. Likelihood 0.75 e^-2 + 0.25 e^-3; a = 0.75 e^-2 / that; mean a + 3 (1 - a); covariance
+    a (1 + (1 - m')^2) + (1 - a) (4 + (3 - m')^2)."""
+    core = Innovation(np.array([[-2.0]]), np.array([[[1.0]]]), np.array([[[[1.0]]]]))
+    wide = Innovation(np.array([[-3.0]]), np.array([[[3.0]]]), np.array([[[[4.0]]]]))
+    out = tail_mixture(core, wide, 0.25)
+    lik = 0.75 * math.exp(-2.0) + 0.25 * math.exp(-3.0)
+    a = 0.75 * math.exp(-2.0) / lik
+    m = a * 1.0 + (1 - a) * 3.0
+    assert out.loglik[0, 0] == pytest.approx(math.log(lik), rel=1e-14)
+    assert out.m_post[0, 0, 0] == pytest.approx(m, rel=1e-14)
+    assert out.P_post[0, 0, 0, 0] == pytest.approx(a * (1 + (1 - m) ** 2) + (1 - a) * (4 + (3 - m) ** 2), rel=1e-13)
+
+
+def test_tail_mixture_of_equal_updates_and_all_tail():
+    """Equal core and wide updates (K = 1) give them back for any weight; e = 1 gives the wide update."""
+    rng = np.random.default_rng(2)
+    A = rng.standard_normal((3, 2, 3, 3))
+    P = A @ np.swapaxes(A, -1, -2) + 3 * np.eye(3)
+    core = Innovation(rng.standard_normal((3, 2)), rng.standard_normal((3, 2, 3)), P)
+    wide = Innovation(rng.standard_normal((3, 2)) - 1.0, rng.standard_normal((3, 2, 3)), 2.0 * P)
+    for e in (0.1, 0.5):
+        same = tail_mixture(core, core, e)
+        np.testing.assert_allclose(same.loglik, core.loglik, rtol=1e-13)
+        np.testing.assert_allclose(same.m_post, core.m_post, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(same.P_post, core.P_post, rtol=1e-13)
+    allw = tail_mixture(core, wide, 1.0)
+    np.testing.assert_allclose(allw.loglik, wide.loglik, rtol=1e-14)
+    np.testing.assert_allclose(allw.m_post, wide.m_post, rtol=1e-14)
+    np.testing.assert_allclose(allw.P_post, wide.P_post, rtol=1e-14)
+
+
+def _scene(P_=3):
+    rng = np.random.default_rng(7)
+    s = np.tile([70.0, 5.0, 0.0, np.pi / 2, 20.0, 0.1, 300.0], (P_, 1))
+    s[:, 0:2] += rng.standard_normal((P_, 2)) * 0.3
+    va = np.array([[200.0, 0.0, 40.0], [0.0, 200.0, 40.0]])
+    g = GM(np.tile([0.9, 0.6], (P_, 1)), np.tile(va, (P_, 1, 1)) + rng.standard_normal((P_, 2, 3)),
+           np.tile(np.eye(3) * 2.0, (P_, 2, 1, 1)), np.ones((P_, 2), bool))
+    Z = np.stack([measure(s[0], va[0], Bounce.MIRROR, BS_POS), measure(s[0], va[1] + 3.0, Bounce.MIRROR, BS_POS)])
+    return g, s, Z
+
+
+def _pd(u, x, t):
+    return np.full(np.shape(x)[:-1], 0.9)
+
+
+def test_type_terms_with_a_tail_against_two_plain_updates():
+    """The detection terms with a tail (e, K) against the plain terms of P and K P combined by hand:
+    log q = logaddexp(log(1 - e) + log q_P, log(e) + log q_KP); the posterior is tail_mixture of the two."""
+    g, s, Z = _scene()
+    e, K = 0.2, 4.0
+    va = landmark_type("VA")
+    t1 = type_terms(g, va, s, Z, R, BS_POS, _pd)
+    tK = type_terms(GM(g.w, g.m, g.P * K, g.mask), va, s, Z, R, BS_POS, _pd)
+    tt = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(e, K))
+    np.testing.assert_allclose(tt.logq, np.logaddexp(math.log1p(-e) + t1.logq, math.log(e) + tK.logq), rtol=1e-12)
+    want = tail_mixture(t1.inn, tK.inn, e)
+    np.testing.assert_allclose(tt.inn.m_post, want.m_post, rtol=1e-12)
+    np.testing.assert_allclose(tt.inn.P_post, want.P_post, rtol=1e-12)
+    np.testing.assert_array_equal(tt.missed_w, t1.missed_w)  # the missed-detection term is the Gaussian's
+    # e = 0 is the plain update, bit for bit
+    t0 = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(0.0, K))
+    np.testing.assert_array_equal(t0.logq, t1.logq)
+    np.testing.assert_array_equal(t0.inn.m_post, t1.inn.m_post)
+
+
+def test_a_tail_lowers_a_close_fit_and_raises_a_far_one():
+    """One particle, one VA Gaussian (covariance 2 I m^2): the measurement it predicts from its mean is less likely
+    under the tail (the wide term is flatter at its mode), one of a point 10 m further along the line of sight (its
+    range about 7 sigma off) more likely."""
+    g, s, _ = _scene(1)
+    g = GM(g.w[:, :1], g.m[:, :1], g.P[:, :1], g.mask[:, :1])
+    m = g.m[0, 0]
+    Z = np.stack([measure(s[0], m, Bounce.MIRROR, BS_POS), measure(s[0], m + [10.0, 0.0, 0.0], Bounce.MIRROR, BS_POS)])
+    va = landmark_type("VA")
+    plain = type_terms(g, va, s, Z, R, BS_POS, _pd)
+    tail = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(0.2, 4.0))
+    assert tail.logq[0, 0, 0] < plain.logq[0, 0, 0]
+    assert tail.logq[0, 0, 1] > plain.logq[0, 0, 1] + 5.0
+
+
+def test_tail_is_off_by_default_and_on_through_set(tmp_path):
+    """run_slam with the default (tail_weight 0) and with --set tail_weight=0 agree to 1e-12; 0.2 changes the run;
+    a weight above its bound 0.5 is a one-line error naming the key."""
+    from mmslam.errors import ConfigError
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.scenes.scenario import load_preset, with_overrides
+    from mmslam.slam.filter.run import run_slam
+
+    scn = load_preset("paper")
+    cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "c", steps=8, progress=False)
+    err = [np.asarray(run_slam(cache, "proposed", 20, 1, overrides=o).vehicles["pos_err"], float)
+           for o in ((), ("filter.types.VA.tail_weight=0",), ("filter.types.VA.tail_weight=0.2",))]
+    np.testing.assert_allclose(err[1], err[0], rtol=1e-12)
+    assert not np.allclose(err[2], err[0])
+    with pytest.raises(ConfigError, match="filter.types.VA.tail_weight"):
+        with_overrides(scn, ["filter.types.VA.tail_weight=0.7"])
