@@ -81,6 +81,10 @@ def test_type_terms_with_a_tail_against_two_plain_updates():
     np.testing.assert_allclose(tt.inn.m_post, want.m_post, rtol=1e-12)
     np.testing.assert_allclose(tt.inn.P_post, want.P_post, rtol=1e-12)
     np.testing.assert_array_equal(tt.missed_w, t1.missed_w)  # the missed-detection term is the Gaussian's
+    # the skip floors of a clutter intensity and a prune threshold do not apply to a mixture: every term is computed
+    tp = type_terms(g, va, s, Z, R, BS_POS, _pd, log_clutter=math.log(1e-5), prune=1e-3, tail=(e, K))
+    np.testing.assert_array_equal(tp.logq, tt.logq)
+    np.testing.assert_array_equal(tp.inn.m_post, tt.inn.m_post)
     # e = 0 is the plain update, bit for bit
     t0 = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(0.0, K))
     np.testing.assert_array_equal(t0.logq, t1.logq)

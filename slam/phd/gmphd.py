@@ -110,11 +110,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         if association.get(t, "phd") not in ("phd", "exclusive"):
             raise ValueError(f"association {association[t]!r}: expected 'phd' or 'exclusive'")
     exclusive = {t for t in maps if association.get(t, "phd") == "exclusive"}
-    # an exclusive type's detected weights are not the shares, and a tailed type's terms are mixtures: every
-    # posterior is computed (no skip floors)
-    plain = {t for t in maps if t not in exclusive and not tails.get(t, (0.0, 1.0))[0] > 0.0}
+    # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
     terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
-                        prune if t in plain else None, bodies.get(t), missed.get(t, "phd"), tails.get(t))
+                        None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"), tails.get(t))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -281,13 +279,14 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     elif missed != "phd":
         raise ValueError(f"missed-detection rule {missed!r}: expected 'phd' or 'bernoulli'")
     loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
-    floor_q, floor_post = _skip_floors(log_clutter, prune)
+    tailed = tail is not None and tail[0] > 0.0
+    floor_q, floor_post = (-np.inf, -np.inf) if tailed else _skip_floors(log_clutter, prune)  # a mixture: no skips
     code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext, body_array(body),
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
                                              loglik, m_post, P_post, floor_q, floor_post, workspace(d))
     _raise_on(code, name)
     inn = Innovation(loglik, m_post, P_post)
-    if tail is not None and tail[0] > 0.0 and n and J:
+    if tailed and n and J:
         e, K = float(tail[0]), float(tail[1])
         lq2, lk2, mp2 = np.empty((P_, Q, J)), np.empty((n, J)), np.empty((n, J, d))
         Pp2 = np.empty((n, R.shape[0], d, d))
