@@ -123,3 +123,26 @@ def test_tail_is_off_by_default_and_on_through_set(tmp_path):
     assert not np.allclose(err[2], err[0])
     with pytest.raises(ConfigError, match="filter.types.VA.tail_weight"):
         with_overrides(scn, ["filter.types.VA.tail_weight=0.7"])
+
+
+@pytest.mark.parametrize("P_, Q, J", [(1, 1, 1), (1, 0, 2), (2, 2, 0), (1, 2, 1)])
+def test_tail_on_degenerate_shapes_against_two_plain_updates(P_, Q, J):
+    """P = 1, an empty map (Q = 0), an empty scan (J = 0): the tailed terms are the plain ones of P and K P combined
+    by hand (nothing to combine where there is no Gaussian or no measurement: the plain terms, unchanged)."""
+    g, s, Z = _scene(P_)
+    g = GM(g.w[:, :Q], g.m[:, :Q], g.P[:, :Q], g.mask[:, :Q])
+    Z = np.concatenate([Z, Z])[:J]
+    va, e, K = landmark_type("VA"), 0.3, 3.0
+    t1 = type_terms(g, va, s, Z, R, BS_POS, _pd)
+    tK = type_terms(GM(g.w, g.m, g.P * K, g.mask), va, s, Z, R, BS_POS, _pd)
+    tt = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(e, K))
+    assert tt.logq.shape == (P_, Q, J) and tt.inn.m_post.shape == t1.inn.m_post.shape
+    if Q and J:
+        np.testing.assert_allclose(tt.logq, np.logaddexp(math.log1p(-e) + t1.logq, math.log(e) + tK.logq),
+                                   rtol=1e-12)
+        want = tail_mixture(t1.inn, tK.inn, e)
+        np.testing.assert_allclose(tt.inn.m_post, want.m_post, rtol=1e-12)
+        np.testing.assert_allclose(tt.inn.P_post, want.P_post, rtol=1e-12)
+    else:
+        np.testing.assert_array_equal(tt.logq, t1.logq)
+    np.testing.assert_array_equal(tt.missed_w, t1.missed_w)
