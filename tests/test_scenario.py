@@ -341,4 +341,5 @@ def test_held_out_scenes_are_written_as_a_user_would(path):
 
 
 def test_the_held_out_scenes_are_all_there():
-    assert [p.stem for p in HELD_OUT] == ["etoile", "etoile2", "florence", "florence2", "sanfrancisco", "sfhills", "sfhills2"]
+    assert [p.stem for p in HELD_OUT] == ["etoile", "etoile2", "etoile3", "florence", "florence2", "munich2",
+                                          "sanfrancisco", "sfhills", "sfhills2"]
