@@ -207,15 +207,17 @@ class TypeParams:
                                "type's Gaussians: (1 - e) N(z; zhat, S(P)) + e N(z; zhat, S(tail_scale P)), each "
                                "the CKF update of the Gaussian with P or tail_scale P, the posterior the two "
                                "moment-matched into one Gaussian (a landmark mapped further off than its covariance "
-                               "says then pulls a car less); 0: the paper's Gaussian likelihood (off; measured in "
-                               "docs/city-slam.md, not a default: it costs canyon's VA map)", "", lo=0.0, hi=0.5)
+                               "says then pulls a car less, and its covariance grows); 0: the paper's Gaussian "
+                               "likelihood. The VA default, 0.2 with the merge gate 6, lets the VA map help "
+                               "localisation on written city scenes (docs/city-slam.md)", "", lo=0.0, hi=0.5)
     tail_scale: float = param(4.0, "factor on the Gaussian's covariance in the tail of the likelihood (tail_weight > "
                               "0; 4: twice the standard deviation)", "", lo=1.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
-                                "not set: filter.merge. The VA default, 9 (3 sigma), keeps apart image sources "
-                                "that U = 49 joins (canyon: two 1.53 m apart); with exclusive association the "
-                                "fragments a tight gate used to leave are not created (docs/city-slam.md); "
-                                "negative: filter.merge", "", lo=-1.0, hi=1e6)
+                                "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
+                                "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "
+                                "their covariances; with exclusive association the fragments a tight gate used to "
+                                "leave are not created (docs/city-slam.md); negative: filter.merge", "", lo=-1.0,
+                                hi=1e6)
 
     def merge_gate(self, default: float) -> float:
         """The merge gate of the type: :attr:`merge`, or ``default`` (``filter.merge``) when it is not set or negative."""
@@ -224,11 +226,13 @@ class TypeParams:
 
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
     "BS": TypeParams(),
-    "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", merge=9.0),
+    "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", tail_weight=0.2,
+                     merge=6.0),
     "SP": TypeParams(), "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
-prior, threshold 0.5 and the Bernoulli missed-detection rule, the city defaults of docs/city-slam.md; the ``paper``
-preset sets 0.95 / 0.7 / phd; VS: p_D from the
+prior, threshold 0.5, the Bernoulli missed-detection rule, the exclusive association, the heavy tail 0.2 and the
+merge gate 6, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7 / phd / phd / 0 / 49;
+VS: p_D from the
 link budget under a power-aware sensor, docs/estimator.md 6b). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
 

@@ -93,10 +93,10 @@ def test_canyon_like_pair_in_the_correction():
 
 def test_defaults_and_presets():
     va = load_preset("canyon").filter.type_params("VA")
-    assert va.association == "exclusive" and va.merge == 9.0  # the city default
+    assert va.association == "exclusive" and va.merge == 6.0 and va.tail_weight == 0.2  # the city defaults
     for name in ("paper", "twc2020"):  # published configurations keep the PHD's update and gate
         tp = load_preset(name).filter.type_params("VA")
-        assert tp.association == "phd" and tp.merge == 49.0
+        assert tp.association == "phd" and tp.merge == 49.0 and tp.tail_weight == 0.0
     for t in ("SP", "VS"):
         assert load_preset("munich").filter.type_params(t).association == "phd"
     with pytest.raises(ConfigError, match=r"filter\.types\.VA\.association.*phd.*exclusive"):
@@ -153,14 +153,14 @@ def test_exclusive_association_keeps_the_mass_bound_with_either_missed_rule():
 
 def test_a_stored_scenario_without_a_va_gate_keeps_filter_merge():
     """A scenario resolved before the VA gate had a default stores ``merge: null`` (then: filter.merge); it loads
-    as -1 (filter.merge), not as today's default 9."""
+    as -1 (filter.merge), not as today's default 6."""
     from mmslam.scenes.scenario import scenario_from_resolved
 
     d = load_preset("canyon").to_dict()
     d["filter"]["types"]["VA"]["merge"] = None
     scn = scenario_from_resolved(d)
     assert scn.filter.types["VA"].merge == -1.0 and scn.filter.type_params("VA").merge_gate(scn.filter.merge) == 49.0
-    assert scenario_from_resolved(load_preset("canyon").to_dict()).filter.types["VA"].merge == 9.0
+    assert scenario_from_resolved(load_preset("canyon").to_dict()).filter.types["VA"].merge == 6.0
 
 
 @pytest.mark.parametrize("missed", ["bernoulli", "phd"])

@@ -42,8 +42,8 @@ def test_merge_gate_is_merge_va_for_vas_and_merge_for_the_others():
 def test_unset_merge_va_follows_filter_merge():
     """A VA merge gate that is not set (``merge_va`` < 0) means filter.merge: an override of filter.merge (TOML,
     --set, a grid) then reaches the VA maps, locally and in the fused-map reduction, as before merge_va existed.
-    The built-in VA row sets 9 (docs/city-slam.md); ``paper`` pins the paper's single gate, 49."""
-    assert load_preset("canyon").filter.types["VA"].merge == 9.0
+    The built-in VA row sets 6 (docs/city-slam.md); ``paper`` pins the paper's single gate, 49."""
+    assert load_preset("canyon").filter.types["VA"].merge == 6.0
     assert load_preset("paper").filter.types["VA"].merge == 49.0
     scn = with_overrides(load_preset("paper"), ["filter.merge_va=-1", "filter.merge=4"])
     assert scn.filter.merge_va < 0
