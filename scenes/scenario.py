@@ -208,8 +208,8 @@ class TypeParams:
                                "the CKF update of the Gaussian with P or tail_scale P, the posterior the two "
                                "moment-matched into one Gaussian (a landmark mapped further off than its covariance "
                                "says then pulls a car less, and its covariance grows); 0: the paper's Gaussian "
-                               "likelihood. The VA default, 0.2 with the merge gate 6, lets the VA map help "
-                               "localisation on written city scenes (docs/city-slam.md)", "", lo=0.0, hi=0.5)
+                               "likelihood. The VA default, 0.2 with the merge gate 6, is chosen and checked on city "
+                               "scenes in docs/city-slam.md", "", lo=0.0, hi=0.5)
     tail_scale: float = param(4.0, "factor on the Gaussian's covariance in the tail of the likelihood (tail_weight > "
                               "0; 4: twice the standard deviation)", "", lo=1.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
