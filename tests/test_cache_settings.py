@@ -64,6 +64,27 @@ def test_in_memory_overrides_trace_parameters_and_old_flat_keys_are_kept() -> No
     assert changed == [] and scn.geometry_hash() == stored_scn.geometry_hash()
 
 
+def test_a_cache_traced_before_the_heavy_tail_runs_with_todays_va_row() -> None:
+    """A cache of session 19 stores the VA row without ``tail_weight`` and with that mmslam's gate 9: read back, it
+    gets today's VA defaults (tail 0.2, gate 6), and says so for the gate; ``paper``, whose file now pins the
+    tail at 0 and the gate at 49, keeps both."""
+    c = load_preset("canyon")
+    stored = c.to_dict()
+    del stored["filter"]["types"]["VA"]["tail_weight"]
+    stored["filter"]["types"]["VA"]["merge"] = 9.0
+    old = _old_defaults(filter__types__VA__merge=9.0)
+    del old["filter"]["types"]["VA"]["tail_weight"]
+    scn, changed = refresh_settings(stored, scenario_settings(c), old)
+    va = scn.filter.type_params("VA")
+    assert (va.tail_weight, va.tail_scale, va.merge) == (0.2, 4.0, 6.0)
+    assert changed == ["filter.types.VA.merge: 9.0 -> 6.0"]
+    p = load_preset("paper")
+    stored = p.to_dict()
+    del stored["filter"]["types"]["VA"]["tail_weight"]
+    scn, changed = refresh_settings(stored, {}, old, preset="paper")
+    assert scn.filter.type_params("VA").tail_weight == 0.0 and scn.filter.type_params("VA").merge == 49.0
+
+
 def test_without_recorded_defaults_the_stored_scenario_is_used_unchanged() -> None:
     c = load_preset("canyon")
     stored = c.to_dict()
