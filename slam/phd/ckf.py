@@ -419,14 +419,64 @@ def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, st
     return inn.m_post[0, 0], inn.P_post[0, 0], float(inn.loglik[0, 0])
 
 
-def tail_mixture(core: Innovation, wide: Innovation, e: float) -> Innovation:
-    """The CKF update of one Gaussian under a heavy-tailed likelihood, from its updates with ``P`` and ``K P``.
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _logaddexp(a: float, b: float) -> float:
+    """``log(exp(a) + exp(b))`` for ``a, b`` in ``[-inf, inf)``."""
+    if a == -np.inf:
+        return b
+    if b == -np.inf:
+        return a
+    return max(a, b) + math.log1p(math.exp(-abs(a - b)))
 
-    For one Gaussian ``N(x; m, P)`` and one measurement ``z`` (units of eq. (5), the global frame): the likelihood
-    ``(1 - e) N(z; zhat, S_1) + e N(z; zhat, S_K)``, with ``S_1``, ``S_K`` the innovation covariances of ``P`` and
-    ``K P``; its log ``l = logaddexp(log(1 - e) + l_1, log(e) + l_K)``; the posterior, the mixture of the two updates
-    ``N(m_1, P_1)``, ``N(m_K, P_K)`` with weights ``a = (1 - e) exp(l_1 - l)`` and ``1 - a``, moment-matched:
-    ``m' = a m_1 + (1 - a) m_K``, ``P' = a (P_1 + d_1 d_1^T) + (1 - a) (P_K + d_K d_K^T)``, ``d_i = m_i - m'``.
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def tail_update(l1: float, lK: float, m1: np.ndarray, mK: np.ndarray, P1: np.ndarray, PK: np.ndarray,
+                log1me: float, loge: float, m: np.ndarray, P: np.ndarray) -> float:
+    """The heavy-tailed update of one Gaussian by one measurement, from its CKF updates with ``P`` and ``K P``.
+
+    The likelihood ``(1 - e) N(z; zhat, S_1) + e N(z; zhat, S_K)`` (eq. (5) with a scale-mixture tail; units of
+    eq. (5), the global frame): ``l = logaddexp(log(1 - e) + l1, log(e) + lK)``; the posterior, the two updates
+    ``N(m1, P1)``, ``N(mK, PK)`` with weights ``a = (1 - e) exp(l1 - l)`` and ``1 - a``, moment-matched:
+    ``m = a m1 + (1 - a) mK``, ``P = a (P1 + d1 d1^T) + (1 - a) (PK + dK dK^T)``, ``di = mi - m`` (symmetrised).
+
+    Args: ``l1``, ``lK`` the two log-likelihoods; ``m1``, ``mK`` ``(d,)`` and ``P1``, ``PK`` ``(d, d)`` the two
+    posteriors; ``log1me = log(1 - e)`` (``-inf`` for ``e = 1``), ``loge = log(e)``; ``m (d,)``, ``P (d, d)``
+    receive the posterior. Returns ``l``.
+    """
+    lc = log1me + l1
+    ll = _logaddexp(lc, loge + lK)
+    a = math.exp(lc - ll) if ll > -np.inf and ll < np.inf else 0.0
+    d = m.shape[0]
+    for r in range(d):
+        m[r] = a * m1[r] + (1.0 - a) * mK[r]
+    for r in range(d):
+        for c in range(r + 1):
+            v = (a * (P1[r, c] + (m1[r] - m[r]) * (m1[c] - m[c]))
+                 + (1.0 - a) * (PK[r, c] + (mK[r] - m[r]) * (mK[c] - m[c])))
+            w = (a * (P1[c, r] + (m1[c] - m[c]) * (m1[r] - m[r]))
+                 + (1.0 - a) * (PK[c, r] + (mK[c] - m[c]) * (mK[r] - m[r])))
+            P[r, c] = P[c, r] = 0.5 * (v + w)
+    return ll
+
+
+@batch_kernel
+def _tail_mixture_batch(l1: np.ndarray, lK: np.ndarray, m1: np.ndarray, mK: np.ndarray, P1: np.ndarray,
+                        PK: np.ndarray, log1me: float, loge: float, ll: np.ndarray, m: np.ndarray,
+                        P: np.ndarray) -> None:
+    """:func:`tail_update` for every Gaussian ``n`` and measurement ``j`` (``P1``, ``PK``: ``(N, 1 or J, d, d)``)."""
+    N, J = l1.shape
+    for n in range(N):
+        for j in range(J):
+            r1 = j if P1.shape[1] > 1 else 0
+            rK = j if PK.shape[1] > 1 else 0
+            ll[n, j] = tail_update(l1[n, j], lK[n, j], m1[n, j], mK[n, j], P1[n, r1], PK[n, rK], log1me, loge,
+                                   m[n, j], P[n, j])
+
+
+def tail_mixture(core: Innovation, wide: Innovation, e: float) -> Innovation:
+    """The CKF update of ``N`` Gaussians by ``J`` measurements under a heavy-tailed likelihood (:func:`tail_update`
+    for each pair, compiled), from their updates with ``P`` and ``K P``.
+
     A Gaussian scale mixture (a Student-t-like tail); ``e = 0`` or ``K = 1`` give the Gaussian update.
 
     Args:
@@ -437,14 +487,10 @@ def tail_mixture(core: Innovation, wide: Innovation, e: float) -> Innovation:
     Returns:
         The mixture's :class:`Innovation`, ``P_post (N, J, d, d)``.
     """
-    lc = np.log1p(-e) + core.loglik if e < 1.0 else np.full_like(core.loglik, -np.inf)
-    lk = math.log(e) + wide.loglik
-    ll = np.logaddexp(lc, lk)
-    a = np.where(np.isfinite(ll), np.exp(lc - ll), 0.0)[..., None]  # (N, J, 1)
-    shape = core.m_post.shape + core.m_post.shape[-1:]
-    P1, PK = np.broadcast_to(core.P_post, shape), np.broadcast_to(wide.P_post, shape)
-    m = a * core.m_post + (1.0 - a) * wide.m_post
-    d1, dK = core.m_post - m, wide.m_post - m
-    P = a[..., None] * (P1 + d1[..., :, None] * d1[..., None, :]) + (1.0 - a)[..., None] * (
-        PK + dK[..., :, None] * dK[..., None, :])
-    return Innovation(ll, np.ascontiguousarray(m), np.ascontiguousarray(0.5 * (P + np.swapaxes(P, -1, -2))))
+    c = np.ascontiguousarray
+    N, J, d = core.m_post.shape
+    ll, m, P = np.empty((N, J)), np.empty((N, J, d)), np.empty((N, J, d, d))
+    _tail_mixture_batch(c(core.loglik, dtype=float), c(wide.loglik, dtype=float), c(core.m_post, dtype=float),
+                        c(wide.m_post, dtype=float), c(core.P_post, dtype=float), c(wide.P_post, dtype=float),
+                        math.log1p(-e) if e < 1.0 else -np.inf, math.log(e), ll, m, P)
+    return Innovation(ll, m, P)
