@@ -124,3 +124,25 @@ def test_compare_estimated_reads_the_stored_estimator_columns(tmp_path):
     counts = res["estimator_counts_mean_per_vehicle_step"]
     assert list(counts) == ["estimates", "detected", "merged", "false", "missed", "suppressed"]
     assert counts["detected"] <= counts["estimates"]
+
+
+FILTER = Path(__file__).parents[1] / "benchmarks" / "bench_filter.py"
+
+
+def _bench_filter(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(FILTER), "--steps", "8", "--warmup", "6", "--particles", "20",
+                           "--variants", "proposed", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_bench_filter_set_times_the_changed_setting_and_refuses_a_bad_one():
+    """bench_filter --set runs the paper data with the setting changed and says so in its header; a value out of its
+    bounds, or a key that does not exist, is argparse's error (its usage line, then one line naming the key; exit 2), before any timing."""
+    ok = _bench_filter("--set", "filter.types.VA.tail_weight=0.2")
+    assert ok.returncode == 0, ok.stderr
+    assert "--set filter.types.VA.tail_weight=0.2" in ok.stdout.splitlines()[0]
+    assert re.search(r"proposed\s+P=\s*20: median\s+[\d.]+ ms", ok.stdout), ok.stdout
+    for bad in ("filter.types.VA.tail_weight=0.9", "filter.types.VA.no_such_key=1"):
+        p = _bench_filter("--set", bad)
+        assert p.returncode == 2 and p.stdout == "", (bad, p.stdout)
+        last = p.stderr.strip().splitlines()[-1]
+        assert "error:" in last and bad.split("=")[0].split(".")[-1] in last, (bad, p.stderr)
