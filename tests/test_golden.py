@@ -1,8 +1,9 @@
-"""Golden end-to-end test: the `paper` reference runs reproduce the stored fixtures at 1e-9.
+"""Golden end-to-end test: the `paper` reference runs and a city run reproduce the stored fixtures at 1e-9.
 
 Fixtures and tolerances: ``tests/golden/make_golden.py`` (its docstring). Every variant on the
-closed-form paths, plus each fusion variant on a stored short Sionna RT trace; the ``slow`` test
-re-traces that trace with Sionna (LLVM, CPU) and checks it against the stored paths too. A change
+closed-form paths, plus each fusion variant on a stored short Sionna RT trace; and the city defaults (``canyon``,
+no filter table) on a stored short trace of canyon; the ``slow`` tests re-trace both traces with Sionna (LLVM, CPU)
+and check them against the stored paths too. A change
 that is meant to change results regenerates the fixtures (``make_golden.py``) and says so.
 """
 from __future__ import annotations
@@ -44,6 +45,28 @@ def test_run_on_stored_sionna_trace_reproduces_golden(name):
     _check(mg.snapshot(mg.paper(), states, paths, **mg.SIONNA_CASES[name]), GOLDEN / f"sionna_{name}.npz")
 
 
+@pytest.mark.parametrize("name", list(mg.CITY_CASES))
+def test_run_on_stored_city_trace_reproduces_golden(name):
+    """The city defaults (``canyon``: no filter or fusion table) on a stored canyon trace, at 1e-9."""
+    states, paths = mg.load_paths(GOLDEN / "city_paths.npz")
+    _check(mg.snapshot(mg.canyon(), states, paths, **mg.CITY_CASES[name]), GOLDEN / f"city_{name}.npz")
+
+
+def test_city_fixture_runs_the_city_defaults():
+    """The canyon fixture is a run of what `paper` pins away: the scenario has the VA heavy tail, the exclusive
+    association, the Bernoulli missed-detection rule and merge gate 6; the run kept a Beta p_D and a label per fused
+    Gaussian (learnt p_D, label averaging), mapped VAs and VSs, and the stored trace has VA and VS paths."""
+    scn = mg.canyon()
+    va = scn.filter.type_params("VA")
+    assert (va.tail_weight, va.association, va.missed, va.merge) == (0.2, "exclusive", "bernoulli", 6.0)
+    assert scn.filter.pd_model == "beta" and scn.fusion.average_by_label
+    f = mg.load(GOLDEN / "city_proposed_p30.npz")
+    assert "fused/VA/pd_beta" in f and "fused/VA/label" in f
+    assert f["fused/VA/w"].size > 0 and f["fused/VS/w"].size > 0
+    _, paths = mg.load_paths(GOLDEN / "city_paths.npz")
+    assert {1, 3} <= set(np.unique(paths["type"]).tolist())  # VA and VS paths
+
+
 def test_golden_fixtures_are_not_trivial():
     """The fixtures exercise what they claim: fusion happened, every map type is populated, the
     optional per-component state is there, and the compare() tolerance catches a 1e-8 change."""
@@ -79,6 +102,19 @@ def test_sionna_trace_reproduces_stored_paths():
         bad = mg.compare(run, mg.load(GOLDEN / "sionna_proposed.npz"), rtol=mg.RETRACE_RUN_RTOL,
                          atol=mg.RETRACE_RUN_ATOL)
         assert not bad, "the filter on the re-trace:\n" + "\n".join(bad[:20])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sionna") is None, reason="sionna-rt not installed")
+def test_city_trace_reproduces_stored_paths():
+    """Re-tracing canyon's first steps with Sionna RT gives the stored city paths (float32 tolerances)."""
+    states, paths = mg.sionna_trace(mg.canyon(), mg.CITY_STEPS)
+    w_states, w_paths = mg.load_paths(GOLDEN / "city_paths.npz")
+    assert not mg.compare({"states": states}, {"states": w_states})
+    got = {k: (v.astype(str) if v.dtype == object else v) for k, v in paths.items()}
+    want = {k: (v.astype(str) if v.dtype == object else v) for k, v in w_paths.items()}
+    bad = mg.compare(got, want, rtol=mg.SIONNA_TRACE_RTOL, atol=mg.SIONNA_TRACE_ATOL)
+    assert not bad, "\n".join(bad)
 
 
 def test_sionna_trace_tolerance_is_float32_not_looser():

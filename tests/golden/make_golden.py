@@ -9,7 +9,11 @@ What is stored (``tests/golden/*.npz``, written by this script from the code as 
   averaging; gated VS reduction, a separate VA merge gate) so their code paths are guarded too;
 - ``sionna_paths.npz``: the true states and the ``paths`` table of a short Sionna RT trace of
   ``paper`` (:data:`SIONNA_STEPS` steps, depth 1, 10^6 rays per source, seed 0, LLVM on the CPU);
-- ``sionna_<variant>.npz``: a run of each fusion variant on those stored Sionna paths.
+- ``sionna_<variant>.npz``: a run of each fusion variant on those stored Sionna paths;
+- ``city_paths.npz`` and ``city_<case>.npz``: the same for the ``canyon`` preset (:data:`CITY_STEPS` steps of its
+  Sionna RT trace, same settings) and the runs of :data:`CITY_CASES` on it, which take the city defaults ``paper``
+  pins away (learnt p_D, exclusive VA association, Bernoulli missed detections, the VA heavy tail and merge gate 6,
+  visibility-weighted label averaging, the car-body VS model of a traced source).
 
 Per run (:func:`snapshot`): every column of the run's :class:`~mmslam.slam.filter.result.Result` tables
 (``res/<table>/<column>``: vehicle estimates and errors; GOSPA with its localisation / missed /
@@ -29,7 +33,7 @@ Regenerate only when a change is *meant* to change results (say so in the commit
 effect), from the repository root::
 
     .venv/bin/python tests/golden/make_golden.py            # analytic cases + Sionna runs on the stored paths
-    .venv/bin/python tests/golden/make_golden.py --retrace  # also re-trace the Sionna paths (needs sionna-rt, ~20 s)
+    .venv/bin/python tests/golden/make_golden.py --retrace  # also re-trace the Sionna paths (needs sionna-rt, ~40 s)
 """
 from __future__ import annotations
 
@@ -63,6 +67,7 @@ re-trace that differed). A trace that is the same bit for bit must give the stor
 
 ANALYTIC_STEPS = 20  # fusion from k = 5 (vehicle 1) and 6 (vehicle 2), every 2 steps: 15 uploads
 SIONNA_STEPS = 7     # k = 0..6: one upload of each vehicle
+CITY_STEPS = 16      # canyon k = 0..15: uploads from k = 5, 6, 7 (cars a, b, c), every 2 steps; 21 VA, 19 VS paths
 
 CASES: dict[str, dict[str, Any]] = {
     "odometry_p30": dict(variant="odometry", particles=30, seed=0),
@@ -82,12 +87,25 @@ SIONNA_CASES: dict[str, dict[str, Any]] = {
     v: dict(variant=v, particles=30, seed=0) for v in ("baseline", "cm1", "proposed")}
 """Runs on the stored Sionna paths: name -> run arguments."""
 
+CITY_CASES: dict[str, dict[str, Any]] = {
+    "proposed_p30": dict(variant="proposed", particles=30, seed=0, source="sionna"),
+    "baseline_p30": dict(variant="baseline", particles=30, seed=1, source="sionna")}
+"""Runs on the stored ``canyon`` paths with the defaults (no filter table): name -> run arguments (``source``: the
+paths' origin, which picks the VS body model as a cache's would)."""
+
 
 def paper():
     """The ``paper`` scenario."""
     from mmslam.scenes.scenario import load_preset
 
     return load_preset("paper")
+
+
+def canyon():
+    """The ``canyon`` preset: a city scene with no filter or fusion table, so its runs take the defaults."""
+    from mmslam.scenes.scenario import load_preset
+
+    return load_preset("canyon")
 
 
 def analytic_inputs(scn, steps: int = ANALYTIC_STEPS) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -137,13 +155,15 @@ def _triu(a: np.ndarray) -> np.ndarray:
 
 
 def snapshot(scn, states: np.ndarray, paths: dict[str, np.ndarray], variant: str, particles: int,
-             seed: int, overrides: tuple[str, ...] = (), steps: int | None = None) -> dict[str, np.ndarray]:
-    """Run one case step by step; every array it should reproduce, flat (see the module docstring)."""
+             seed: int, overrides: tuple[str, ...] = (), steps: int | None = None,
+             source: str | None = None) -> dict[str, np.ndarray]:
+    """Run one case step by step; every array it should reproduce, flat (see the module docstring). ``source``: the
+    paths' origin as a cache names it (``sionna``), passed to the run (None: unknown, as for the paper cases)."""
     from mmslam.scenes.scenario import with_overrides
     from mmslam.slam.filter import CooperativeRun  # the public facade (the same before and after issue 21)
 
     scn = with_overrides(scn, list(overrides))
-    run = CooperativeRun(scn, states, paths, variant, particles, seed, steps)
+    run = CooperativeRun(scn, states, paths, variant, particles, seed, steps, source=source)
     est_mean, est_cov, ess, resampled = [], [], [], []
     fused: dict[str, dict[str, list[np.ndarray]]] = {}
     for k in range(run.steps):
@@ -217,6 +237,16 @@ def load(path: Path) -> dict[str, np.ndarray]:
         return {k: f[k] for k in f.files}
 
 
+def write(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Store a snapshot, unless the stored one already equals it within :func:`compare`'s tolerances (then the file
+    is left as it is, so a regeneration rewrites only the fixtures a change moved)."""
+    if path.exists() and not compare(arrays, load(path)):
+        print(f"{path.name}: unchanged")
+        return
+    np.savez_compressed(path, **arrays)
+    print(path.name)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--retrace", action="store_true", help="re-trace the Sionna paths (sionna-rt, ~20 s)")
@@ -224,16 +254,22 @@ def main(argv: list[str] | None = None) -> int:
     scn = paper()
     states, paths = analytic_inputs(scn)
     for name, case in CASES.items():
-        np.savez_compressed(HERE / f"analytic_{name}.npz", **snapshot(scn, states, paths, **case))
-        print(f"analytic_{name}.npz")
+        write(HERE / f"analytic_{name}.npz", snapshot(scn, states, paths, **case))
     sp = HERE / "sionna_paths.npz"
     if args.retrace or not sp.exists():
         save_paths(sp, *sionna_trace(scn))
         print(sp.name)
     s_states, s_paths = load_paths(sp)
     for name, case in SIONNA_CASES.items():
-        np.savez_compressed(HERE / f"sionna_{name}.npz", **snapshot(scn, s_states, s_paths, **case))
-        print(f"sionna_{name}.npz")
+        write(HERE / f"sionna_{name}.npz", snapshot(scn, s_states, s_paths, **case))
+    cp = HERE / "city_paths.npz"
+    city = canyon()
+    if args.retrace or not cp.exists():
+        save_paths(cp, *sionna_trace(city, CITY_STEPS))
+        print(cp.name)
+    c_states, c_paths = load_paths(cp)
+    for name, case in CITY_CASES.items():
+        write(HERE / f"city_{name}.npz", snapshot(city, c_states, c_paths, **case))
     return 0
 
 
