@@ -212,6 +212,15 @@ class TypeParams:
                                "scenes in docs/city-slam.md", "", lo=0.0, hi=0.5)
     tail_scale: float = param(4.0, "factor on the Gaussian's covariance in the tail of the likelihood (tail_weight > "
                               "0; 4: twice the standard deviation)", "", lo=1.0, hi=100.0)
+    drift_std: float = param(0.0, "std of a random walk of a static landmark's position per square root of time: at "
+                             "every local prediction (births excepted) each live Gaussian of the type gets dt "
+                             "drift_std^2 added to the variance of its x, y and z. A VA of a facade built of facets a "
+                             "degree or two apart moves as the specular point moves along it (munich2: six image "
+                             "sources within 1.2 m); with a walk the map follows it. 0: a landmark that does not move "
+                             "(the paper, and the default: on the development scenes 0.42 lowers the RMSE, but the "
+                             "wider VAs fall inside the merge gate and canyon's two image sources 1.53 m apart merge; "
+                             "docs/city-slam.md). A moving type (VS) has its own motion noise (filter.vs_process_std) "
+                             "and must leave it 0", "m/s^0.5", lo=0.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

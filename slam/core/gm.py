@@ -231,6 +231,16 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
+def random_walk(g: GM, var: float, dims: int = 3) -> GM:
+    """The components of ``g`` after one step of a random walk of their first ``dims`` state entries (the position,
+    m): ``P + var I`` on that block of every live component, ``var`` (m^2) the walk's variance over the step; weights,
+    means, the rest of ``P``, ``pd_beta`` and labels as they are, masked slots untouched (``P = I``). New arrays."""
+    P = g.P.copy()
+    idx = np.arange(dims)
+    P[..., idx, idx] += np.where(g.mask, float(var), 0.0)[..., None]
+    return GM(g.w, g.m, P, g.mask, g.pd_beta, g.label)
+
+
 def select(g: GM, idx) -> GM:
     """Index the batch axes (e.g. ``select(g, p)`` for particle ``p``)."""
     return g.take(idx)

@@ -29,12 +29,12 @@ from typing import Callable
 
 import numpy as np
 
-from mmslam.errors import MmslamError
+from mmslam.errors import ConfigError, MmslamError
 from mmslam.scenes.scenario import Scenario
 
 from ..phd.birth import birth_moments_by_kind
 from ..models.dynamics import wrap_angle
-from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, with_labels
+from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, random_walk, with_labels
 from ..phd.gmphd import correct
 from ..specs.landmarks import LandmarkSpec, trace_cap
 from ..models.measurement import BS
@@ -130,6 +130,13 @@ class LocalFilter:
         self._tail = {t: (s.type_params(scn).tail_weight, s.type_params(scn).tail_scale) for t, s in self.specs.items()}
         """type code -> the heavy tail ``(e, K)`` of its likelihood (``filter.types.<T>.tail_weight``, ``tail_scale``)
         """
+        self._walk = {t: s.type_params(scn).drift_std ** 2 * scn.dt for t, s in self.specs.items()}
+        """type code -> the variance (m^2 per axis) of its Gaussians' random walk over one step
+        (``filter.types.<T>.drift_std``)"""
+        moving = [s for t, s in self.specs.items() if s.moving and self._walk[t] > 0]
+        if moving:
+            raise ConfigError(f"filter.types.{moving[0].params}.drift_std: a moving type's motion noise is its own "
+                              f"(filter.vs_process_std); set drift_std = 0")
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
@@ -151,7 +158,8 @@ class LocalFilter:
 
     # ------------------------------------------------------------------ stages
     def predict(self, speed: float, turn_rate: float) -> None:
-        """Prediction from step k-1 to k: births from ``Z_{k-1}``, particles, map survival / VS motion."""
+        """Prediction from step k-1 to k: births from ``Z_{k-1}``, particles, the random walk of a static type's
+        Gaussians (``filter.types.<T>.drift_std``; the births not), map survival / VS motion."""
         births: dict[int, GM] = {}
         if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
             # one inversion per path geometry (SP and VS share SCATTER), the types' births from it
@@ -168,7 +176,8 @@ class LocalFilter:
         if not self.update:
             return
         for t, sp in self.specs.items():
-            self.maps[t] = sp.predict(self.maps[t], births.get(t), self.scn)
+            g = self.maps[t] if self._walk[t] == 0 else random_walk(self.maps[t], self._walk[t])
+            self.maps[t] = sp.predict(g, births.get(t), self.scn)
             if sp.survive is not None:
                 self.maps[t] = sp.survive(self.maps[t], self.s, self.scn)
 
