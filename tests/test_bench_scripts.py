@@ -136,7 +136,8 @@ def _bench_filter(*args: str) -> subprocess.CompletedProcess:
 
 def test_bench_filter_set_times_the_changed_setting_and_refuses_a_bad_one():
     """bench_filter --set runs the paper data with the setting changed and says so in its header; a value out of its
-    bounds, or a key that does not exist, is argparse's error (its usage line, then one line naming the key; exit 2), before any timing."""
+    bounds, or a key that does not exist, is argparse's error (its usage line, then one line naming the key; exit 2),
+    before any timing."""
     ok = _bench_filter("--set", "filter.types.VA.tail_weight=0.2")
     assert ok.returncode == 0, ok.stderr
     assert "--set filter.types.VA.tail_weight=0.2" in ok.stdout.splitlines()[0]

@@ -59,8 +59,8 @@ def test_an_unobserved_va_grows_by_n_dt_drift_squared_and_other_types_do_not():
 
 
 def test_drift_zero_is_the_paper_and_a_moving_type_is_refused():
-    """paper pins drift_std 0 on VA (a landmark that does not move); drift_std on the moving VS is a one-line
-    ConfigError naming the key and the fix."""
+    """paper and twc2020 pin drift_std 0 on VA (their VAs do not move; the default is 0 too); drift_std on the moving VS
+    is a one-line ConfigError naming the key and the fix."""
     assert load_preset("paper").filter.type_params("VA").drift_std == 0.0
     assert load_preset("twc2020").filter.type_params("VA").drift_std == 0.0
     assert _filter([])._walk[VA] == 0.0
