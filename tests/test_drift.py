@@ -64,7 +64,8 @@ def test_drift_zero_is_the_paper_and_a_moving_type_is_refused():
     assert load_preset("paper").filter.type_params("VA").drift_std == 0.0
     assert load_preset("twc2020").filter.type_params("VA").drift_std == 0.0
     assert _filter([])._walk[VA] == 0.0
-    with pytest.raises(ConfigError, match=r"^filter\.types\.VS\.drift_std: .*set drift_std = 0$"):
-        _filter(["filter.types.VS.drift_std=0.1"])
+    for variant in ("cm1", "baseline"):  # also where the variant keeps no VS map
+        with pytest.raises(ConfigError, match=r"^filter\.types\.VS\.drift_std: .*set drift_std = 0$"):
+            _filter(["filter.types.VS.drift_std=0.1"], variant)
     with pytest.raises(ConfigError, match="drift_std"):
         with_overrides(load_preset("paper"), ["filter.types.VA.drift_std=-1"])

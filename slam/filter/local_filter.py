@@ -29,14 +29,14 @@ from typing import Callable
 
 import numpy as np
 
-from mmslam.errors import ConfigError, MmslamError
+from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario
 
 from ..phd.birth import birth_moments_by_kind
 from ..models.dynamics import wrap_angle
 from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, random_walk, with_labels
 from ..phd.gmphd import correct
-from ..specs.landmarks import LandmarkSpec, trace_cap
+from ..specs.landmarks import LandmarkSpec, check_type_rows, trace_cap
 from ..models.measurement import BS
 from .known_map import KnownMap
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
@@ -133,10 +133,7 @@ class LocalFilter:
         self._walk = {t: s.type_params(scn).drift_std ** 2 * scn.dt for t, s in self.specs.items()}
         """type code -> the variance (m^2 per axis) of its Gaussians' random walk over one step
         (``filter.types.<T>.drift_std``)"""
-        moving = [s for t, s in self.specs.items() if s.moving and self._walk[t] > 0]
-        if moving:
-            raise ConfigError(f"filter.types.{moving[0].params}.drift_std: a moving type's motion noise is its own "
-                              f"(filter.vs_process_std); set drift_std = 0")
+        check_type_rows(scn)  # e.g. no random walk on a moving type
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
