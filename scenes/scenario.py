@@ -221,6 +221,14 @@ class TypeParams:
                              "on every city scene of a declared run, but canyon's two image sources 1.53 m apart "
                              "merge and its VA map passes its target; docs/city-slam.md). A moving type (VS) has its own motion noise (filter.vs_process_std) "
                              "and must leave it 0", "m/s^0.5", lo=0.0, hi=100.0)
+    follow_std: float = param(0.0, "std of the offset by which the image point a scan sees departs from the mapped "
+                              "one, which the update follows: the gain and likelihood of a Gaussian of the type take "
+                              "follow_std^2 more variance in x, y and z, the covariance kept is the estimate's own for "
+                              "that gain (its Joseph form), a missed Gaussian keeps its own. A VA of a facade built of "
+                              "facets moves as the specular point moves along it; the map follows the facet seen "
+                              "without its covariance growing, so merging still keeps apart image sources a metre or "
+                              "two apart (unlike drift_std). 0: the paper's update (docs/city-slam.md). A moving type "
+                              "(VS) must leave it 0", "m", lo=0.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

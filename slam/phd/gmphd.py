@@ -29,7 +29,7 @@ import numpy as np
 from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
-from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, own_covariance, tail_mixture, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
@@ -43,7 +43,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             bodies: Mapping[int, np.ndarray | None] | None = None,
             missed: Mapping[int, str] | None = None,
             association: Mapping[int, str] | None = None,
-            tails: Mapping[int, tuple[float, float]] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            tails: Mapping[int, tuple[float, float]] | None = None,
+            follows: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -94,6 +95,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             :func:`~mmslam.slam.phd.association.exclusive_terms`; None or a type not in it: ``phd``).
         tails: type code -> ``(e, K)``, the heavy tail of the type's likelihood
             (:func:`~mmslam.slam.phd.ckf.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian).
+        follows: type code -> ``F`` (m^2), the follow offset of the type's update (:func:`type_terms`; None or a
+            type not in it: 0).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)``.
@@ -106,13 +109,15 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     J = Z.shape[0]
     bs_term = bs_logterm(states, Z, R, bs, np.asarray(p_bs, float))  # 2. (BS)
     bodies, missed, association, tails = bodies or {}, missed or {}, association or {}, tails or {}
+    follows = follows or {}
     for t in maps:
         if association.get(t, "phd") not in ("phd", "exclusive"):
             raise ValueError(f"association {association[t]!r}: expected 'phd' or 'exclusive'")
     exclusive = {t for t in maps if association.get(t, "phd") == "exclusive"}
     # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
     terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
-                        None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"), tails.get(t))
+                        None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"), tails.get(t),
+                        follows.get(t, 0.0))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     out = {}
@@ -199,7 +204,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
                prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd",
-               tail: tuple[float, float] | None = None) -> TypeCorrection:
+               tail: tuple[float, float] | None = None, follow: float = 0.0) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -234,6 +239,10 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         tail: ``(e, K)`` with ``e > 0``: the likelihood of ``z_j`` given the Gaussian is the scale mixture
             ``(1 - e) N(z_j; zhat, S(P)) + e N(z_j; zhat, S(K P))`` (:func:`~mmslam.slam.phd.ckf.tail_mixture`;
             ``filter.types.<T>.tail_weight``, ``tail_scale``); None or ``e = 0``: the Gaussian likelihood of eq. (5).
+        follow: ``F`` (m^2 per axis, ``filter.types.<T>.follow_std`` squared): the update's gain and likelihood
+            take the position covariance ``P + F I``, the image point seen departing from the mapped one by a fresh
+            offset the estimate follows; the posterior covariance is the estimate's own for that gain
+            (:func:`~mmslam.slam.phd.ckf.own_covariance`), a missed Gaussian keeps ``P``. 0: the update of eq. (5).
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -254,6 +263,11 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     g = GM(c(g.w, dtype=float), c(g.m, dtype=float), c(g.P, dtype=float), c(g.mask, dtype=bool), g.pd_beta,
            g.label)
     P_, Q, d = g.m.shape
+    own = g  # the map as it is: a missed Gaussian keeps it; the update below may see it with the follow offset
+    if follow > 0.0:
+        Pf = g.P.copy()
+        Pf[..., :3, :3] += follow * np.eye(3)
+        g = GM(g.w, g.m, Pf, g.mask, g.pd_beta, g.label)
     beta_shape = None if g.pd_beta is None else np.shape(g.pd_beta)
     label_shape = None if g.label is None else np.shape(g.label)
     if (d < 3 or g.P.shape != (P_, Q, d, d) or g.w.shape != (P_, Q) or g.mask.shape != (P_, Q)
@@ -296,7 +310,12 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
         rows = det_index >= 0  # logq = log(p_D w) + log of the mixture likelihood
         logq[rows] += (inn.loglik - loglik)[det_index[rows]]
-    return TypeCorrection(g, lm_type, logq, missed_w, inn, det_index, pred_mass, name, pd, missed)
+    if follow > 0.0 and n:
+        rows = det_index >= 0
+        P0, Pf = np.empty((n, d, d)), np.empty((n, d, d))
+        P0[det_index[rows]], Pf[det_index[rows]] = own.P[rows], g.P[rows]
+        inn = Innovation(inn.loglik, inn.m_post, own_covariance(P0, Pf, inn.P_post))
+    return TypeCorrection(own, lm_type, logq, missed_w, inn, det_index, pred_mass, name, pd, missed)
 
 
 def _raise_on(code: int, name: str) -> None:

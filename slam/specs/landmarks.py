@@ -408,15 +408,16 @@ def unregister_landmark_type(name: str) -> None:
 def check_type_rows(scn: "Scenario") -> None:
     """Every ``[filter.types.<TYPE>]`` row of ``scn`` (from a file, ``--set`` or ``--grid``) names a registered
     type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently; and no moving type's row sets a
-    random walk (``drift_std``), whatever the variant maps. One-line ConfigError. (The scenario loader refuses an
+    random walk (``drift_std``) or follow offset (``follow_std``), whatever the variant maps. One-line ConfigError. (The scenario loader refuses an
     unknown row already; this guards a Scenario built in code.)"""
     unknown = sorted(set(scn.filter.types) - set(_REGISTRY))
     if unknown:
         raise ConfigError(f"filter.types.{unknown[0]}: {unknown_type_row(unknown[0])}")
     for spec in _REGISTRY.values():  # a moving type's motion noise is its own: no random walk on top
-        if spec.moving and spec.mapped and spec.type_params(scn).drift_std > 0:
-            raise ConfigError(f"filter.types.{spec.params}.drift_std: a moving type's motion noise is its own "
-                              f"(filter.vs_process_std); set drift_std = 0")
+        for key in ("drift_std", "follow_std"):
+            if spec.moving and spec.mapped and getattr(spec.type_params(scn), key) > 0:
+                raise ConfigError(f"filter.types.{spec.params}.{key}: a moving type's motion noise is its own "
+                                  f"(filter.vs_process_std); set {key} = 0")
 
 
 def landmark_types() -> tuple[LandmarkSpec, ...]:
