@@ -227,10 +227,10 @@ class TypeParams:
                               "that gain (its Joseph form), a missed Gaussian keeps its own. A VA of a facade built of "
                               "facets moves as the specular point moves along it; the map follows the facet seen "
                               "without its covariance growing, so merging still keeps apart image sources a metre or "
-                              "two apart (unlike drift_std). 0: the paper's update, and the default: 0.6 keeps canyon's and munich's "
-                              "map targets in a declared run, but the copies of a VA then fragment past 0.6 of the "
-                              "empty map on three written scenes (docs/city-slam.md). A moving type (VS) must leave "
-                              "it 0", "m", lo=0.0, hi=100.0)
+                              "two apart (unlike drift_std). 0: the paper's update, and the default: 0.6 keeps "
+                              "canyon's and munich's map targets in a declared run, but the copies of a VA then "
+                              "fragment past 0.6 of the empty map on three written scenes (docs/city-slam.md). A "
+                              "moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

@@ -408,8 +408,8 @@ def unregister_landmark_type(name: str) -> None:
 def check_type_rows(scn: "Scenario") -> None:
     """Every ``[filter.types.<TYPE>]`` row of ``scn`` (from a file, ``--set`` or ``--grid``) names a registered
     type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently; and no moving type's row sets a
-    random walk (``drift_std``) or follow offset (``follow_std``), whatever the variant maps. One-line ConfigError. (The scenario loader refuses an
-    unknown row already; this guards a Scenario built in code.)"""
+    random walk (``drift_std``) or a follow offset (``follow_std``), whatever the variant maps. One-line ConfigError.
+    (The scenario loader refuses an unknown row already; this guards a Scenario built in code.)"""
     unknown = sorted(set(scn.filter.types) - set(_REGISTRY))
     if unknown:
         raise ConfigError(f"filter.types.{unknown[0]}: {unknown_type_row(unknown[0])}")
