@@ -1,5 +1,5 @@
 """The follow offset of a static landmark's update (``filter.types.<T>.follow_std``): the gain and likelihood take
-``P + F``, the covariance kept is the estimate's own for that gain (:func:`~mmslam.slam.phd.ckf.own_covariance`),
+``P + F``, the covariance kept is the estimate's own for that gain (:func:`~mmslam.slam.phd.follow.own_covariance`),
 a missed Gaussian keeps ``P``; refused for a moving type."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.core.gm import GM
 from mmslam.slam.filter.local_filter import LocalFilter
 from mmslam.slam.models.measurement import measure
-from mmslam.slam.phd.ckf import own_covariance
+from mmslam.slam.phd.follow import own_covariance
 from mmslam.slam.phd.gmphd import type_terms
 from mmslam.slam.specs.landmarks import landmark_type
 

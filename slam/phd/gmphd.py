@@ -29,11 +29,13 @@ import numpy as np
 from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
-from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, own_covariance, tail_mixture, workspace
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
+from .follow import own_covariance
+from .invariant import PHD_MASS_RTOL, check_phd_mass  # noqa: F401 (gmphd.check_phd_mass: correct() calls it)
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
-                    _log_psi_parts, _lse_slots_kernel, _mass_bound_holds, _write_corrected)
+                    _log_psi_parts, _lse_slots_kernel, _write_corrected)
 
 
 def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -242,7 +244,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         follow: ``F`` (m^2 per axis, ``filter.types.<T>.follow_std`` squared): the update's gain and likelihood
             take the position covariance ``P + F I``, the image point seen departing from the mapped one by a fresh
             offset the estimate follows; the posterior covariance is the estimate's own for that gain
-            (:func:`~mmslam.slam.phd.ckf.own_covariance`), a missed Gaussian keeps ``P``. 0: the update of eq. (5).
+            (:func:`~mmslam.slam.phd.follow.own_covariance`), a missed Gaussian keeps ``P``. 0: the update of eq. (5).
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -466,53 +468,3 @@ def _corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: f
         out.check(f"after the {t.name} correction")
         raise FloatingPointError(f"non-finite values after the {t.name} correction")
     return out, mass
-
-
-PHD_MASS_RTOL = 1e-9
-"""Relative float tolerance of :func:`check_phd_mass` (the bound is exact in real arithmetic)."""
-
-
-def check_phd_mass(predicted: GM, corrected: GM, n_meas: int, name: str, step: int,
-                   masses: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-    """Invariant of the PHD correction: per particle, corrected mass <= predicted mass + ``J``.
-
-    The corrected intensity is ``(1 - p_D) D(x) + sum_j p_D g_j(x) D(x) / psi(z_j)`` and every
-    ``psi(z_j)`` contains the clutter, the BS and all landmark terms of ``z_j``, so each
-    measurement adds at most 1 to the mass: ``sum_q w_q^+ <= sum_q w_q + J`` (pruning only
-    lowers the left side). A kernel that corrupts the log-weights breaks it at once (the
-    ``_logsumexp_slots`` bug gave weights of ~1/clutter intensity). Cost: two sums over
-    ``(P, Q)``, or none when the correction's kernels computed them (``masses``).
-
-    Args:
-        predicted: the map of one type before the correction, batch ``(P,)``.
-        corrected: the same map after :func:`corrected_gm`, batch ``(P,)``.
-        n_meas: the number of measurements ``J`` of the correction.
-        name: the map's landmark type name (for the message); step: the time step ``k``.
-        masses: ``(predicted, corrected)`` masses ``(P,)`` per particle (``sum w`` over the live
-            slots) if already known (:attr:`TypeCorrection.pred_mass`, :func:`_corrected_components`);
-            None: summed here from the maps.
-
-    Raises:
-        FloatingPointError: naming the type, step, particle and both masses, if the bound is
-            exceeded beyond a relative ``PHD_MASS_RTOL`` (or a mass is NaN).
-    """
-    if masses is None:
-        pred = np.where(predicted.mask, predicted.w, 0.0).sum(axis=-1)
-        corr = np.where(corrected.mask, corrected.w, 0.0).sum(axis=-1)
-    else:
-        pred, corr = (np.asarray(a, float) for a in masses)
-        if not pred.shape == corr.shape == predicted.w.shape[:-1]:  # the kernel reads corr[p] unchecked
-            raise ValueError(f"check_phd_mass: masses of shapes {pred.shape}, {corr.shape}; expected the maps' "
-                             f"batch shape {predicted.w.shape[:-1]} for both")
-        if _mass_bound_holds(pred.reshape(-1), corr.reshape(-1), float(n_meas), PHD_MASS_RTOL):  # one compiled pass
-            return
-    bound = pred + n_meas
-    bad = ~(corr <= bound * (1.0 + PHD_MASS_RTOL))  # NaN fails too
-    if bad.any():
-        p = int(np.argmax(np.where(bad, np.nan_to_num(corr - bound, nan=np.inf), -np.inf)))
-        raise FloatingPointError(
-            f"PHD mass invariant violated in the {name} correction at step {step}, particle {p}: "
-            f"corrected mass {corr[p]:.6g} > predicted mass {pred[p]:.6g} + {n_meas} measurements "
-            f"({int(bad.sum())} of {bad.size} particles); a correction kernel corrupted the weights")
-
-

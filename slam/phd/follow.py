@@ -1,0 +1,40 @@
+"""The follow offset of a static landmark's update (``filter.types.<T>.follow_std``): the update of a detected
+Gaussian takes its gain and likelihood from ``P + F`` (:func:`mmslam.slam.phd.gmphd.type_terms`), and the covariance
+kept is the estimate's own for that gain (:func:`own_covariance`). Shapes as stated; position in the global frame,
+m."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def own_covariance(P: np.ndarray, P_follow: np.ndarray, P_follow_post: np.ndarray) -> np.ndarray:
+    """The covariance of a landmark estimate updated with a gain that follows the image point seen
+    (``filter.types.<T>.follow_std``, docs/city-slam.md "A map that follows the facet seen").
+
+    The update took its gain and likelihood from ``P~ = P + F`` (``F = follow_std^2 I`` on the position): the
+    image point seen at a scan departs from the mapped one by a fresh offset the estimate follows. For a landmark
+    that does not move, the estimate's own error after that gain ``K`` is the Joseph form on ``P``,
+    ``(I - K H) P (I - K H)^T + K R K^T``. With ``A = I - K H = P~+ P~^-1`` and ``K R K^T = P~+ - A P~ A^T``
+    (the Joseph form of the update on ``P~``, whose gain is optimal) it needs neither ``H`` nor ``K``:
+
+        ``P+ = A P A^T + [P~+ - A P~ A^T]_+``
+
+    (``[.]_+``: eigenvalues below 0 set to 0, as the CKF and the heavy tail's moment match make the bracket only
+    nearly positive semi-definite). ``F = 0`` gives ``P+ = P~+``; a linear update gives ``P+ = P~+ - A F A^T``.
+
+    Args:
+        P: ``(N, d, d)`` prior covariances (m^2 on the position block).
+        P_follow: ``(N, d, d)`` the same with ``F`` added, from which the update was made.
+        P_follow_post: ``(N, 1 or J, d, d)`` the update's posterior covariances.
+
+    Returns:
+        ``(N, 1 or J, d, d)`` the estimates' own posterior covariances, exactly symmetric.
+    """
+    Pf = np.asarray(P_follow, float)[:, None]
+    Pp = np.asarray(P_follow_post, float)
+    At = np.linalg.solve(Pf, Pp)  # A^T = P~^-1 P~+ (both symmetric)
+    A = np.swapaxes(At, -1, -2)
+    noise = Pp - A @ Pf @ At
+    ev, V = np.linalg.eigh(0.5 * (noise + np.swapaxes(noise, -1, -2)))
+    out = A @ np.asarray(P, float)[:, None] @ At + (V * np.clip(ev, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
