@@ -121,3 +121,23 @@ def test_follow_zero_is_the_paper_and_a_moving_type_is_refused():
             _filter(["filter.types.VS.follow_std=0.1"], variant)
     with pytest.raises(ConfigError, match="follow_std"):
         with_overrides(load_preset("paper"), ["filter.types.VA.follow_std=-1"])
+
+
+def test_follow_with_the_heavy_tail_keeps_a_positive_definite_own_covariance():
+    """With the VA heavy tail (e = 0.2, K = 4) the two updates are both made from P + F and moment-matched; the kept
+    covariance is own_covariance of that mixture's posterior (whose bracket is clipped to PSD), symmetric, positive
+    definite, and no wider than the mixture's own posterior."""
+    x = np.array([40.0, 35.0, 6.0])
+    P = np.tile(np.diag([0.2, 0.3, 0.1]), (1, 1, 1, 1))
+    g = GM(np.full((1, 1), 0.8), x[None, None], P, np.ones((1, 1), bool))
+    Z = np.stack([measure(STATE, x + d, Bounce.MIRROR, BS) for d in ([0.0, 0.0, 0.0], [2.5, -1.5, 0.5])])
+    F = 0.36
+    tc = type_terms(g, landmark_type(VA), STATE[None], Z, R, BS, _pd, tail=(0.2, 4.0), follow=F)
+    ref = type_terms(GM(g.w, g.m, P + F * np.eye(3), g.mask), landmark_type(VA), STATE[None], Z, R, BS, _pd,
+                     tail=(0.2, 4.0))
+    np.testing.assert_array_equal(tc.inn.m_post, ref.inn.m_post)
+    np.testing.assert_allclose(tc.inn.P_post, own_covariance(P[:, 0], P[:, 0] + F * np.eye(3), ref.inn.P_post),
+                               rtol=1e-12)
+    np.testing.assert_array_equal(tc.inn.P_post, np.swapaxes(tc.inn.P_post, -1, -2))
+    assert (np.linalg.eigvalsh(tc.inn.P_post) > 0).all()
+    assert (np.linalg.eigvalsh(ref.inn.P_post - tc.inn.P_post) > -1e-12).all()
