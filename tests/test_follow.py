@@ -141,3 +141,25 @@ def test_follow_with_the_heavy_tail_keeps_a_positive_definite_own_covariance():
     np.testing.assert_array_equal(tc.inn.P_post, np.swapaxes(tc.inn.P_post, -1, -2))
     assert (np.linalg.eigvalsh(tc.inn.P_post) > 0).all()
     assert (np.linalg.eigvalsh(ref.inn.P_post - tc.inn.P_post) > -1e-12).all()
+
+
+@pytest.mark.parametrize("case", ["no measurement", "no slot", "outside the FOV"])
+def test_follow_on_degenerate_shapes_keeps_the_map_as_it_is(case):
+    """J = 0 (an empty scan), Q = 0 (an empty map) and n = 0 (every Gaussian outside the FOV, p_D = 0): the
+    correction with a follow offset hands on the map's own P for the missed terms and posteriors of the plain
+    shape (N, 1, 3, 3), with no error."""
+    x = np.array([40.0, 35.0, 6.0])
+    P = np.tile(np.diag([0.2, 0.3, 0.1]), (2, 1, 1, 1))
+    g = GM(np.full((2, 1), 0.8), np.tile(x, (2, 1, 1)), P, np.ones((2, 1), bool))
+    states, Z, pd = np.stack([STATE, STATE]), measure(STATE, x, Bounce.MIRROR, BS)[None], _pd
+    if case == "no measurement":
+        Z = np.zeros((0, 5))
+    elif case == "no slot":
+        g = GM(np.zeros((2, 0)), np.zeros((2, 0, 3)), np.zeros((2, 0, 3, 3)), np.zeros((2, 0), bool))
+        P = g.P
+    else:
+        pd = lambda u, x, t: np.zeros(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]))  # noqa: E731
+    tc = type_terms(g, landmark_type(VA), states, Z, R, BS, pd, follow=0.36)
+    np.testing.assert_array_equal(tc.g.P, P)
+    n = 2 if case == "no measurement" else 0
+    assert tc.inn.P_post.shape == (n, 1, 3, 3) and tc.inn.m_post.shape == (n, Z.shape[0], 3)

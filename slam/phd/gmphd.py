@@ -312,7 +312,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
         rows = det_index >= 0  # logq = log(p_D w) + log of the mixture likelihood
         logq[rows] += (inn.loglik - loglik)[det_index[rows]]
-    if follow > 0.0 and n:
+    if follow > 0.0 and n and J:  # J = 0: no detected term reads the posteriors
         rows = det_index >= 0
         P0, Pf = np.empty((n, d, d)), np.empty((n, d, d))
         P0[det_index[rows]], Pf[det_index[rows]] = own.P[rows], g.P[rows]
