@@ -136,6 +136,9 @@ class LocalFilter:
         self._follow = {t: s.type_params(scn).follow_std ** 2 for t, s in self.specs.items()}
         """type code -> the variance (m^2 per axis) of the follow offset of its update
         (``filter.types.<T>.follow_std``)"""
+        self._weight_offset = {t: s.type_params(scn).weight_std ** 2 for t, s in self.specs.items()}
+        """type code -> the variance (m^2 per axis) of its offset in the particle weight only
+        (``filter.types.<T>.weight_std``)"""
         check_type_rows(scn)  # e.g. no random walk on a moving type
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
@@ -203,7 +206,8 @@ class LocalFilter:
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
-                                  self._body, self._missed, self._association, self._tail, self._follow)
+                                  self._body, self._missed, self._association, self._tail, self._follow,
+                                  self._weight_offset)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 

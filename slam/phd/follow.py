@@ -1,10 +1,15 @@
-"""The follow offset of a static landmark's update (``filter.types.<T>.follow_std``): the update of a detected
-Gaussian takes its gain and likelihood from ``P + F`` (:func:`mmslam.slam.phd.gmphd.type_terms`), and the covariance
-kept is the estimate's own for that gain (:func:`own_covariance`). Shapes as stated; position in the global frame,
-m."""
+"""Offsets of a static landmark's position in its correction, shapes as stated, position in the global frame, m:
+
+- the follow offset (``filter.types.<T>.follow_std``): the update of a detected Gaussian takes its gain and likelihood
+  from ``P + F`` (:func:`offset_position`, :func:`mmslam.slam.phd.gmphd.type_terms`), and the covariance kept is the
+  estimate's own for that gain (:func:`own_covariance`);
+- the weight offset (``weight_std``): only the particle weight sees the map with ``P + F_w``
+  (:func:`offset_position`, :func:`mmslam.slam.phd.gmphd.correct`)."""
 from __future__ import annotations
 
 import numpy as np
+
+from ..core.gm import GM
 
 
 def own_covariance(P: np.ndarray, P_follow: np.ndarray, P_follow_post: np.ndarray) -> np.ndarray:
@@ -38,3 +43,14 @@ def own_covariance(P: np.ndarray, P_follow: np.ndarray, P_follow_post: np.ndarra
     ev, V = np.linalg.eigh(0.5 * (noise + np.swapaxes(noise, -1, -2)))
     out = A @ np.asarray(P, float)[:, None] @ At + (V * np.clip(ev, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
+def offset_position(g: GM, f: float) -> GM:
+    """The map ``g`` (batch ``(*B, Q)``, dim ``d >= 3``) with ``f`` (m^2) added to the variance of x, y and z of every
+    Gaussian: the follow offset's ``P + F`` (``follow_std``) and the weight offset's ``P + F_w`` (``weight_std``,
+    :func:`mmslam.slam.phd.gmphd.correct`). ``f = 0``: ``g`` itself."""
+    if f <= 0.0:
+        return g
+    P = np.array(g.P, float)
+    P[..., :3, :3] += f * np.eye(3)
+    return GM(g.w, g.m, P, g.mask, g.pd_beta, g.label)

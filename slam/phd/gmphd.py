@@ -32,7 +32,7 @@ from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
-from .follow import own_covariance
+from .follow import offset_position, own_covariance
 from .invariant import PHD_MASS_RTOL, check_phd_mass  # noqa: F401 (gmphd.check_phd_mass: correct() calls it)
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _write_corrected)
@@ -46,7 +46,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             missed: Mapping[int, str] | None = None,
             association: Mapping[int, str] | None = None,
             tails: Mapping[int, tuple[float, float]] | None = None,
-            follows: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            follows: Mapping[int, float] | None = None,
+            weight_offsets: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -74,7 +75,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     5. the PHD-mass invariant ``sum w^+ <= sum w + J`` per particle (:func:`check_phd_mass`);
     6. the particle weight, eq. (6): the paper writes ``sum_j psi(z_j)``; mmslam multiplies the
        weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md): the
-       caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights.
+       caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights. With a weight offset
+       ``F_w`` of a type (``weight_offsets``), the ``psi`` returned takes that type's detected terms with
+       ``P + F_w`` on the position (:func:`type_terms` of the map so widened); steps 3-4 use the map's own.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
@@ -99,9 +102,11 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             (:func:`~mmslam.slam.phd.ckf.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian).
         follows: type code -> ``F`` (m^2), the follow offset of the type's update (:func:`type_terms`; None or a
             type not in it: 0).
+        weight_offsets: type code -> ``F_w`` (m^2 per axis, ``filter.types.<T>.weight_std`` squared): the offset
+            of the type's detected terms in the particle weight only (step 6; None or a type not in it: 0).
 
     Returns:
-        The corrected maps (same keys) and ``log psi (P, J)``.
+        The corrected maps (same keys) and ``log psi (P, J)`` of the particle weight (step 6).
 
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance, ``psi(z) = 0``, or a
@@ -122,6 +127,13 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                         follows.get(t, 0.0))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
+    offsets = {t: float(f) for t, f in (weight_offsets or {}).items() if t in maps and f > 0.0}
+    lpsi_w = lpsi
+    if offsets and J:  # 6. the weight's terms of those types, before step 4 rewrites the exclusive ones
+        off = {t: type_terms(offset_position(maps[t], follows.get(t, 0.0) + f), kinds[t], states, Z, R, bs, pd_fn,
+                             extents.get(t), log_clutter, None if t in exclusive else prune, bodies.get(t),
+                             missed.get(t, "phd"), tails.get(t)) for t, f in offsets.items()}
+        lpsi_w = log_psi([off.get(tc.lm_type, tc) for tc in terms], bs_term, log_clutter, lpsi.shape)
     out = {}
     for tc in terms:
         if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
@@ -138,7 +150,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         check_phd_mass(tc.g, g, J, tc.name, step,
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
         out[tc.lm_type] = g
-    return out, lpsi
+    return out, lpsi_w
 
 
 def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,
@@ -266,10 +278,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
            g.label)
     P_, Q, d = g.m.shape
     own = g  # the map as it is: a missed Gaussian keeps it; the update below may see it with the follow offset
-    if follow > 0.0:
-        Pf = g.P.copy()
-        Pf[..., :3, :3] += follow * np.eye(3)
-        g = GM(g.w, g.m, Pf, g.mask, g.pd_beta, g.label)
+    g = offset_position(own, follow)
     beta_shape = None if g.pd_beta is None else np.shape(g.pd_beta)
     label_shape = None if g.label is None else np.shape(g.label)
     if (d < 3 or g.P.shape != (P_, Q, d, d) or g.w.shape != (P_, Q) or g.mask.shape != (P_, Q)

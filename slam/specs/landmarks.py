@@ -408,7 +408,8 @@ def unregister_landmark_type(name: str) -> None:
 def check_type_rows(scn: "Scenario") -> None:
     """Every ``[filter.types.<TYPE>]`` row of ``scn`` (from a file, ``--set`` or ``--grid``) names a registered
     type: a misspelt row (``filter.types.sp``) would otherwise set nothing, silently; and no moving type's row sets a
-    random walk (``drift_std``) or a follow offset (``follow_std``), whatever the variant maps. One-line ConfigError.
+    random walk (``drift_std``), a follow offset (``follow_std``) or a weight offset (``weight_std``), whatever the
+    variant maps. One-line ConfigError.
     (The scenario loader refuses an unknown row already; this guards a Scenario built in code.)"""
     unknown = sorted(set(scn.filter.types) - set(_REGISTRY))
     if unknown:
@@ -418,6 +419,9 @@ def check_type_rows(scn: "Scenario") -> None:
             if spec.moving and spec.mapped and getattr(spec.type_params(scn), key) > 0:
                 raise ConfigError(f"filter.types.{spec.params}.{key}: a moving type's motion noise is its own "
                                   f"(filter.vs_process_std); set {key} = 0")
+        if spec.moving and spec.mapped and spec.type_params(scn).weight_std > 0:
+            raise ConfigError(f"filter.types.{spec.params}.weight_std: a moving type's likelihood has its own body "
+                              "model (filter.vs_body_model); set weight_std = 0")
 
 
 def landmark_types() -> tuple[LandmarkSpec, ...]:
