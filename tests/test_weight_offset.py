@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mmslam.errors import ConfigError
-from mmslam.model import VA, Bounce
+from mmslam.model import SP, VA, Bounce
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.core.gm import GM
 from mmslam.slam.filter.local_filter import LocalFilter
@@ -82,6 +82,47 @@ def test_the_weight_offset_is_the_likelihood_of_p_plus_f_by_a_linearised_hand_co
     Z0 = measure(STATE, X, Bounce.MIRROR, BS)[None]  # the VA's own image seen from the true pose
     gap = [np.subtract(*_correct(_map(), off, Z0, True, **kw)[1][:, 0]) for kw in ({}, {"weight_offsets": {VA: F}})]
     assert gap[0] > gap[1] > 0.0
+
+
+def test_the_offset_of_one_type_leaves_the_other_types_terms_and_adds_to_the_follow():
+    """A VA map (exclusive association, no offset) and an SP map (weight offset 0.5 m^2) at the same point: log psi is
+    that of the VA map as it is plus the SP map widened (the VA's exclusive terms are rewritten after the weight's are
+    read: a weight read after that would differ); with a follow of 0.2 m^2 and a weight offset of 0.5 m^2 on the VA,
+    log psi is that of the VA map widened by 0.7 m^2 without the follow, and the maps are those of the follow alone."""
+    states = np.stack([STATE, STATE + [0.6, -0.2, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    Z = np.stack([measure(STATE, X, Bounce.MIRROR, BS), measure(STATE, X + [0.8, 0.6, 0.0], Bounce.MIRROR, BS)])
+    kinds = {VA: landmark_type(VA), SP: landmark_type(SP)}
+
+    def run(va: GM, sp: GM, **kw):
+        return correct({VA: va, SP: sp}, states, Z, R, BS, _pd, np.zeros(2), LOG_C, 1e-5, {VA: None, SP: None}, 3,
+                       kinds, association={VA: "exclusive"}, missed={VA: "bernoulli"}, **kw)
+
+    _, lpsi = run(_map(), _map(), weight_offsets={SP: 0.5})
+    _, want = run(_map(), _map(P0 + 0.5 * np.eye(3)))
+    np.testing.assert_array_equal(lpsi, want)
+    maps, lpsi = _correct(_map(), states, Z, True, follows={VA: 0.2}, weight_offsets={VA: 0.5})
+    follow_maps, _ = _correct(_map(), states, Z, True, follows={VA: 0.2})
+    _, want = _correct(_map(P0 + 0.7 * np.eye(3)), states, Z, True)
+    np.testing.assert_allclose(lpsi, want, rtol=1e-12)
+    for key in ("w", "m", "P"):
+        np.testing.assert_array_equal(getattr(maps[VA], key), getattr(follow_maps[VA], key))
+
+
+def test_the_local_filter_hands_the_offset_to_the_correction(monkeypatch):
+    """LocalFilter.correct passes its squared weight_std per type to gmphd.correct (0.25 for the VA at 0.5 m)."""
+    import mmslam.slam.filter.local_filter as lf
+
+    seen = {}
+    real = lf.correct
+
+    def spy(*a, **kw):
+        seen["offsets"] = a[-1] if len(a) > 17 else kw.get("weight_offsets")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(lf, "correct", spy)
+    f = _filter(["filter.types.VA.weight_std=0.5"])
+    f.correct(np.zeros((0, 5)))
+    assert seen["offsets"][VA] == 0.25 and seen["offsets"][SP] == 0.0
 
 
 def test_an_empty_scan_leaves_the_weight_empty():
