@@ -6,11 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmslam.errors import ConfigError
 from mmslam.model import VA, Bounce
-from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.core.gm import GM
-from mmslam.slam.filter.local_filter import LocalFilter
 from mmslam.slam.models.measurement import measure
 from mmslam.slam.phd.follow import own_covariance
 from mmslam.slam.phd.gmphd import type_terms
@@ -102,25 +99,6 @@ def test_the_kept_covariance_is_the_error_of_the_followed_estimate_of_a_static_v
     np.testing.assert_allclose(np.diag(sample), np.diag(kept), rtol=0.1)
     assert (np.diag(plain) > 1.5 * np.diag(kept)).all()
     assert np.abs(err.mean(0)).max() < 0.05
-
-
-def _filter(rows: list[str], variant: str = "cm1") -> LocalFilter:
-    scn = with_overrides(load_preset("paper"), rows)
-    return LocalFilter(scn, variant, 2, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), np.eye(5), 1e-3, _pd,
-                       np.random.default_rng(0))
-
-
-def test_follow_zero_is_the_paper_and_a_moving_type_is_refused():
-    """paper and twc2020 pin follow_std 0 (the paper's update); the filter squares the row's value; follow_std on the
-    moving VS is a one-line ConfigError naming the key and the fix, for every variant; a negative value is refused."""
-    assert load_preset("paper").filter.type_params("VA").follow_std == 0.0
-    assert load_preset("twc2020").filter.type_params("VA").follow_std == 0.0
-    assert _filter(["filter.types.VA.follow_std=0.5"])._follow[VA] == 0.25
-    for variant in ("cm1", "baseline", "proposed"):
-        with pytest.raises(ConfigError, match=r"^filter\.types\.VS\.follow_std: .*set follow_std = 0$"):
-            _filter(["filter.types.VS.follow_std=0.1"], variant)
-    with pytest.raises(ConfigError, match="follow_std"):
-        with_overrides(load_preset("paper"), ["filter.types.VA.follow_std=-1"])
 
 
 def test_follow_with_the_heavy_tail_keeps_a_positive_definite_own_covariance():

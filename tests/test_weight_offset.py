@@ -137,14 +137,16 @@ def _filter(rows: list[str], variant: str = "cm1") -> LocalFilter:
                        np.random.default_rng(0))
 
 
-def test_weight_offset_zero_is_the_paper_and_a_moving_type_is_refused():
-    """paper and twc2020 pin weight_std 0 (the paper's weight); the filter squares the row's value; weight_std on the
-    moving VS is a one-line ConfigError naming the key and the fix, for every variant; a negative value is refused."""
-    assert load_preset("paper").filter.type_params("VA").weight_std == 0.0
-    assert load_preset("twc2020").filter.type_params("VA").weight_std == 0.0
-    assert _filter(["filter.types.VA.weight_std=0.5"])._weight_offset[VA] == 0.25
+@pytest.mark.parametrize("key, attr", [("follow_std", "_follow"), ("weight_std", "_weight_offset")])
+def test_an_offset_is_zero_in_the_paper_squared_by_the_filter_and_refused_on_a_moving_type(key, attr):
+    """paper and twc2020 pin follow_std and weight_std 0 (the paper's update and weight); the filter squares the row's
+    value; either on the moving VS is a one-line ConfigError naming the key and the fix, for every variant; a negative
+    value is refused."""
+    assert getattr(load_preset("paper").filter.type_params("VA"), key) == 0.0
+    assert getattr(load_preset("twc2020").filter.type_params("VA"), key) == 0.0
+    assert getattr(_filter([f"filter.types.VA.{key}=0.5"]), attr)[VA] == 0.25
     for variant in ("cm1", "baseline", "proposed"):
-        with pytest.raises(ConfigError, match=r"^filter\.types\.VS\.weight_std: .*set weight_std = 0$"):
-            _filter(["filter.types.VS.weight_std=0.1"], variant)
-    with pytest.raises(ConfigError, match="weight_std"):
-        with_overrides(load_preset("paper"), ["filter.types.VA.weight_std=-1"])
+        with pytest.raises(ConfigError, match=rf"^filter\.types\.VS\.{key}: .*set {key} = 0$"):
+            _filter([f"filter.types.VS.{key}=0.1"], variant)
+    with pytest.raises(ConfigError, match=key):
+        with_overrides(load_preset("paper"), [f"filter.types.VA.{key}=-1"])
