@@ -237,8 +237,9 @@ class TypeParams:
                               "tail's part scales it by tail_scale too); each particle's map update (eq. (5)) is "
                               "unchanged. A map sure of a point that moves along a facade of facets (munich2: NEES "
                               "6-17) then pulls the cars less. 0: the paper's weight, and the default: 0.6 lowers "
-                              "the RMSE on five of seven city scenes of a declared run and leaves their maps whole, "
-                              "but canyon's VA map passes its target and florence3 localises 0.8 cm worse "
+                              "the RMSE beyond the spread on five of seven city scenes of a declared run and "
+                              "leaves their maps whole, but canyon's VA map passes its target and florence3 "
+                              "localises 0.8 cm worse "
                               "(docs/city-slam.md). A moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
