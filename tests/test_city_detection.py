@@ -88,11 +88,14 @@ def test_fused_va_map_reduction_uses_merge_va(merge_va, n_va):
 
 @pytest.mark.slow
 def test_canyon_defaults_lower_the_fused_va_gospa_paired_over_seeds(tmp_path):
-    """Sionna-traced canyon (no [filter] / [fusion] tables: the defaults), proposed, P = 300, seeds 0-4,
+    """Sionna-traced canyon (no [filter] / [fusion] tables: the defaults), proposed, P = 300, seeds 0-9,
     steps k >= 10: the defaults (docs/city-slam.md) give a lower fused VA GOSPA than the paper's filter
     settings, the defaults before issue 22 (r_scale 9, fixed p_D 0.95, VA threshold 0.7, no labels,
     equal AA weights), on every seed's pairing (95% CI of the paired difference below 0), and the
-    position RMSE stays >= 30% below dead reckoning."""
+    position RMSE stays >= 30% below dead reckoning. Ten seeds, not five: since the fused map keeps both
+    shares of a matched pair (session 24) the difference is bimodal, -1.4 to -4.8 m where canyon's VA seen
+    by one car is lost late and -15 to -17 m where it stays (seeds 0-9: -7.1 +- 4.4 m; seeds 0-4 alone
+    -8.2 +- 9.4 m, every seed lower but the t interval too wide)."""
     from mmslam.pipelines.ablate import prepare_cache
     from mmslam.slam.filter import run_slam
 
@@ -108,7 +111,7 @@ def test_canyon_defaults_lower_the_fused_va_gospa_paired_over_seeds(tmp_path):
         return float(np.asarray(m["gospa"], float)[sel].mean()), float(np.sqrt(np.mean(e * e)))
 
     new_va, old_va, rmse, odo = [], [], [], []
-    for s in range(5):
+    for s in range(10):
         g, e = score(run_slam(cache, "proposed", 300, s))
         new_va.append(g)
         rmse.append(e)

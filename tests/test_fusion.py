@@ -241,3 +241,38 @@ def test_fuse_aa_visibility_weights_reduce_to_the_paper_rule():
         np.testing.assert_allclose(out.m, ref.m, rtol=1e-12)
     with pytest.raises(ValueError, match="fusion weights"):
         fuse_aa(bs, ue, inside, 20.0, weights="max")
+
+
+def test_a_matched_pair_keeps_both_shares_with_visibility_weights():
+    """The fused weight of a matched pair is beta_b w_b + beta_u w_u, however small the upload's share.
+
+    Canyon's case (seed 5001, step 9): the BS holds a VA one car saw, w_b 1.12 with Beta (4.35, 1.96), pi_b
+    0.689; a car that never saw it uploads its copy, w_u 1.26 with the prior Beta (0.2, 3.8), pi_u 0.05. beta_u =
+    0.05 / 0.739 = 0.0677, so the upload's share 0.0852 is below average_prune 0.1: pruned before the merge it was
+    lost (w 1.042, 7% of the landmark per fusion). Merged first, the pair gives 0.9323 * 1.12 + 0.0677 * 1.26 =
+    1.1295 at the weighted mean of the two; the paper's equal weights keep its published reduction (the upload's
+    half, 0.63, is above the threshold there, so a weak copy, w_u 0.15, shows the paper's rule: 0.5 w_b only)."""
+    from mmslam.scenes.scenario import load_preset, with_overrides
+    from mmslam.slam.specs.landmarks import landmark_type
+    from mmslam.slam.models.measurement import VA
+
+    spec = landmark_type(VA)
+    bs = _with_beta(_gm([1.12], [[-33.0, 31.18, 25.0]], _iso([[0, 0, 0]], 0.5)), [[4.35, 1.96]])
+    ue = _with_beta(_gm([1.26], [[-33.0, 31.25, 25.0]], _iso([[0, 0, 0]], 0.5)), [[0.2, 3.8]])
+    city = with_overrides(load_preset("canyon"), [])
+    assert city.fusion.aa_weights == "visibility" and city.fusion.average_prune == 0.1
+    fused, pairs = fuse_aa(bs, ue, np.array([False]), 20.0, with_pairs=True, weights="visibility")
+    out = spec.reduce_fused(fused, pairs, city, spec)
+    pi_b, pi_u = 4.35 / 6.31, 0.2 / 4.0
+    b_b, b_u = pi_b / (pi_b + pi_u), pi_u / (pi_b + pi_u)
+    assert b_u * 1.26 < 0.1  # the share the pruning used to drop
+    assert out.mask.sum() == 1
+    live = out.mask
+    assert out.w[live][0] == pytest.approx(b_b * 1.12 + b_u * 1.26, rel=1e-12)
+    y = (b_b * 1.12 * 31.18 + b_u * 1.26 * 31.25) / (b_b * 1.12 + b_u * 1.26)
+    assert out.m[live][0][1] == pytest.approx(y, rel=1e-12)
+    paper = load_preset("paper")
+    weak = _with_beta(_gm([0.15], [[-33.0, 31.25, 25.0]], _iso([[0, 0, 0]], 0.5)), [[0.2, 3.8]])
+    fused, pairs = fuse_aa(bs, weak, np.array([False]), 20.0, with_pairs=True, weights=paper.fusion.aa_weights)
+    out = spec.reduce_fused(fused, pairs, paper, spec)
+    assert out.w[out.mask].tolist() == pytest.approx([0.5 * 1.12], rel=1e-12)

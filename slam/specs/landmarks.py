@@ -302,22 +302,23 @@ def vs_fusion_operator(variant: "VariantSpec") -> FuseFn:
 
 
 def trace_cap(spec: LandmarkSpec, scn: "Scenario") -> float | None:
-    """The position-trace cap (m^2) of ``spec``'s maps: ``filter.max_trace`` for a moving type (its
-    Gaussians grow by process noise), None (no cap) for a static one unless
-    ``filter.max_trace_scope = "all"``. A static Gaussian's covariance only shrinks after its birth,
-    whose covariance is what one measurement resolves (``r_scale R`` mapped to position at the
-    landmark's range): an absolute cap then only drops births, all of them once the noise grows
+    """The position-trace cap (m^2) of ``spec``'s maps: ``filter.max_trace`` for a moving type (its Gaussians grow by
+    process noise), None (no cap) for a static one unless ``filter.max_trace_scope = "all"``. A static Gaussian's
+    covariance only shrinks after its birth, whose covariance is what one measurement resolves (``r_scale R`` mapped
+    to position at the landmark's range): an absolute cap then only drops births, all of them once the noise grows
     (2x the `paper` noise: every VA birth above 50 m^2, no VA mapped)."""
     fp = scn.filter
     return float(fp.max_trace) if spec.moving or fp.max_trace_scope == "all" else None
 
 
 def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", spec: LandmarkSpec) -> GM:
-    """``prune_merge`` of a fused map (``fusion.average_prune``, the type's merge gate
-    :meth:`LandmarkSpec.merge_gate`: e.g. ``filter.types.VA.merge``, so two image sources closer than the
-    VA position uncertainty lets U = 49 tell apart stay two, docs/implementation-notes.md, "Detection in
-    cities"; the trace cap :func:`trace_cap`: a static type only with ``filter.max_trace_scope = "all"``)."""
+    """``prune_merge`` of a fused map (``fusion.average_prune``, the merge gate :meth:`LandmarkSpec.merge_gate`,
+    the trace cap :func:`trace_cap`). With ``fusion.aa_weights = "visibility"`` the matched ``pairs (n, 2)`` are
+    merged first: a pair keeps ``beta_b w_b + beta_u w_u`` where a share is below ``average_prune`` (city-slam.md,
+    "The fusion's lost share"); with the paper's equal shares the union is reduced as published."""
     fp, fu = scn.filter, scn.fusion
+    if fused.capacity and pairs is not None and len(pairs) and fu.aa_weights == "visibility":
+        fused = merge_pairs(fused, pairs)
     if fused.capacity:
         fused = prune_merge(fused, fu.average_prune, spec.merge_gate(scn), fp.max_gaussians, trace_cap(spec, scn),
                             pos_dims=3)
