@@ -8,6 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 SCRIPT = Path(__file__).parents[1] / "benchmarks" / "bench_ckf.py"
 ABLATION = Path(__file__).parents[1] / "benchmarks" / "bench_ablation.py"
 
@@ -147,3 +150,28 @@ def test_bench_filter_set_times_the_changed_setting_and_refuses_a_bad_one():
         assert p.returncode == 2 and p.stdout == "", (bad, p.stdout)
         last = p.stderr.strip().splitlines()[-1]
         assert "error:" in last and bad.split("=")[0].split(".")[-1] in last, (bad, p.stderr)
+
+
+def test_compare_traces_matches_rows_and_reports_the_differences(tmp_path):
+    """benchmarks/compare_traces.py: a table against a copy with one row dropped, one ToA moved by 1e-4 m and one
+    azimuth moved across the -pi / pi cut by 2e-6 rad: one row only in A, the rest matched, max |dToA| 1e-4 m and
+    max |d az| 2e-6 rad (wrapped, not 2 pi); a missing cache is one line and exit 2."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    import compare_traces as ct
+
+    n = 4
+    a = {"step": np.arange(n), "rx": np.zeros(n, int), "type": np.ones(n, int), "lm_x": np.arange(n) * 10.0,
+         "lm_y": np.full(n, 5.0), "lm_z": np.full(n, 2.0), "toa_m": np.full(n, 50.0), "aod_az": np.zeros(n),
+         "aod_el": np.zeros(n), "aoa_az": np.array([np.pi - 1e-6, 0, 0, 0]), "aoa_el": np.zeros(n),
+         "power_db": np.full(n, -100.0), "doppler_hz": np.zeros(n)}
+    b = {k: v[:3].copy() for k, v in a.items()}
+    b["toa_m"][1] += 1e-4
+    b["aoa_az"][0] = -np.pi + 1e-6
+    r = ct.compare(a, b)
+    assert r["rows"] == (4, 3, 3) and r["only_a"] == [(3, 0, 1, 30.0, 5.0, 2.0)] and r["only_b"] == []
+    assert r["diff"]["toa_m"][0] == pytest.approx(1e-4, rel=1e-6)
+    assert r["diff"]["aoa_az"][0] == pytest.approx(2e-6, rel=1e-6)
+    assert r["diff"]["power_db"] == (0.0, 0.0)
+    p = subprocess.run([sys.executable, str(SCRIPT.parent / "compare_traces.py"), str(tmp_path / "none"),
+                        str(tmp_path / "none")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
