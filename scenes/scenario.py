@@ -413,7 +413,9 @@ class FusionParams:
                             "equal (1/2 each, the paper's) or visibility (each member's learnt E[p_D] over "
                             "the pair's sum, where both carry a Beta detection model, filter.pd_model = beta; "
                             "equal otherwise): a vehicle's copy of a landmark it could not see does not dilute "
-                            "the copy of one that saw it (docs/city-slam.md)", choices=("equal", "visibility"))
+                            "the copy of one that saw it; with those weights each matched pair is one landmark, "
+                            "merged before the fused map is pruned, so it keeps both shares "
+                            "(docs/city-slam.md)", choices=("equal", "visibility"))
     gamma_detect: float = param(0.9, "detection threshold gamma_D of the accumulated FOV: a BS-map landmark "
                                 "counts as inside a vehicle's accumulated FOV if the filter's detection "
                                 "probability (filter.types.<TYPE>.p_detect, 0 beyond the FOV range) reached it "

@@ -249,7 +249,7 @@ def test_a_matched_pair_keeps_both_shares_with_visibility_weights():
     Canyon's case (seed 5001, step 9): the BS holds a VA one car saw, w_b 1.12 with Beta (4.35, 1.96), pi_b
     0.689; a car that never saw it uploads its copy, w_u 1.26 with the prior Beta (0.2, 3.8), pi_u 0.05. beta_u =
     0.05 / 0.739 = 0.0677, so the upload's share 0.0852 is below average_prune 0.1: pruned before the merge it was
-    lost (w 1.042, 7% of the landmark per fusion). Merged first, the pair gives 0.9323 * 1.12 + 0.0677 * 1.26 =
+    lost (w 1.044, 7% of the landmark per fusion). Merged first, the pair gives 0.9323 * 1.12 + 0.0677 * 1.26 =
     1.1295 at the weighted mean of the two; the paper's equal weights keep its published reduction (the upload's
     half, 0.63, is above the threshold there, so a weak copy, w_u 0.15, shows the paper's rule: 0.5 w_b only)."""
     from mmslam.scenes.scenario import load_preset, with_overrides
@@ -276,3 +276,32 @@ def test_a_matched_pair_keeps_both_shares_with_visibility_weights():
     fused, pairs = fuse_aa(bs, weak, np.array([False]), 20.0, with_pairs=True, weights=paper.fusion.aa_weights)
     out = spec.reduce_fused(fused, pairs, paper, spec)
     assert out.w[out.mask].tolist() == pytest.approx([0.5 * 1.12], rel=1e-12)
+    # visibility asked for but no Beta on the maps (pd_model fixed): fuse_aa weighs 1/2 each, and the reduction is
+    # the published one too
+    plain = [GM(g.w, g.m, g.P, g.mask) for g in (bs, weak)]
+    fused, pairs = fuse_aa(*plain, np.array([False]), 20.0, with_pairs=True, weights="visibility")
+    out = spec.reduce_fused(fused, pairs, city, spec)
+    assert out.w[out.mask].tolist() == pytest.approx([0.5 * 1.12], rel=1e-12)
+
+
+def test_a_matched_pair_is_one_landmark_whatever_the_merge_gate():
+    """With visibility weights a pair the fusion matched (MSM distance below fusion.msm_position) is merged even where
+    the type's merge gate would keep its members apart: two VAs 2 m apart in x, variance 0.5 m^2 per axis, weight 1
+    each, equal Betas (shares 1/2): squared Mahalanobis distance 4 / 0.5 = 8 > the VA gate 6, MSM matched. One
+    component of weight 1 at the midpoint; with equal weights (the paper's reduction) the two halves stay two."""
+    from mmslam.scenes.scenario import load_preset, with_overrides
+    from mmslam.slam.specs.landmarks import landmark_type
+    from mmslam.slam.models.measurement import VA
+
+    spec = landmark_type(VA)
+    city = with_overrides(load_preset("canyon"), [])
+    assert spec.merge_gate(city) == 6.0
+    bs = _with_beta(_gm([1.0], [[0.0, 0.0, 0.0]], _iso([[0, 0, 0]], 0.5)), [[1.0, 1.0]])
+    ue = _with_beta(_gm([1.0], [[2.0, 0.0, 0.0]], _iso([[0, 0, 0]], 0.5)), [[1.0, 1.0]])
+    for weights, want in (("visibility", [(1.0, 1.0)]), ("equal", [(0.5, 0.0), (0.5, 2.0)])):
+        fused, pairs = fuse_aa(bs, ue, np.array([False]), 20.0, with_pairs=True, weights=weights)
+        assert len(pairs) == 1
+        scn = with_overrides(city, [f'fusion.aa_weights="{weights}"'])
+        out = spec.reduce_fused(fused, pairs, scn, spec)
+        got = sorted((float(w), float(m[0])) for w, m in zip(out.w[out.mask], out.m[out.mask]))
+        assert got == [pytest.approx(x, rel=1e-12, abs=1e-12) for x in want]

@@ -312,12 +312,12 @@ def trace_cap(spec: LandmarkSpec, scn: "Scenario") -> float | None:
 
 
 def reduce_fused_static(fused: GM, pairs: np.ndarray | None, scn: "Scenario", spec: LandmarkSpec) -> GM:
-    """``prune_merge`` of a fused map (``fusion.average_prune``, the merge gate :meth:`LandmarkSpec.merge_gate`,
-    the trace cap :func:`trace_cap`). With ``fusion.aa_weights = "visibility"`` the matched ``pairs (n, 2)`` are
-    merged first: a pair keeps ``beta_b w_b + beta_u w_u`` where a share is below ``average_prune`` (city-slam.md,
-    "The fusion's lost share"); with the paper's equal shares the union is reduced as published."""
+    """``prune_merge`` of a fused map (``fusion.average_prune``, :meth:`LandmarkSpec.merge_gate`, :func:`trace_cap`).
+    Where the fusion weighted its matched ``pairs (n, 2)`` by visibility (``aa_weights = "visibility"``, a Beta on both
+    maps) each pair is one landmark, merged first whatever the gate: it keeps ``beta_b w_b + beta_u w_u`` (city-slam.md,
+    "The fusion's lost share"). With equal shares (the paper's eq. (8)) the union is reduced as published."""
     fp, fu = scn.filter, scn.fusion
-    if fused.capacity and pairs is not None and len(pairs) and fu.aa_weights == "visibility":
+    if fused.capacity and pairs is not None and len(pairs) and fu.aa_weights == "visibility" and fused.pd_beta is not None:
         fused = merge_pairs(fused, pairs)
     if fused.capacity:
         fused = prune_merge(fused, fu.average_prune, spec.merge_gate(scn), fp.max_gaussians, trace_cap(spec, scn),
