@@ -156,8 +156,11 @@ def test_compare_traces_matches_rows_and_reports_the_differences(tmp_path):
     """benchmarks/compare_traces.py: a table against a copy with one row dropped, one ToA moved by 1e-4 m and one
     azimuth moved across the -pi / pi cut by 2e-6 rad: one row only in A, the rest matched, max |dToA| 1e-4 m and
     max |d az| 2e-6 rad (wrapped, not 2 pi); a missing cache is one line and exit 2."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    import compare_traces as ct
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("compare_traces", SCRIPT.parent / "compare_traces.py")
+    ct = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ct)
 
     n = 4
     a = {"step": np.arange(n), "rx": np.zeros(n, int), "type": np.ones(n, int), "lm_x": np.arange(n) * 10.0,
@@ -169,6 +172,7 @@ def test_compare_traces_matches_rows_and_reports_the_differences(tmp_path):
     b["aoa_az"][0] = -np.pi + 1e-6
     r = ct.compare(a, b)
     assert r["rows"] == (4, 3, 3) and r["only_a"] == [(3, 0, 1, 30.0, 5.0, 2.0)] and r["only_b"] == []
+    assert r["shared_keys"] == (0, 0)
     assert r["diff"]["toa_m"][0] == pytest.approx(1e-4, rel=1e-6)
     assert r["diff"]["aoa_az"][0] == pytest.approx(2e-6, rel=1e-6)
     assert r["diff"]["power_db"] == (0.0, 0.0)
