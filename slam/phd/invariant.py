@@ -54,5 +54,3 @@ def check_phd_mass(predicted: GM, corrected: GM, n_meas: int, name: str, step: i
             f"PHD mass invariant violated in the {name} correction at step {step}, particle {p}: "
             f"corrected mass {corr[p]:.6g} > predicted mass {pred[p]:.6g} + {n_meas} measurements "
             f"({int(bad.sum())} of {bad.size} particles); a correction kernel corrupted the weights")
-
-
