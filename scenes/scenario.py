@@ -239,7 +239,7 @@ class TypeParams:
                               "6-17; sf3: a facade stepped 2.8 m in depth) then pulls the cars less. 0: the paper's "
                               "weight, and the default: in its latest declared run (session 25, 13 city scenes) 0.6 "
                               "keeps canyon's and munich's map targets, lowers the RMSE beyond the spread on eight "
-                              "of them and makes the VA map help on seven of eleven written scenes (the default's: "
+                              "of them and makes the VA map help on seven of eleven written scenes (the defaults': "
                               "four), but florence3, whose VA map is accurate, localises 0.8 cm worse with it, as in "
                               "session 23 (docs/city-slam.md). A moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
