@@ -21,6 +21,10 @@ Per cache (scene) and seed it runs ``--variant`` (default ``proposed``) with the
 - ``rmse``: the position RMSE (m) over all vehicles and those steps, and ``rmse_nlos`` over the (vehicle, step)
   pairs without a line-of-sight path in the cache (the car that lost the BS), ``rmse_nlos_va`` over those of them with
   a VA path in the cache (where a VA map can act without the BS);
+- ``nees``: the median over those vehicle-steps of the horizontal position's NEES against the particle covariance
+  (the vehicles table's ``pos_nees``, 2 degrees of freedom): 2 ln 2 = 1.39 for a filter whose spread matches its
+  error, larger where the particle cloud is narrower than the error (the median, as a cloud collapsed to a few
+  particles gives single values of 1e6 and more);
 - ``vs`` / ``vs_others``: the fused VS GOSPA against every vehicle, and of the fused map's non-ego Gaussians
   against the vehicles another vehicle could see (map ``fused_others``; NaN without labels);
 - ``sp`` / ``sp_false``: the fused SP GOSPA (m) and its false part (m^2): on a city scene without scatterers every
@@ -34,7 +38,7 @@ has a path to at that step, each moved by a fixed error of std ``E``, covariance
 ``known<E>_rmse`` and ``known<E>_rmse_nlos``, paired against ``--ignore-va`` (the upper bound of what a VA map
 with that error helps localisation). ``--odometry``: dead reckoning too (``odo_rmse``). ``--ignore-va``: the same variant with the VA paths dropped
 from the measurements (``include_types`` without VA: the filter never sees a wall bounce), ``noVA_rmse`` and
-``noVA_rmse_nlos``. ``--compare``: the variant once more with these extra overrides (``cmp_*``). Every claimed
+``noVA_rmse_nlos``, ``noVA_nees``. ``--compare``: the variant once more with these extra overrides (``cmp_*``). Every claimed
 difference is printed as a paired mean with its 95% Student-t half-width over the seeds, with its median, the share
 of seeds on which it is negative and the number on which it exceeds +0.1 (:func:`paired`). ``--seeds`` takes ranges
 and lists, e.g. ``0-9,1000-1039``.
@@ -153,6 +157,8 @@ def scores(r, kmin: int, nlos: np.ndarray, ev, nlos_va: np.ndarray | None = None
         nv = late & nlos_va[k, n]
         out["rmse_nlos_va"] = float(np.sqrt(np.mean(e[nv] ** 2))) if nv.any() else math.nan
     out["nlos_share"] = float(nl.sum() / max(late.sum(), 1))
+    nees = np.asarray(v["pos_nees"], float)[late]
+    out["nees"] = float(np.nanmedian(nees)) if np.isfinite(nees).any() else math.nan
     return out
 
 
@@ -225,6 +231,7 @@ def run_scene(cache: str, a: argparse.Namespace) -> dict:
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, include_types=no_va,
                                 overrides=a.set), a.kmin, nlos, ev, nlos_va)
             sc["noVA_rmse"], sc["noVA_rmse_nlos"], sc["noVA_rmse_nlos_va"] = o["rmse"], o["rmse_nlos"], o["rmse_nlos_va"]
+            sc["noVA_nees"] = o["nees"]
         if cmp_sets:
             o = scores(run_slam(cache, a.variant, a.particles, s, steps=steps, overrides=a.set + cmp_sets),
                        a.kmin, nlos, ev, nlos_va)

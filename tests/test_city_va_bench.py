@@ -120,7 +120,7 @@ def test_scores_rmse_over_the_masked_vehicle_steps_by_hand():
     """scores(): steps 0-2, two vehicles, kmin 1. Position errors (step, vehicle): (1, 0) 3, (1, 1) 4, (2, 0) 1,
     (2, 1) 2 (step 0's 100 m are before kmin). Without LOS: (1, 1), (2, 0), (2, 1); of those with a VA path: (2, 1).
     rmse = sqrt((9 + 16 + 1 + 4) / 4), rmse_nlos = sqrt((16 + 1 + 4) / 3), rmse_nlos_va = 2; the fused SP GOSPA
-    and its false part are the means of the SP rows at k >= 1."""
+    and its false part are the means of the SP rows at k >= 1; nees the median NEES at k >= 1 without the NaN."""
     from types import SimpleNamespace
 
     b = _bench()
@@ -130,7 +130,8 @@ def test_scores_rmse_over_the_masked_vehicle_steps_by_hand():
                "loc": np.zeros(6), "missed": np.zeros(6), "false": np.array([0.0, 0, 0, 7, 2, 6]),
                "n_true": np.full(6, 2.0), "n_visible": np.ones(6), "card": np.ones(6)}
     vehicles = {"step": np.array([0, 0, 1, 1, 2, 2]), "vehicle": np.array([0, 1, 0, 1, 0, 1]),
-                "pos_err": np.array([100.0, 100.0, 3.0, 4.0, 1.0, 2.0])}
+                "pos_err": np.array([100.0, 100.0, 3.0, 4.0, 1.0, 2.0]),
+                "pos_nees": np.array([1e6, 1e6, 5.0, 1.0, np.nan, 3.0])}
     nlos = np.array([[True, True], [False, True], [True, True]])
     nlos_va = np.array([[True, False], [False, False], [False, True]])
     ev = argparse.Namespace(gospa_c=20.0, gospa_p=2.0, gospa_alpha=2.0)
@@ -139,4 +140,5 @@ def test_scores_rmse_over_the_masked_vehicle_steps_by_hand():
     assert out["rmse_nlos"] == pytest.approx(math.sqrt(21 / 3))
     assert out["rmse_nlos_va"] == pytest.approx(2.0)
     assert out["va"] == pytest.approx(3.0) and out["sp"] == pytest.approx(4.0) and out["sp_false"] == pytest.approx(4.0)
+    assert out["nees"] == 3.0  # the median of 5, 1 and 3 at k >= 1 (a singular covariance's NaN left out)
     assert "rmse_nlos_va" not in b.scores(SimpleNamespace(metrics=metrics, vehicles=vehicles), 1, nlos, ev)

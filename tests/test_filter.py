@@ -566,3 +566,34 @@ def test_no_pruning_runs(paper, variant):
     res = run_filter(with_overrides(scn, ["filter.prune=0"]), states, paths, variant=variant, particles=20, seed=1,
                      steps=8)
     assert np.isfinite(_rmse(res, lo=0, hi=8))
+
+
+def test_position_nees_by_hand_and_its_degenerate_cases():
+    """``e^T P^-1 e`` on hand values: diag(1, 4) with e = (1, 2) gives 1 + 1 = 2; a correlated covariance against
+    ``solve``; a singular covariance (one particle) is NaN; other shapes are refused."""
+    from mmslam.slam.filter.rbpf import position_nees
+
+    assert position_nees(np.array([1.0, 2.0]), np.diag([1.0, 4.0])) == pytest.approx(2.0, rel=1e-15)
+    C = np.array([[2.0, 0.6], [0.6, 0.5]])
+    e = np.array([0.3, -0.7])
+    assert position_nees(e, C) == pytest.approx(float(e @ np.linalg.solve(C, e)), rel=1e-12)
+    assert np.isnan(position_nees(e, np.zeros((2, 2))))
+    with pytest.raises(ValueError, match="expected"):
+        position_nees(np.zeros(3), np.eye(3))
+
+
+def test_the_vehicle_rows_carry_the_nees_of_the_estimate_they_record(paper):
+    """Each vehicle row's ``pos_nees`` is the horizontal error of that step's posterior mean against its particle
+    covariance: recomputed from the run's own estimates and the truth (a second computation of the same quantity)."""
+    from mmslam.slam.filter.run import CooperativeRun
+
+    scn, states, paths = paper
+    run = CooperativeRun(scn, states, paths, "proposed", 20, 3, 4)
+    want = []
+    for k in range(run.steps):
+        for n, est in enumerate(run.step(k)):
+            e = est.mean[0:2] - states[k, n, 0:2]
+            want.append(float(e @ np.linalg.solve(est.cov[0:2, 0:2], e)))
+    got = np.asarray(run.result().vehicles["pos_nees"], float)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    assert (got > 0).all()

@@ -113,3 +113,21 @@ def weighted_state_cov(s: np.ndarray, w: np.ndarray, mean: np.ndarray) -> np.nda
     out = np.empty((d.shape[1], d.shape[1]))
     _weighted_outer_sum(np.ascontiguousarray(w, dtype=float), d, out)
     return out
+
+
+def position_nees(err_xy: np.ndarray, cov_xy: np.ndarray) -> float:
+    """Normalised estimation error squared of the horizontal position: ``e^T P^-1 e`` (dimensionless, 2 degrees of
+    freedom: its mean is 2 for a filter whose covariance matches its error) for the error ``err_xy (2,)`` (m; estimate
+    minus truth, global x-y) and the posterior covariance ``cov_xy (2, 2)`` (m^2; the weighted particle covariance,
+    :func:`weighted_state_cov`). The height is left out: on flat streets its process noise is 0 and its covariance
+    singular. NaN where ``cov_xy`` is not positive definite (a single particle, or every particle at one point)."""
+    e = np.asarray(err_xy, float)
+    C = np.asarray(cov_xy, float)
+    if e.shape != (2,) or C.shape != (2, 2):
+        raise ValueError(f"position_nees: error {e.shape} and covariance {C.shape}; expected (2,) and (2, 2)")
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return float("nan")
+    y = np.linalg.solve(L, e)
+    return float(y @ y)

@@ -5,6 +5,8 @@
 ``vehicles`` (one row per step and vehicle)
     step int32, vehicle int16, x, y, z [m], heading [rad], bias [m] (posterior-mean estimates),
     true_x, true_y, true_z [m], true_heading [rad], true_bias [m], pos_err [m] (3-D),
+    pos_nees (the horizontal position's NEES against the weighted particle covariance, 2 degrees of freedom:
+    mean 2 when the filter's spread matches its error; NaN where that covariance is singular),
     heading_err [rad] (wrapped), bias_err [m]
 
 ``metrics`` (one row per step, map and landmark type)

@@ -40,12 +40,13 @@ from ..specs.landmarks import check_type_rows, known_codes, landmark_types
 from .known_map import KnownMap
 from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
+from .rbpf import position_nees
 from .result import Result
 from ..specs.variants import VariantSpec, get_variant
 
 VEH_DT = {"step": np.int32, "vehicle": np.int16, "x": float, "y": float, "z": float, "heading": float,
           "bias": float, "true_x": float, "true_y": float, "true_z": float, "true_heading": float,
-          "true_bias": float, "pos_err": float, "heading_err": float, "bias_err": float}
+          "true_bias": float, "pos_err": float, "pos_nees": float, "heading_err": float, "bias_err": float}
 
 
 POINT_VS_SOURCES = ("analytic",)
@@ -297,6 +298,7 @@ class CooperativeRun:
         self.vehicle_rows.add(step=k, vehicle=n, x=est.mean[0], y=est.mean[1], z=est.mean[2], heading=est.mean[3],
                               bias=est.mean[6], true_x=ts[0], true_y=ts[1], true_z=ts[2], true_heading=ts[3],
                               true_bias=ts[6], pos_err=float(np.linalg.norm(est.mean[0:3] - ts[0:3])),
+                              pos_nees=position_nees(est.mean[0:2] - ts[0:2], est.cov[0:2, 0:2]),
                               heading_err=float(wrap_angle(est.mean[3] - ts[3])), bias_err=float(est.mean[6] - ts[6]))
         if self.scorer is not None:
             self.scorer.record(k, self.scn.vehicle_names[n], est.avg_maps, self.scorer.vehicle_truth(k, n), n)
