@@ -12,6 +12,7 @@ from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.core.gm import GM
 from mmslam.slam.filter.local_filter import LocalFilter
 from mmslam.slam.models.measurement import measure, residual
+from mmslam.slam.phd.follow import weight_mixture
 from mmslam.slam.phd.gmphd import correct
 from mmslam.slam.specs.landmarks import landmark_type
 
@@ -116,13 +117,49 @@ def test_the_local_filter_hands_the_offset_to_the_correction(monkeypatch):
     real = lf.correct
 
     def spy(*a, **kw):
-        seen["offsets"] = a[-1] if len(a) > 17 else kw.get("weight_offsets")
+        seen["offsets"] = a[17] if len(a) > 17 else kw.get("weight_offsets")
+        seen["shares"] = a[18] if len(a) > 18 else kw.get("weight_shares")
         return real(*a, **kw)
 
     monkeypatch.setattr(lf, "correct", spy)
     f = _filter(["filter.types.VA.weight_std=0.5"])
     f.correct(np.zeros((0, 5)))
     assert seen["offsets"][VA] == 0.25 and seen["offsets"][SP] == 0.0
+    assert seen["shares"][VA] == 1.0  # the offset alone unless a share is set
+    _filter(["filter.types.VA.weight_std=0.5", "filter.types.VA.weight_share=0.2"]).correct(np.zeros((0, 5)))
+    assert seen["shares"][VA] == 0.2 and seen["shares"][SP] == 1.0
+
+
+def test_the_weight_mixture_by_hand():
+    """weight_mixture: log((1 - e) q + e q_w) on hand values (q = 2, q_w = 6, e = 0.25: log 3; a term only the offset
+    map has, -inf and log 4 at e = 0.5: log 2); e = 1 is the offset's terms, e = 0 the map's own; e outside [0, 1]
+    is refused."""
+    q, qw = np.log([[[2.0, 1.0]]]), np.log([[[6.0, 4.0]]])
+    q[0, 0, 1] = -np.inf
+    np.testing.assert_allclose(weight_mixture(q, qw, 0.25)[0, 0, 0], np.log(3.0), rtol=1e-14)
+    np.testing.assert_allclose(weight_mixture(q, qw, 0.5)[0, 0, 1], np.log(2.0), rtol=1e-14)
+    assert weight_mixture(q, qw, 1.0) is qw and weight_mixture(q, qw, 0.0) is q
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="weight share"):
+            weight_mixture(q, qw, bad)
+
+
+@pytest.mark.parametrize("city", [False, True], ids=["paper row", "city row (exclusive, Bernoulli, tail)"])
+def test_a_share_of_the_offset_mixes_psi_and_leaves_the_maps(city):
+    """The two-particle scene of the first test with F_w = 0.5 m^2 at a share e = 0.3: the weight's psi is
+    0.7 psi + 0.3 psi_w, with psi the weight without the offset and psi_w that of the offset alone (the clutter and
+    BS terms are the same in both), and the corrected maps are those without the offset; an absent share is 1."""
+    states = np.stack([STATE, STATE + [0.6, -0.2, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    Z = np.stack([measure(STATE, X, Bounce.MIRROR, BS), measure(STATE, X + [0.8, 0.6, 0.0], Bounce.MIRROR, BS)])
+    plain_maps, plain = _correct(_map(), states, Z, city)
+    _, alone = _correct(_map(), states, Z, city, weight_offsets={VA: 0.5})
+    maps, mixed = _correct(_map(), states, Z, city, weight_offsets={VA: 0.5}, weight_shares={VA: 0.3})
+    np.testing.assert_allclose(mixed, np.log(0.7 * np.exp(plain) + 0.3 * np.exp(alone)), rtol=1e-12)
+    assert np.abs(mixed - plain).min() > 1e-4 and np.abs(mixed - alone).min() > 1e-4
+    for key in ("w", "m", "P", "mask", "pd_beta", "label"):
+        np.testing.assert_array_equal(getattr(maps[VA], key), getattr(plain_maps[VA], key))
+    _, other = _correct(_map(), states, Z, city, weight_offsets={VA: 0.5}, weight_shares={SP: 0.3})
+    np.testing.assert_array_equal(other, alone)
 
 
 def test_an_empty_scan_leaves_the_weight_empty():

@@ -139,6 +139,9 @@ class LocalFilter:
         self._weight_offset = {t: s.type_params(scn).weight_std ** 2 for t, s in self.specs.items()}
         """type code -> the variance (m^2 per axis) of its offset in the particle weight only
         (``filter.types.<T>.weight_std``)"""
+        self._weight_share = {t: s.type_params(scn).weight_share for t, s in self.specs.items()}
+        """type code -> the share ``e`` of that offset in its particle-weight likelihood
+        (``filter.types.<T>.weight_share``)"""
         check_type_rows(scn)  # e.g. no random walk on a moving type
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
         self.s[:, 3] = wrap_angle(self.s[:, 3])
@@ -207,7 +210,7 @@ class LocalFilter:
         corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
                                   p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
                                   self._body, self._missed, self._association, self._tail, self._follow,
-                                  self._weight_offset)
+                                  self._weight_offset, self._weight_share)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
 

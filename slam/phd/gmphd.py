@@ -20,6 +20,7 @@ the error messages run in Python.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable, Mapping
@@ -32,7 +33,7 @@ from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
 from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
-from .follow import offset_position, own_covariance
+from .follow import offset_position, own_covariance, weight_mixture
 from .invariant import PHD_MASS_RTOL, check_phd_mass  # noqa: F401 (gmphd.check_phd_mass: correct() calls it)
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
                     _log_psi_parts, _lse_slots_kernel, _write_corrected)
@@ -47,7 +48,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             association: Mapping[int, str] | None = None,
             tails: Mapping[int, tuple[float, float]] | None = None,
             follows: Mapping[int, float] | None = None,
-            weight_offsets: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            weight_offsets: Mapping[int, float] | None = None,
+            weight_shares: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -77,7 +79,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
        weight by ``prod_j psi(z_j)`` as the authors' code does (docs/implementation-notes.md): the
        caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights. With a weight offset
        ``F_w`` of a type (``weight_offsets``), the ``psi`` returned takes that type's detected terms with
-       ``P + F_w`` on the position (:func:`type_terms` of the map so widened); steps 3-4 use the map's own.
+       ``P + F_w`` on the position (:func:`type_terms` of the map so widened), mixed with the map's own at a
+       share ``e`` (``weight_shares``, :func:`~mmslam.slam.phd.follow.weight_mixture`: ``psi_e = (1 - e) psi + e psi_w``);
+       steps 3-4 use the map's own.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
@@ -104,6 +108,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             type not in it: 0).
         weight_offsets: type code -> ``F_w`` (m^2 per axis, ``filter.types.<T>.weight_std`` squared): the offset
             of the type's detected terms in the particle weight only (step 6; None or a type not in it: 0).
+        weight_shares: type code -> ``e`` in ``[0, 1]`` (``filter.types.<T>.weight_share``), the share of that offset
+            in the weight's likelihood of the type (None or a type not in it: 1, the offset alone).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)`` of the particle weight (step 6).
@@ -133,7 +139,11 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         off = {t: type_terms(offset_position(maps[t], follows.get(t, 0.0) + f), kinds[t], states, Z, R, bs, pd_fn,
                              extents.get(t), log_clutter, None if t in exclusive else prune, bodies.get(t),
                              missed.get(t, "phd"), tails.get(t)) for t, f in offsets.items()}
-        lpsi_w = log_psi([off.get(tc.lm_type, tc) for tc in terms], bs_term, log_clutter, lpsi.shape)
+        shares = weight_shares or {}
+        lpsi_w = log_psi([tc if tc.lm_type not in off else
+                          _with_logq(off[tc.lm_type], weight_mixture(tc.logq, off[tc.lm_type].logq,
+                                                                      shares.get(tc.lm_type, 1.0)))
+                          for tc in terms], bs_term, log_clutter, lpsi.shape)
     out = {}
     for tc in terms:
         if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
@@ -151,6 +161,11 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
         out[tc.lm_type] = g
     return out, lpsi_w
+
+
+def _with_logq(tc: TypeCorrection, logq: np.ndarray) -> TypeCorrection:
+    """``tc`` with its detected terms ``logq (P, Q, J)`` replaced (the weight's terms of :func:`correct`, step 6)."""
+    return dataclasses.replace(tc, logq=logq)
 
 
 def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,
