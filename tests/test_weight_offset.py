@@ -139,6 +139,9 @@ def test_the_weight_mixture_by_hand():
     np.testing.assert_allclose(weight_mixture(q, qw, 0.25)[0, 0, 0], np.log(3.0), rtol=1e-14)
     np.testing.assert_allclose(weight_mixture(q, qw, 0.5)[0, 0, 1], np.log(2.0), rtol=1e-14)
     assert weight_mixture(q, qw, 1.0) is qw and weight_mixture(q, qw, 0.0) is q
+    none = np.full((1, 1, 2), -np.inf)  # a masked slot or p_D = 0: no term in either map
+    with np.errstate(all="raise"):
+        assert np.all(weight_mixture(none, none, 0.3) == -np.inf)
     for bad in (-0.1, 1.5):
         with pytest.raises(ValueError, match="weight share"):
             weight_mixture(q, qw, bad)
@@ -160,6 +163,8 @@ def test_a_share_of_the_offset_mixes_psi_and_leaves_the_maps(city):
         np.testing.assert_array_equal(getattr(maps[VA], key), getattr(plain_maps[VA], key))
     _, other = _correct(_map(), states, Z, city, weight_offsets={VA: 0.5}, weight_shares={SP: 0.3})
     np.testing.assert_array_equal(other, alone)
+    _, zero = _correct(_map(), states, Z, city, weight_offsets={VA: 0.5}, weight_shares={VA: 0.0})
+    np.testing.assert_array_equal(zero, plain)  # a share 0: the weight without the offset
 
 
 def test_an_empty_scan_leaves_the_weight_empty():
