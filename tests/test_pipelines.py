@@ -147,7 +147,8 @@ def test_check_run_args_rejects_bad_numbers(kw: dict, needle: str) -> None:
 
 
 def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray,
-                 names: tuple[str, str] = ("veh1", "veh2"), extra_maps: tuple[str, ...] = ()) -> Result:
+                 names: tuple[str, str] = ("veh1", "veh2"), extra_maps: tuple[str, ...] = (),
+                 pos_nees: np.ndarray | None = None) -> Result:
     """A result with given fused-VS GOSPA per step and per-(step, vehicle) position errors."""
     steps = len(gospa)
     st, mp, ty, g = [], [], [], []
@@ -166,6 +167,8 @@ def _hand_result(variant: str, seed: int, gospa: np.ndarray, pos_err: np.ndarray
     vehicles = {"step": vst, "vehicle": vid, "x": z, "y": z, "z": z, "heading": z, "bias": z, "true_x": z,
                 "true_y": z, "true_z": z, "true_heading": z, "true_bias": z,
                 "pos_err": np.asarray(pos_err, float).ravel(), "heading_err": z, "bias_err": z}
+    if pos_nees is not None:
+        vehicles["pos_nees"] = np.asarray(pos_nees, float).ravel()
     landmarks = {"step": np.zeros(0, np.int32), "map": np.zeros(0, object), "type": np.zeros(0, object),
                  "x": np.zeros(0), "y": np.zeros(0), "z": np.zeros(0), "weight": np.zeros(0)}
     meta = {"variant": variant, "seed": seed, "particles": 7, "steps": steps, "vehicle_names": list(names),
@@ -221,6 +224,29 @@ def test_aggregate_means_rms_and_headline_on_known_numbers(tmp_path: Path) -> No
     assert fused["wall_time_s"] == pytest.approx(1.5)
     on_disk = json.loads((out / A.SUMMARY_JSON).read_text())
     assert on_disk["headline"][2]["gospa_VS"] == pytest.approx(5.0)
+
+
+def test_headline_nees_is_the_median_over_vehicle_steps_by_hand(tmp_path: Path) -> None:
+    """The headline's pos_nees: the median of the vehicles table's pos_nees over the steps >= fusion_start (5) of every
+    run, per vehicle and pooled for fused; NaN and inf (a singular cloud) left out; NaN where no run stored it."""
+    out = tmp_path / "abl"
+    cache = A.prepare_cache("paper", "analytic", out, steps=7, progress=False)
+    g = np.zeros(7)
+    nees = {0: np.array([[9.0, 9.0]] * 5 + [[1.0, 2.0], [3.0, np.nan]]),
+            1: np.array([[9.0, 9.0]] * 5 + [[5.0, np.inf], [7.0, 4.0]])}
+    for s in (0, 1):
+        _hand_result("proposed", s, g, np.ones((7, 2)), pos_nees=nees[s]).save(A.job_dir(out, A.Job("proposed", s)))
+        _hand_result("baseline", s, g, np.ones((7, 2))).save(A.job_dir(out, A.Job("baseline", s)))
+    run = A.run_ablation(cache, out, ["baseline", "proposed"], mc=2, particles=7, progress=False)
+    assert run.ran == []
+    s = A.load_summary(out)
+    assert s.config["fusion_start"] == 5
+    row = {(r["variant"], r["map"]): r for r in s.headline}
+    assert row[("proposed", "veh1")]["pos_nees"] == 4.0  # median of 1, 3, 5, 7
+    assert row[("proposed", "veh2")]["pos_nees"] == 3.0  # median of 2, 4
+    assert row[("proposed", "fused")]["pos_nees"] == 3.5  # median of 1, 2, 3, 4, 5, 7
+    assert math.isnan(row[("baseline", "fused")]["pos_nees"])
+    assert A.NEES_CONSISTENT == pytest.approx(1.3862944, rel=1e-7)
 
 
 def test_ci95_matches_student_t_by_hand() -> None:
@@ -583,7 +609,7 @@ def test_summary_table_keeps_variant_and_map_columns_at_80_columns() -> None:
     and map are there in full, every number and interval is there unabridged, no line is wider."""
     from rich.console import Console
 
-    from mmslam.pipelines.report import HEADLINE_COLUMNS, SCORED, summary_console_table
+    from mmslam.pipelines.report import CONSOLE_COLUMNS, HEADLINE_COLUMNS, SCORED, summary_console_table
 
     rows = []
     for variant in ("odometry", "baseline", "proposed", "proposed[fusion.vs_reduction=gate]"):
@@ -601,7 +627,8 @@ def test_summary_table_keeps_variant_and_map_columns_at_80_columns() -> None:
     assert "…" not in text
     body = [ln for ln in lines if ln.startswith("│")]
     cells = [[c.strip() for c in ln.strip("│").split("│")] for ln in body]
-    assert all(len(c) == 2 + len(HEADLINE_COLUMNS) for c in cells)
+    assert all(len(c) == 2 + len(CONSOLE_COLUMNS) for c in cells)
+    assert [k for k, _ in CONSOLE_COLUMNS] == [k for k, _ in HEADLINE_COLUMNS if k != "pos_nees"]
     starts = [i for i, c in enumerate(cells) if c[1]]  # the first line of each row names its map
     assert [cells[i][1] for i in starts] == [r["map"] for r in rows]
     labels = ["".join(c[0] for c in cells[i:j]) for i, j in zip(starts, starts[1:] + [len(cells)])]

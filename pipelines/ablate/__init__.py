@@ -39,8 +39,8 @@ Every public name is re-exported here: ``from mmslam.pipelines.ablate import run
 from __future__ import annotations
 
 from mmslam.errors import CacheError, ConfigError, Interrupted, MmslamError  # noqa: F401  (re-exported)
-from mmslam.pipelines.ablate.aggregation import (PAIRED_QUANTITIES, SCORED, Summary, _add_intervals,  # noqa: F401
-                                                 _fusion_start, _run_scores, aggregate, ci95, load_jobs,
+from mmslam.pipelines.ablate.aggregation import (NEES_CONSISTENT, PAIRED_QUANTITIES, SCORED, Summary,  # noqa: F401
+                                                 _add_intervals, _fusion_start, _run_scores, aggregate, ci95, load_jobs,
                                                  load_summary, paired_steps, spec_arms, upload_steps)
 from mmslam.pipelines.ablate.command import check_overrides, particles_for, precheck_ablation  # noqa: F401
 from mmslam.pipelines.ablate.executors import (CONNECT_TIMEOUT_S, DASK_SCHEMES, check_dask_address,  # noqa: F401

@@ -35,7 +35,8 @@ class Summary:
         n (samples pooled: seeds, times vehicles for ``map == "all"``).
     ``headline``: one row per variant (or grid arm, ``variant[key=value]``) and map (each
         vehicle, then ``fused``): mean GOSPA per type over seeds and steps ``>= fusion_start``,
-        position RMSE over the same steps (the vehicle's, or all vehicles' for ``fused``), mean
+        position RMSE over the same steps (the vehicle's, or all vehicles' for ``fused``), the median
+        position NEES ``pos_nees`` over the same vehicle-steps (:func:`_median_nees`; 1.39 when consistent), mean
         job wall time and the seed count; for each of :data:`SCORED` the 95% CI half-width
         ``_ci`` of the mean over runs (per-run scores: mean GOSPA, RMSE), the paired difference
         ``_diff`` to ``reference`` (baseline on the same seeds) with its CI ``_diff_ci`` and
@@ -435,10 +436,35 @@ def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start:
         e = np.concatenate(errs) if errs else np.zeros(0)
         e = e[np.isfinite(e)]
         row["pos_rmse"] = float(np.sqrt(np.mean(e * e))) if e.size else math.nan
+        row["pos_nees"] = _median_nees(res if mp != OTHERS_MAP else (), names, mp, fusion_start)
         row["wall_time_s"] = float(np.nanmean(wall)) if wall and np.isfinite(wall).any() else math.nan
         row["runs"] = len(res)
         rows.append(row)
     return rows
+
+
+NEES_CONSISTENT: float = 2.0 * math.log(2.0)
+"""The median of a consistent 2-D position NEES (chi-square, 2 degrees of freedom): ``2 ln 2 = 1.386``."""
+
+
+def _median_nees(res: Sequence[Any], names: list[str], mp: str, fusion_start: int) -> float:
+    """The median of the horizontal position NEES (``pos_nees`` of the vehicles table,
+    :func:`~mmslam.slam.filter.rbpf.position_nees`) over the vehicle-steps ``>= fusion_start`` of every run (one
+    vehicle's, or all for ``fused``); :data:`NEES_CONSISTENT` for a filter whose particle covariance is honest.
+    The median, since a collapsed particle cloud gives single values of 1e6 and more; NaN where no run stored the
+    column (results saved before it) or no value is finite."""
+    vals = []
+    for r in res:
+        vt = r.vehicles
+        if "pos_nees" not in vt:
+            continue
+        sel = np.asarray(vt["step"]) >= fusion_start
+        if mp != "fused":
+            sel &= np.asarray(vt["vehicle"]).astype(int) == names.index(mp)
+        vals.append(np.asarray(vt["pos_nees"], dtype=float)[sel])
+    a = np.concatenate(vals) if vals else np.zeros(0)
+    a = a[np.isfinite(a)]
+    return float(np.median(a)) if a.size else math.nan
 
 
 SUMMARY_FILES: tuple[str, ...] = (SUMMARY_PARQUET, SUMMARY_JSON)
