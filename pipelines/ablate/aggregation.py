@@ -286,8 +286,6 @@ def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[i
     mp_col = np.asarray(m["map"]).astype(str)
     ty_col = np.asarray(m["type"]).astype(str)
     late = _late(m, fusion_start, mp_col, uploads)
-    vt = r.vehicles
-    vlate = np.asarray(vt["step"]) >= fusion_start
     out: dict[str, dict[str, float]] = {}
     for mp in _maps(names, [r]):
         row: dict[str, float] = {}
@@ -301,9 +299,7 @@ def _run_scores(r: Any, names: list[str], fusion_start: int, uploads: Sequence[i
             row["pos_rmse"] = math.nan
             out[mp] = row
             continue
-        sel = vlate if mp == "fused" else vlate & (np.asarray(vt["vehicle"]).astype(int) == names.index(mp))
-        e = np.asarray(vt["pos_err"], float)[sel]
-        e = e[np.isfinite(e)]
+        e = _vehicle_values([r], names, mp, fusion_start, "pos_err")
         row["pos_rmse"] = float(np.sqrt(np.mean(e * e))) if e.size else math.nan
         out[mp] = row
     return out
@@ -426,17 +422,12 @@ def _headline_rows(variant: str, res: list[Any], names: list[str], fusion_start:
             a = np.concatenate(vals) if vals else np.zeros(0)
             a = a[np.isfinite(a)]
             row[f"gospa_{ty}"] = float(a.mean()) if a.size else math.nan
-        errs = []
-        for r in (res if mp != OTHERS_MAP else ()):  # a VS score only: no vehicle state behind it
-            vt = r.vehicles
-            sel = np.asarray(vt["step"]) >= fusion_start
-            if mp != "fused":
-                sel &= np.asarray(vt["vehicle"]).astype(int) == names.index(mp)
-            errs.append(np.asarray(vt["pos_err"], dtype=float)[sel])
-        e = np.concatenate(errs) if errs else np.zeros(0)
-        e = e[np.isfinite(e)]
-        row["pos_rmse"] = float(np.sqrt(np.mean(e * e))) if e.size else math.nan
-        row["pos_nees"] = _median_nees(res if mp != OTHERS_MAP else (), names, mp, fusion_start)
+        if mp == OTHERS_MAP:  # a VS score only: no vehicle state behind it
+            row["pos_rmse"] = row["pos_nees"] = math.nan
+        else:
+            e = _vehicle_values(res, names, mp, fusion_start, "pos_err")
+            row["pos_rmse"] = float(np.sqrt(np.mean(e * e))) if e.size else math.nan
+            row["pos_nees"] = _median_nees(res, names, mp, fusion_start)
         row["wall_time_s"] = float(np.nanmean(wall)) if wall and np.isfinite(wall).any() else math.nan
         row["runs"] = len(res)
         rows.append(row)
@@ -447,23 +438,29 @@ NEES_CONSISTENT: float = 2.0 * math.log(2.0)
 """The median of a consistent 2-D position NEES (chi-square, 2 degrees of freedom): ``2 ln 2 = 1.386``."""
 
 
-def _median_nees(res: Sequence[Any], names: list[str], mp: str, fusion_start: int) -> float:
-    """The median of the horizontal position NEES (``pos_nees`` of the vehicles table,
-    :func:`~mmslam.slam.filter.rbpf.position_nees`) over the vehicle-steps ``>= fusion_start`` of every run (one
-    vehicle's, or all for ``fused``); :data:`NEES_CONSISTENT` for a filter whose particle covariance is honest.
-    The median, since a collapsed particle cloud gives single values of 1e6 and more; NaN where no run stored the
-    column (results saved before it) or no value is finite."""
+def _vehicle_values(res: Sequence[Any], names: list[str], mp: str, fusion_start: int, column: str) -> np.ndarray:
+    """The finite values of one column of the vehicles tables of ``res`` at the vehicle-steps ``>= fusion_start``:
+    vehicle ``mp``'s, or every vehicle's for ``fused``; ``(n,)``."""
     vals = []
     for r in res:
         vt = r.vehicles
-        if "pos_nees" not in vt:
-            continue
         sel = np.asarray(vt["step"]) >= fusion_start
         if mp != "fused":
             sel &= np.asarray(vt["vehicle"]).astype(int) == names.index(mp)
-        vals.append(np.asarray(vt["pos_nees"], dtype=float)[sel])
+        vals.append(np.asarray(vt[column], dtype=float)[sel])
     a = np.concatenate(vals) if vals else np.zeros(0)
-    a = a[np.isfinite(a)]
+    return a[np.isfinite(a)]
+
+
+def _median_nees(res: Sequence[Any], names: list[str], mp: str, fusion_start: int) -> float:
+    """The median of the horizontal position NEES (``pos_nees`` of the vehicles table,
+    :func:`~mmslam.slam.filter.rbpf.position_nees`) over the vehicle-steps ``>= fusion_start`` of every run (one
+    vehicle's, or all for ``fused``), pooled: :data:`NEES_CONSISTENT` for a filter whose particle covariance is
+    honest. The median, since a collapsed particle cloud gives single values of 1e6 and more; NaN unless every run
+    stored the column (results saved before it), or where no value is finite."""
+    if not res or any("pos_nees" not in r.vehicles for r in res):
+        return math.nan
+    a = _vehicle_values(res, names, mp, fusion_start, "pos_nees")
     return float(np.median(a)) if a.size else math.nan
 
 
