@@ -242,13 +242,14 @@ class TypeParams:
                               "of them and makes the VA map help on seven of eleven written scenes (the defaults': "
                               "four), but florence3, whose VA map is accurate, localises 0.8 cm worse with it, as in "
                               "session 23 (docs/city-slam.md). A moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
-    weight_share: float = param(1.0, "share e of the weight offset (weight_std > 0) in each detected term's "
-                                "likelihood in the particle weight: (1 - e) N(z; zhat, S(P)) + e N(z; zhat, "
-                                "S(P + weight_std^2 I)), the image point seen departing from the mapped one by the "
-                                "offset at a share e of the scans; psi(z) in the weight is then (1 - e) psi(z) + e "
-                                "psi_w(z). 1: the offset at every scan (weight_std alone); 0: no offset. A share "
-                                "below 1 keeps the pull of a map that is right, which the offset alone weakens "
-                                "(florence3; docs/city-slam.md, session 26)", "", lo=0.0, hi=1.0)
+    weight_share: float = param(1.0, "share lambda of the weight offset in each detected term's likelihood in the "
+                                "particle weight: (1 - lambda) N(z; zhat, S(P)) + lambda N(z; zhat, S(P + "
+                                "weight_std^2 I)), the image point seen departing from the mapped one by the offset "
+                                "at a share lambda of the detections; with one type offset, psi(z) in the weight is "
+                                "then (1 - lambda) psi(z) + lambda psi_w(z). 1: the offset at every detection "
+                                "(weight_std alone); 0: no offset; no effect while weight_std = 0. A share below 1 "
+                                "keeps the sharp likelihood of a map that is right, which the offset alone flattens "
+                                "(docs/city-slam.md, session 26)", "", lo=0.0, hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

@@ -4,7 +4,7 @@
   from ``P + F`` (:func:`offset_position`, :func:`mmslam.slam.phd.gmphd.type_terms`), and the covariance kept is the
   estimate's own for that gain (:func:`own_covariance`);
 - the weight offset (``weight_std``): only the particle weight sees the map with ``P + F_w``
-  (:func:`offset_position`, :func:`mmslam.slam.phd.gmphd.correct`), at a share ``e`` of its likelihood
+  (:func:`offset_position`, :func:`mmslam.slam.phd.gmphd.correct`), at a share ``lambda`` of its likelihood
   (``weight_share``, :func:`weight_mixture`)."""
 from __future__ import annotations
 
@@ -60,27 +60,31 @@ def offset_position(g: GM, f: float) -> GM:
 
 
 def weight_mixture(logq: np.ndarray, logq_offset: np.ndarray, share: float) -> np.ndarray:
-    """The detected terms of one type in the particle weight with the weight offset at a share ``e``
+    """The detected terms of one type in the particle weight with the weight offset at a share ``lambda``
     (``filter.types.<T>.weight_share``; docs/equations.md, eq. (6) with the weight offset):
 
-        ``log[(1 - e) p_D w N(z_j; zhat, S(P)) + e p_D w N(z_j; zhat, S(P + F_w))]``
+        ``log[(1 - lambda) p_D w N(z_j; zhat, S(P)) + lambda p_D w N(z_j; zhat, S(P + F_w))]``
 
-    the image point seen departing from the mapped one by the offset ``N(0, F_w)`` at a share ``e`` of the scans.
-    Summed over the Gaussians with the clutter and the BS, ``psi_e(z_j) = (1 - e) psi(z_j) + e psi_w(z_j)``.
+    the image point seen departing from the mapped one by the offset ``N(0, F_w)`` at a share ``lambda`` of the
+    detections. With this type the only one offset, summed over the Gaussians with the clutter, the BS and the other
+    types, ``psi_lambda(z_j) = (1 - lambda) psi(z_j) + lambda psi_w(z_j)``.
 
     Args:
         logq: ``(P, Q, J)`` ``log(p_D w N(z_j; zhat, S(P)))`` of the map's own covariances (``-inf``: no term).
         logq_offset: ``(P, Q, J)`` the same with ``P + F_w``.
-        share: ``e`` in ``[0, 1]``; 1 gives ``logq_offset``, 0 gives ``logq``.
+        share: ``lambda`` in ``[0, 1]``; 1 gives ``logq_offset``, 0 gives ``logq`` (the arrays themselves).
 
     Returns:
-        ``(P, Q, J)`` the mixed log terms.
+        ``(P, Q, J)`` the mixed log terms (``-inf`` where neither has a term).
+
+    Raises:
+        ValueError: ``share`` outside ``[0, 1]``.
     """
-    e = float(share)
-    if not 0.0 <= e <= 1.0:
+    lam = float(share)
+    if not 0.0 <= lam <= 1.0:
         raise ValueError(f"weight share {share!r}: expected a number in [0, 1]")
-    if e == 1.0:
+    if lam == 1.0:
         return logq_offset
-    if e == 0.0:
+    if lam == 0.0:
         return logq
-    return np.logaddexp(math.log1p(-e) + logq, math.log(e) + logq_offset)
+    return np.logaddexp(math.log1p(-lam) + logq, math.log(lam) + logq_offset)

@@ -20,9 +20,8 @@ the error messages run in Python.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -80,8 +79,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
        caller adds ``log psi(z).sum(1)`` (returned here) to the log-weights. With a weight offset
        ``F_w`` of a type (``weight_offsets``), the ``psi`` returned takes that type's detected terms with
        ``P + F_w`` on the position (:func:`type_terms` of the map so widened), mixed with the map's own at a
-       share ``e`` (``weight_shares``, :func:`~mmslam.slam.phd.follow.weight_mixture`: ``psi_e = (1 - e) psi + e psi_w``);
-       steps 3-4 use the map's own.
+       share ``lambda`` (``weight_shares``, :func:`~mmslam.slam.phd.follow.weight_mixture`; one type offset:
+       ``psi_lambda = (1 - lambda) psi + lambda psi_w``); steps 3-4 use the map's own.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
@@ -108,8 +107,9 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             type not in it: 0).
         weight_offsets: type code -> ``F_w`` (m^2 per axis, ``filter.types.<T>.weight_std`` squared): the offset
             of the type's detected terms in the particle weight only (step 6; None or a type not in it: 0).
-        weight_shares: type code -> ``e`` in ``[0, 1]`` (``filter.types.<T>.weight_share``), the share of that offset
-            in the weight's likelihood of the type (None or a type not in it: 1, the offset alone).
+        weight_shares: type code -> ``lambda`` in ``[0, 1]`` (``filter.types.<T>.weight_share``), the share of that
+            offset in the weight's likelihood of the type (None or a type not in it: 1, the offset alone; 0: the
+            offset's terms are not computed).
 
     Returns:
         The corrected maps (same keys) and ``log psi (P, J)`` of the particle weight (step 6).
@@ -133,13 +133,14 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                         follows.get(t, 0.0))
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
-    offsets = {t: float(f) for t, f in (weight_offsets or {}).items() if t in maps and f > 0.0}
+    shares = weight_shares or {}
+    offsets = {t: float(f) for t, f in (weight_offsets or {}).items()
+               if t in maps and f > 0.0 and shares.get(t, 1.0) > 0.0}  # a share 0: the weight without the offset
     lpsi_w = lpsi
     if offsets and J:  # 6. the weight's terms of those types, before step 4 rewrites the exclusive ones
         off = {t: type_terms(offset_position(maps[t], follows.get(t, 0.0) + f), kinds[t], states, Z, R, bs, pd_fn,
                              extents.get(t), log_clutter, None if t in exclusive else prune, bodies.get(t),
                              missed.get(t, "phd"), tails.get(t)) for t, f in offsets.items()}
-        shares = weight_shares or {}
         lpsi_w = log_psi([tc if tc.lm_type not in off else
                           _with_logq(off[tc.lm_type], weight_mixture(tc.logq, off[tc.lm_type].logq,
                                                                       shares.get(tc.lm_type, 1.0)))
@@ -165,7 +166,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
 
 def _with_logq(tc: TypeCorrection, logq: np.ndarray) -> TypeCorrection:
     """``tc`` with its detected terms ``logq (P, Q, J)`` replaced (the weight's terms of :func:`correct`, step 6)."""
-    return dataclasses.replace(tc, logq=logq)
+    return replace(tc, logq=logq)
 
 
 def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,
