@@ -234,22 +234,22 @@ class TypeParams:
     weight_std: float = param(0.0, "std of the offset between the image point a scan sees and the mapped one, in "
                               "the particle weight only (eq. (6)): each detected term's likelihood in log psi(z) is "
                               "taken with weight_std^2 more variance in x, y and z (on top of follow_std^2; the heavy "
-                              "tail's part scales it by tail_scale too); each particle's map update (eq. (5)) is "
-                              "unchanged. A map sure of a point that moves along a facade of facets (munich2: NEES "
-                              "6-17; sf3: a facade stepped 2.8 m in depth) then pulls the cars less. 0: the paper's "
-                              "weight, and the default: in its latest declared run (session 25, 13 city scenes) 0.6 "
-                              "keeps canyon's and munich's map targets, lowers the RMSE beyond the spread on eight "
-                              "of them and makes the VA map help on seven of eleven written scenes (the defaults': "
-                              "four), but florence3, whose VA map is accurate, localises 0.8 cm worse with it, as in "
-                              "session 23 (docs/city-slam.md). A moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
+                              "tail's part scales it by tail_scale too), at the share weight_share; each particle's "
+                              "map update (eq. (5)) is unchanged. A map sure of a point that moves along a facade of "
+                              "facets (munich2: NEES 6-17; sf3: a facade stepped 2.8 m in depth) then pulls the cars "
+                              "less. 0: the paper's weight. The VA default, 0.6 at the share 0.2, passed its declared "
+                              "run (session 26, 15 city scenes, two never run): no scene localises worse, seven "
+                              "better, and the VA map helps on seven of thirteen written scenes (five without it); "
+                              "the offset alone (share 1) had cost florence3 0.8 cm twice (docs/city-slam.md). A "
+                              "moving type (VS) must leave it 0", "m", lo=0.0, hi=100.0)
     weight_share: float = param(1.0, "share lambda of the weight offset in each detected term's likelihood in the "
                                 "particle weight: (1 - lambda) N(z; zhat, S(P)) + lambda N(z; zhat, S(P + "
                                 "weight_std^2 I)), the image point seen departing from the mapped one by the offset "
                                 "at a share lambda of the detections; with one type offset, psi(z) in the weight is "
                                 "then (1 - lambda) psi(z) + lambda psi_w(z). 1: the offset at every detection "
                                 "(weight_std alone); 0: no offset; no effect while weight_std = 0. A share below 1 "
-                                "keeps the sharp likelihood of a map that is right, which the offset alone flattens "
-                                "(docs/city-slam.md, session 26)", "", lo=0.0, hi=1.0)
+                                "keeps the sharp likelihood of a map that is right, which the offset alone flattens; "
+                                "the VA default is 0.2 (docs/city-slam.md, session 26)", "", lo=0.0, hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "
@@ -265,11 +265,12 @@ class TypeParams:
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
     "BS": TypeParams(),
     "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", tail_weight=0.2,
-                     merge=6.0),
+                     weight_std=0.6, weight_share=0.2, merge=6.0),
     "SP": TypeParams(), "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
-prior, threshold 0.5, the Bernoulli missed-detection rule, the exclusive association, the heavy tail 0.2 and the
-merge gate 6, the city defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7 / phd / phd / 0 / 49;
+prior, threshold 0.5, the Bernoulli missed-detection rule, the exclusive association, the heavy tail 0.2, the weight
+offset 0.6 m at a share 0.2 and the merge gate 6, the city defaults of docs/city-slam.md; the ``paper`` preset sets
+0.95 / 0.7 / phd / phd / 0 / 0 / 49;
 VS: p_D from the
 link budget under a power-aware sensor, docs/estimator.md 6b). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""

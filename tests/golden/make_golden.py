@@ -12,7 +12,8 @@ What is stored (``tests/golden/*.npz``, written by this script from the code as 
 - ``sionna_<variant>.npz``: a run of each fusion variant on those stored Sionna paths;
 - ``city_paths.npz`` and ``city_<case>.npz``: the same for the ``canyon`` preset (:data:`CITY_STEPS` steps of its
   Sionna RT trace, same settings) and the runs of :data:`CITY_CASES` on it, which take the city defaults ``paper``
-  pins away (learnt p_D, exclusive VA association, Bernoulli missed detections, the VA heavy tail and merge gate 6,
+  pins away (learnt p_D, exclusive VA association, Bernoulli missed detections, the VA heavy tail, the weight offset
+  at a share 0.2 and merge gate 6,
   visibility-weighted label averaging, the car-body VS model of a traced source).
 
 Per run (:func:`snapshot`): every column of the run's :class:`~mmslam.slam.filter.result.Result` tables
