@@ -125,9 +125,9 @@ def test_the_local_filter_hands_the_offset_to_the_correction(monkeypatch):
     f = _filter(["filter.types.VA.weight_std=0.5"])
     f.correct(np.zeros((0, 5)))
     assert seen["offsets"][VA] == 0.25 and seen["offsets"][SP] == 0.0
-    assert seen["shares"][VA] == 1.0  # the offset alone unless a share is set
-    _filter(["filter.types.VA.weight_std=0.5", "filter.types.VA.weight_share=0.2"]).correct(np.zeros((0, 5)))
-    assert seen["shares"][VA] == 0.2 and seen["shares"][SP] == 1.0
+    assert seen["shares"][VA] == 0.2 and seen["shares"][SP] == 1.0  # the built-in VA row's share; the offset alone
+    _filter(["filter.types.VA.weight_std=0.5", "filter.types.VA.weight_share=0.7"]).correct(np.zeros((0, 5)))
+    assert seen["shares"][VA] == 0.7 and seen["shares"][SP] == 1.0
 
 
 def test_the_weight_mixture_by_hand():
