@@ -24,8 +24,8 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from mmslam.pipelines.ablate import (NEES_CONSISTENT, SCORED, Job, Summary, aggregate, is_finished, job_dir, parse_label,
-                                     plan_jobs, read_ablation, spec_arms)
+from mmslam.pipelines.ablate import (NEES_CONSISTENT, SCORED, Job, Summary, aggregate, is_finished, job_dir,
+                                     parse_label, plan_jobs, read_ablation, spec_arms)
 from mmslam.pipelines.ablate.store import FIGURE_NAMES, FIGURES_DIR, REPORT_FILE, check_ablation_outputs  # noqa: F401
 
 HEADLINE_COLUMNS: tuple[tuple[str, str], ...] = (

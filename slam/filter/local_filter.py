@@ -140,7 +140,7 @@ class LocalFilter:
         """type code -> the variance (m^2 per axis) of its offset in the particle weight only
         (``filter.types.<T>.weight_std``)"""
         self._weight_share = {t: s.type_params(scn).weight_share for t, s in self.specs.items()}
-        """type code -> the share ``e`` of that offset in its particle-weight likelihood
+        """type code -> the share ``lambda`` of that offset in its particle-weight likelihood
         (``filter.types.<T>.weight_share``)"""
         check_type_rows(scn)  # e.g. no random walk on a moving type
         self.s = init_particles(prior_mean, scn.filter.prior_std, self.P, rng)
