@@ -1,0 +1,126 @@
+"""Why truths are missing from the fused VA map: each truth VA of each step classified by the fused map's Gaussians
+near it (development diagnostic; docs/city-slam.md, "What the maps past 0.6 miss").
+
+    python benchmarks/va_misses.py CACHE [--seeds 5000-5004] [--kmin 10] [--set section.key=value ...]
+
+For each seed, the ``proposed`` filter (P = 300) runs step by step on the cache; at every step ``k >= kmin`` each VA
+of the fused map's truth (first seen at or before ``k`` by some vehicle inside its FOV,
+:func:`mmslam.slam.eval.evaluation.first_seen`) is put in one class by the live Gaussians of the BS's fused VA map
+(:func:`classify`), and in one of two groups by the number of distinct steps ``<= k`` some vehicle could detect it:
+``seen1`` (one step: no two-detection filter can have it, docs/city-slam.md "The two-detection floor") or
+``seen2+``. Printed: the mean number of truths per step in each group and class. Positions in the global frame, m.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+
+import numpy as np
+
+CLASSES: tuple[str, ...] = ("found", "low", "shared", "off", "none")
+"""``found``: a Gaussian within ``near`` with weight >= the threshold; ``low``: Gaussians within ``near``, all below
+it; ``shared``: the nearest Gaussian within ``far`` is within ``near`` of another truth (one estimate for two
+truths); ``off``: the nearest Gaussian within ``far`` is no truth's (a mislocated estimate); ``none``: no Gaussian
+within ``far``."""
+
+
+def classify(truth: np.ndarray, est_m: np.ndarray, est_w: np.ndarray, threshold: float, near: float = 1.5,
+             far: float = 5.0) -> list[str]:
+    """The class (:data:`CLASSES`) of each truth.
+
+    Args:
+        truth: ``(n, 3)`` truth positions (m); est_m: ``(q, 3)`` Gaussian means (m); est_w: ``(q,)`` their weights.
+        threshold: the estimate threshold of the map's type (``filter.types.VA.threshold``).
+        near, far: the radii (m) of a match and of a neighbour.
+
+    Returns:
+        ``n`` class names.
+    """
+    truth, est_m, est_w = np.asarray(truth, float).reshape(-1, 3), np.asarray(est_m, float).reshape(-1, 3), \
+        np.asarray(est_w, float).reshape(-1)
+    out = []
+    for i, p in enumerate(truth):
+        if est_m.shape[0] == 0:
+            out.append("none")
+            continue
+        d = np.linalg.norm(est_m - p, axis=1)
+        close = d < near
+        if close.any():
+            out.append("found" if est_w[close].max() >= threshold else "low")
+        elif d.min() < far:
+            dt = np.linalg.norm(truth - est_m[int(np.argmin(d))], axis=1)
+            dt[i] = np.inf
+            out.append("shared" if dt.min() < near else "off")
+        else:
+            out.append("none")
+    return out
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"5000-5004"`` or ``"1,2,7"`` (ranges and single seeds, comma separated) -> seeds."""
+    out: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return out
+
+
+def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counter:
+    """``(group, class) -> truths summed over the steps >= kmin of every seed``, and ``"steps"`` -> their number."""
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.scenes.scenario import with_overrides
+    from mmslam.slam.eval.evaluation import _truth_rows, first_seen, merge_seen
+    from mmslam.slam.filter import CooperativeRun
+    from mmslam.slam.sim.sensor import fov_detect_prob
+    from mmslam.slam.specs.landmarks import VA_SPEC
+
+    c = load_cache(cache)
+    scn = with_overrides(c.scenario, overrides)
+    steps, n_veh = c.states.shape[:2]
+    pos, res, va = c.states[:, :, 0:3], float(scn.evaluation.va_resolution), VA_SPEC.code
+    seen = merge_seen(first_seen(c.paths, n_veh, steps, pos, scn.sensor, res)[va])
+    step, typ, rx, ids, xyz = _truth_rows(c.paths, res)
+    sel = np.nonzero(typ == va)[0]
+    pd = np.asarray(fov_detect_prob(pos[step[sel], rx[sel]], xyz[sel], va, scn.sensor), float)
+    sightings: dict[str, set[int]] = {}
+    for i in sel[pd > 0]:
+        sightings.setdefault(str(ids[i]), set()).add(int(step[i]))
+    keys = list(seen)
+    kpos = np.array([seen[k][1] for k in keys], float).reshape(-1, 3)
+    kfirst = np.array([seen[k][0] for k in keys], int)
+    thr = float(scn.filter.type_params("VA").threshold)
+    tot: Counter = Counter()
+    for s in seeds:
+        cr = CooperativeRun(scn, c.states, c.paths, "proposed", 300, s, steps, source=c.manifest.get("source"))
+        for k in range(steps):
+            cr.step(k)
+            if k < kmin or cr.center is None:
+                continue
+            g = cr.center.maps[va]
+            live = np.asarray(g.mask, bool)
+            now = np.nonzero(kfirst <= k)[0]
+            for j, cls in zip(now, classify(kpos[now], g.m[live][:, :3], g.w[live], thr)):
+                n = sum(1 for t in sightings.get(str(keys[j]), ()) if t <= k)
+                tot[("seen1" if n < 2 else "seen2+", cls)] += 1
+            tot["steps"] += 1
+    return tot
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("cache")
+    ap.add_argument("--seeds", default="5000-5004")
+    ap.add_argument("--kmin", type=int, default=10)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    a = ap.parse_args(argv)
+    tot = run(a.cache, parse_seeds(a.seeds), a.kmin, a.set)
+    n = max(tot.pop("steps", 0), 1)
+    print(f"truth VAs per step, fused map, k >= {a.kmin}, seeds {a.seeds}:")
+    for grp in ("seen1", "seen2+"):
+        print(f"  {grp:7s} " + "  ".join(f"{c} {tot[(grp, c)] / n:.2f}" for c in CLASSES))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

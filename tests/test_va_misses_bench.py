@@ -1,0 +1,34 @@
+"""benchmarks/va_misses.py: the class of each truth VA by the fused map's Gaussians near it, on hand geometry."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def vm():
+    spec = importlib.util.spec_from_file_location("va_misses", Path(__file__).parents[1] / "benchmarks" / "va_misses.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_classify_by_hand(vm):
+    """Truths on the x axis at 0, 3, 10, 20, 21.4 and 40 m; Gaussians at 0.5 m (w 0.9), 3.2 m (w 0.3), 12.5 m (w 0.9)
+    and 21.6 m (w 0.8), threshold 0.5: found (0.5 m off), low (0.2 m off, weight below), off (2.5 m, no truth within
+    1.5 m of it), shared (1.6 m to the Gaussian that is 0.2 m from the truth at 21.4), found, none (19.4 m)."""
+    truth = np.array([[0.0, 0, 0], [3, 0, 0], [10, 0, 0], [20, 0, 0], [21.4, 0, 0], [40, 0, 0]])
+    est = np.array([[0.5, 0, 0], [3.2, 0, 0], [12.5, 0, 0], [21.6, 0, 0]])
+    w = np.array([0.9, 0.3, 0.9, 0.8])
+    assert vm.classify(truth, est, w, 0.5) == ["found", "low", "off", "shared", "found", "none"]
+    assert vm.classify(truth, est, w, 0.2)[1] == "found"  # the threshold decides found against low
+    assert vm.classify(truth, est, w, 0.5, far=2.0)[2] == "none"  # 2.5 m is beyond a 2 m neighbour radius
+    assert vm.classify(truth, np.zeros((0, 3)), np.zeros(0), 0.5) == ["none"] * 6
+    assert set(vm.CLASSES) == {"found", "low", "shared", "off", "none"}
+
+
+def test_seed_ranges(vm):
+    assert vm.parse_seeds("5000-5002,7") == [5000, 5001, 5002, 7]
