@@ -37,32 +37,36 @@ def classify(truth: np.ndarray, est_m: np.ndarray, est_w: np.ndarray, threshold:
     Returns:
         ``n`` class names.
     """
-    truth, est_m, est_w = np.asarray(truth, float).reshape(-1, 3), np.asarray(est_m, float).reshape(-1, 3), \
-        np.asarray(est_w, float).reshape(-1)
-    out = []
-    for i, p in enumerate(truth):
-        if est_m.shape[0] == 0:
-            out.append("none")
-            continue
-        d = np.linalg.norm(est_m - p, axis=1)
-        close = d < near
-        if close.any():
-            out.append("found" if est_w[close].max() >= threshold else "low")
-        elif d.min() < far:
-            dt = np.linalg.norm(truth - est_m[int(np.argmin(d))], axis=1)
-            dt[i] = np.inf
-            out.append("shared" if dt.min() < near else "off")
-        else:
-            out.append("none")
-    return out
+    truth = np.asarray(truth, float).reshape(-1, 3)
+    est_m, est_w = np.asarray(est_m, float).reshape(-1, 3), np.asarray(est_w, float).reshape(-1)
+    n = truth.shape[0]
+    if n == 0 or est_m.shape[0] == 0:
+        return ["none"] * n
+    d = np.linalg.norm(truth[:, None, :] - est_m[None, :, :], axis=-1)  # (n, q)
+    close = d < near
+    has_close = close.any(axis=1)
+    found = has_close & (np.where(close, est_w[None, :], -np.inf).max(axis=1) >= threshold)
+    nearest = est_m[np.argmin(d, axis=1)]  # (n, 3): each truth's nearest Gaussian
+    to_truths = np.linalg.norm(nearest[:, None, :] - truth[None, :, :], axis=-1)  # (n, n)
+    to_truths[np.arange(n), np.arange(n)] = np.inf  # another truth's, not its own
+    neighbour = ~has_close & (d.min(axis=1) < far)
+    shared = neighbour & (to_truths.min(axis=1) < near)
+    cls = np.select([found, has_close, shared, neighbour], ["found", "low", "shared", "off"], "none")
+    return cls.tolist()
 
 
 def parse_seeds(text: str) -> list[int]:
-    """``"5000-5004"`` or ``"1,2,7"`` (ranges and single seeds, comma separated) -> seeds."""
+    """``"5000-5004"`` or ``"1,2,7"`` (ranges and single seeds, comma separated) -> seeds; argparse's one-line error
+    (exit 2) for anything else."""
     out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    try:
+        for part in text.split(","):
+            a, _, b = part.partition("-")
+            out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected seeds such as 5000-5004 or 1,2,7") from None
+    if not out:
+        raise argparse.ArgumentTypeError(f"{text!r}: no seed in it")
     return out
 
 
@@ -70,9 +74,8 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
     """``(group, class) -> truths summed over the steps >= kmin of every seed``, and ``"steps"`` -> their number."""
     from mmslam.raytrace.cache import load_cache
     from mmslam.scenes.scenario import with_overrides
-    from mmslam.slam.eval.evaluation import _truth_rows, first_seen, merge_seen
+    from mmslam.slam.eval.evaluation import first_seen, merge_seen, sightings
     from mmslam.slam.filter import CooperativeRun
-    from mmslam.slam.sim.sensor import fov_detect_prob
     from mmslam.slam.specs.landmarks import VA_SPEC
 
     c = load_cache(cache)
@@ -80,12 +83,7 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
     steps, n_veh = c.states.shape[:2]
     pos, res, va = c.states[:, :, 0:3], float(scn.evaluation.va_resolution), VA_SPEC.code
     seen = merge_seen(first_seen(c.paths, n_veh, steps, pos, scn.sensor, res)[va])
-    step, typ, rx, ids, xyz = _truth_rows(c.paths, res)
-    sel = np.nonzero(typ == va)[0]
-    pd = np.asarray(fov_detect_prob(pos[step[sel], rx[sel]], xyz[sel], va, scn.sensor), float)
-    sightings: dict[str, set[int]] = {}
-    for i in sel[pd > 0]:
-        sightings.setdefault(str(ids[i]), set()).add(int(step[i]))
+    seen_at = sightings(c.paths, steps, pos, scn.sensor, res)[va]
     keys = list(seen)
     kpos = np.array([seen[k][1] for k in keys], float).reshape(-1, 3)
     kfirst = np.array([seen[k][0] for k in keys], int)
@@ -101,7 +99,7 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
             live = np.asarray(g.mask, bool)
             now = np.nonzero(kfirst <= k)[0]
             for j, cls in zip(now, classify(kpos[now], g.m[live][:, :3], g.w[live], thr)):
-                n = sum(1 for t in sightings.get(str(keys[j]), ()) if t <= k)
+                n = sum(1 for t in seen_at.get(str(keys[j]), ()) if t <= k)
                 tot[("seen1" if n < 2 else "seen2+", cls)] += 1
             tot["steps"] += 1
     return tot
@@ -110,13 +108,19 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("cache")
-    ap.add_argument("--seeds", default="5000-5004")
+    ap.add_argument("--seeds", type=parse_seeds, default="5000-5004")
     ap.add_argument("--kmin", type=int, default=10)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args(argv)
-    tot = run(a.cache, parse_seeds(a.seeds), a.kmin, a.set)
+    from mmslam.errors import MmslamError
+
+    try:
+        tot = run(a.cache, a.seeds, a.kmin, a.set)
+    except MmslamError as e:  # a missing or unreadable cache, a bad --set: one line, nothing was computed
+        print(f"va_misses: {e}", file=sys.stderr)
+        return 2
     n = max(tot.pop("steps", 0), 1)
-    print(f"truth VAs per step, fused map, k >= {a.kmin}, seeds {a.seeds}:")
+    print(f"truth VAs per step, fused map, k >= {a.kmin}, {len(a.seeds)} seeds:")
     for grp in ("seen1", "seen2+"):
         print(f"  {grp:7s} " + "  ".join(f"{c} {tot[(grp, c)] / n:.2f}" for c in CLASSES))
     return 0

@@ -408,7 +408,7 @@ def test_unconfirmed_counts_are_the_truths_seen_at_one_step_so_far():
     """Hand-counted: VA a seen at steps 0 and 3 (confirmed from 3 on), b at step 1 only, c by both vehicles at
     step 2 only (one step: still unconfirmed), d at steps 2 and 4 by different vehicles; min_steps = 3 keeps a
     until the end too. The fused truth count of each step minus these is what a two-detection filter can find."""
-    from mmslam.slam.eval.evaluation import unconfirmed_counts
+    from mmslam.slam.eval.evaluation import sightings, unconfirmed_counts
     from mmslam.slam.models.measurement import VA
 
     scn = load_preset("paper")
@@ -421,6 +421,10 @@ def test_unconfirmed_counts_are_the_truths_seen_at_one_step_so_far():
     np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 5, pos, scn.sensor)[VA], [1, 2, 4, 3, 2])
     np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 5, pos, scn.sensor, min_steps=3)[VA], [1, 2, 4, 4, 4])
     np.testing.assert_array_equal(unconfirmed_counts(paths, 2, 3, pos, scn.sensor)[VA], [1, 2, 4])  # steps < 3 only
+    # the distinct steps behind those counts, by hand (keyed by position: a, b, c, d at y = 20, 60, 100, 140 m)
+    by_y = lambda seen: {round(float(k.split(",")[1]) / 1000): sorted(v) for k, v in seen.items()}  # noqa: E731
+    assert by_y(sightings(paths, 5, pos, scn.sensor)[VA]) == {20: [0, 3], 60: [1], 100: [2], 140: [2, 4]}
+    assert by_y(sightings(paths, 3, pos, scn.sensor)[VA]) == {20: [0], 60: [1], 100: [2], 140: [2]}
 
 
 def test_va_truths_closer_than_the_resolution_are_one():

@@ -27,8 +27,16 @@ def test_classify_by_hand(vm):
     assert vm.classify(truth, est, w, 0.2)[1] == "found"  # the threshold decides found against low
     assert vm.classify(truth, est, w, 0.5, far=2.0)[2] == "none"  # 2.5 m is beyond a 2 m neighbour radius
     assert vm.classify(truth, np.zeros((0, 3)), np.zeros(0), 0.5) == ["none"] * 6
-    assert set(vm.CLASSES) == {"found", "low", "shared", "off", "none"}
+    assert vm.classify(truth[:1], est[:1], w[:1], 0.5) == ["found"]  # one truth, one Gaussian
+    assert vm.classify(np.zeros((0, 3)), est, w, 0.5) == []
 
 
-def test_seed_ranges(vm):
+def test_seed_ranges_and_bad_input(vm, tmp_path, capsys):
+    """Seed ranges parse; a bad --seeds and a missing cache end in one line and exit 2."""
     assert vm.parse_seeds("5000-5002,7") == [5000, 5001, 5002, 7]
+    with pytest.raises(SystemExit) as e:
+        vm.main([str(tmp_path), "--seeds", "five"])
+    assert e.value.code == 2 and "expected seeds" in capsys.readouterr().err
+    assert vm.main([str(tmp_path / "no-cache"), "--seeds", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("va_misses: ") and "\n" not in err

@@ -171,35 +171,46 @@ def visible_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positio
     return out
 
 
+def sightings(paths: dict[str, np.ndarray], steps: int, positions: np.ndarray, sensor: Any,
+              resolution: float = VA_KEY_RESOLUTION) -> dict[int, dict[str, set[int]]]:
+    """Static type code -> landmark key -> the distinct steps ``< steps`` at which some vehicle could detect it (in
+    its paths and inside its FOV at the true antenna ``positions (steps, n_veh, 3)``, m; as :func:`visible_counts`
+    counts). ``resolution``: the VA resolution of :func:`truth_keys`."""
+    from ..sim.sensor import fov_detect_prob
+
+    step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
+    out: dict[int, dict[str, set[int]]] = {}
+    for spec in evaluated_types():
+        if spec.moving:
+            continue
+        t = spec.code
+        sel = np.nonzero((typ == t) & (step < steps))[0]
+        seen: dict[str, set[int]] = {}
+        if sel.size:
+            pd = np.asarray(fov_detect_prob(positions[step[sel], rx[sel]], xyz[sel], t, sensor), float)
+            for i in sel[pd > 0]:
+                seen.setdefault(str(ids[i]), set()).add(int(step[i]))
+        out[t] = seen
+    return out
+
+
 def unconfirmed_counts(paths: dict[str, np.ndarray], n_veh: int, steps: int, positions: np.ndarray,
                        sensor: Any, resolution: float = VA_KEY_RESOLUTION, min_steps: int = 2) -> dict[int, np.ndarray]:
     """Static type code -> ``(steps,)`` number of the fused map's truth landmarks at step ``k`` (first seen at or
     before ``k`` by some vehicle, :func:`first_seen`) that some vehicle could detect at fewer than ``min_steps``
-    distinct steps ``<= k`` (in its paths and inside its FOV, as :func:`visible_counts` counts).
+    distinct steps ``<= k`` (:func:`sightings`).
 
     A filter that confirms a landmark only after a second detection (a measurement-driven birth from one scan
     has a small weight) cannot have found those: a map holding every other truth exactly and none of these
     scores ``(c^p / alpha n_unconfirmed)^(1/p)``, the floor of the fused GOSPA for such a filter
     (``benchmarks/city_va.py`` prints it as ``floor2``). Arrays ``positions (steps, n_veh, 3)`` m.
     """
-    from ..sim.sensor import fov_detect_prob
-
     if min_steps < 1:
         raise ValueError(f"min_steps={min_steps}: expected a number of detections >= 1")
-    step, typ, rx, ids, xyz = _truth_rows(paths, resolution)
     out = {}
-    for spec in evaluated_types():
-        if spec.moving:
-            continue
-        t = spec.code
-        sel = np.nonzero((typ == t) & (step < steps))[0]
-        sightings: dict[str, set[int]] = {}
-        if sel.size:
-            pd = np.asarray(fov_detect_prob(positions[step[sel], rx[sel]], xyz[sel], t, sensor), float)
-            for i in sel[pd > 0]:
-                sightings.setdefault(str(ids[i]), set()).add(int(step[i]))
+    for t, seen in sightings(paths, steps, positions, sensor, resolution).items():
         counts = np.zeros(steps, np.int32)
-        for s in sightings.values():
+        for s in seen.values():
             ordered = sorted(s)
             confirmed = ordered[min_steps - 1] if len(ordered) >= min_steps else steps
             counts[ordered[0]:confirmed] += 1  # in the truth from its first sighting, unconfirmed until then
