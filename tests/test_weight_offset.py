@@ -192,3 +192,24 @@ def test_an_offset_is_zero_in_the_paper_squared_by_the_filter_and_refused_on_a_m
             _filter([f"filter.types.VS.{key}=0.1"], variant)
     with pytest.raises(ConfigError, match=key):
         with_overrides(load_preset("paper"), [f"filter.types.VA.{key}=-1"])
+
+
+def test_a_share_on_degenerate_shapes():
+    """One particle: an empty VA map (Q = 0) gives the weight of clutter and BS alone with or without the share; one
+    Gaussian and one measurement (P = Q = J = 1) give psi_lambda = (1 - lambda) psi + lambda psi_w; no measurement
+    (J = 0) an empty weight."""
+    one = STATE[None]
+    Z = measure(STATE, X + [0.8, 0.6, 0.0], Bounce.MIRROR, BS)[None]
+    empty = GM(np.zeros((1, 0)), np.zeros((1, 0, 3)), np.zeros((1, 0, 3, 3)), np.zeros((1, 0), bool),
+               np.zeros((1, 0, 2)), np.zeros((1, 0), np.int64))
+    for city in (False, True):
+        _, plain = _correct(empty, one, Z, city)
+        _, mixed = _correct(empty, one, Z, city, weight_offsets={VA: 0.5}, weight_shares={VA: 0.3})
+        np.testing.assert_array_equal(mixed, plain)
+        np.testing.assert_allclose(plain, LOG_C, rtol=1e-12)  # the BS is not detectable (p_bs = 0): clutter only
+        _, plain = _correct(_map(n=1), one, Z, city)
+        _, alone = _correct(_map(n=1), one, Z, city, weight_offsets={VA: 0.5})
+        _, mixed = _correct(_map(n=1), one, Z, city, weight_offsets={VA: 0.5}, weight_shares={VA: 0.3})
+        np.testing.assert_allclose(mixed, np.log(0.7 * np.exp(plain) + 0.3 * np.exp(alone)), rtol=1e-12)
+        _, none = _correct(_map(n=1), one, np.zeros((0, 5)), city, weight_offsets={VA: 0.5}, weight_shares={VA: 0.3})
+        assert none.shape == (1, 0)
