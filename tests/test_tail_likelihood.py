@@ -189,3 +189,23 @@ def test_tail_on_degenerate_shapes_against_two_plain_updates(P_, Q, J):
     else:
         np.testing.assert_array_equal(tt.logq, t1.logq)
     np.testing.assert_array_equal(tt.missed_w, t1.missed_w)
+
+
+@pytest.mark.parametrize("tail", [None, (0.2, 4.0), (1.0, 3.0)])
+@pytest.mark.parametrize("floors", [False, True])
+def test_the_likelihoods_alone_are_the_full_updates_terms(tail, floors):
+    """``posteriors=False`` (the weight offset's pass of correct()) gives the terms log q of the full update bit for
+    bit, with and without the tail (also all tail, e = 1) and the skip floors, its log-likelihoods those of the
+    mixture, and computes no posterior mean (each row starts with NaN)."""
+    g, s, Z = _scene()
+    va = landmark_type("VA")
+    kw = dict(log_clutter=math.log(1e-5), prune=1e-3) if floors else {}
+    full = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=tail, **kw)
+    lik = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=tail, posteriors=False, **kw)
+    np.testing.assert_array_equal(lik.logq, full.logq)
+    np.testing.assert_array_equal(lik.inn.loglik, full.inn.loglik)
+    np.testing.assert_array_equal(lik.missed_w, full.missed_w)
+    np.testing.assert_array_equal(lik.det_index, full.det_index)
+    assert lik.inn.m_post.shape[0] == (full.det_index >= 0).sum() > 0
+    assert np.isnan(lik.inn.m_post[..., 0]).all()
+    assert np.isfinite(full.inn.m_post[..., 0]).any()

@@ -420,7 +420,7 @@ def kalman_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, st
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _logaddexp(a: float, b: float) -> float:
+def logaddexp(a: float, b: float) -> float:
     """``log(exp(a) + exp(b))`` for ``a, b`` in ``[-inf, inf)``."""
     if a == -np.inf:
         return b
@@ -444,7 +444,7 @@ def tail_update(l1: float, lK: float, m1: np.ndarray, mK: np.ndarray, P1: np.nda
     receive the posterior. Returns ``l``.
     """
     lc = log1me + l1
-    ll = _logaddexp(lc, loge + lK)
+    ll = logaddexp(lc, loge + lK)
     a = math.exp(lc - ll) if ll > -np.inf and ll < np.inf else 0.0
     d = m.shape[0]
     for r in range(d):

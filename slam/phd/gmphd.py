@@ -35,7 +35,7 @@ from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .follow import offset_position, own_covariance, weight_mixture
 from .invariant import PHD_MASS_RTOL, check_phd_mass  # noqa: F401 (gmphd.check_phd_mass: correct() calls it)
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
-                    _log_psi_parts, _lse_slots_kernel, _write_corrected)
+                    _log_psi_parts, _lse_slots_kernel, _tail_loglik_batch, _write_corrected)
 
 
 def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -80,7 +80,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
        ``F_w`` of a type (``weight_offsets``), the ``psi`` returned takes that type's detected terms with
        ``P + F_w`` on the position (:func:`type_terms` of the map so widened), mixed with the map's own at a
        share ``lambda`` (``weight_shares``, :func:`~mmslam.slam.phd.follow.weight_mixture`; one type offset:
-       ``psi_lambda = (1 - lambda) psi + lambda psi_w``); steps 3-4 use the map's own.
+       ``psi_lambda = (1 - lambda) psi + lambda psi_w``; the likelihoods only, ``posteriors=False``); steps 3-4
+       use the map's own.
 
     Args:
         maps: type code -> predicted map, batch ``(P,)`` (dim 3, VS 7).
@@ -140,10 +141,10 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     if offsets and J:  # 6. the weight's terms of those types, before step 4 rewrites the exclusive ones
         off = {t: type_terms(offset_position(maps[t], follows.get(t, 0.0) + f), kinds[t], states, Z, R, bs, pd_fn,
                              extents.get(t), log_clutter, None if t in exclusive else prune, bodies.get(t),
-                             missed.get(t, "phd"), tails.get(t)) for t, f in offsets.items()}
+                             missed.get(t, "phd"), tails.get(t), posteriors=False) for t, f in offsets.items()}
         lpsi_w = log_psi([tc if tc.lm_type not in off else
-                          _with_logq(off[tc.lm_type], weight_mixture(tc.logq, off[tc.lm_type].logq,
-                                                                      shares.get(tc.lm_type, 1.0)))
+                          replace(off[tc.lm_type], logq=weight_mixture(tc.logq, off[tc.lm_type].logq,
+                                                                       shares.get(tc.lm_type, 1.0)))
                           for tc in terms], bs_term, log_clutter, lpsi.shape)
     out = {}
     for tc in terms:
@@ -162,11 +163,6 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
         out[tc.lm_type] = g
     return out, lpsi_w
-
-
-def _with_logq(tc: TypeCorrection, logq: np.ndarray) -> TypeCorrection:
-    """``tc`` with its detected terms ``logq (P, Q, J)`` replaced (the weight's terms of :func:`correct`, step 6)."""
-    return replace(tc, logq=logq)
 
 
 def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,
@@ -234,7 +230,8 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
                bs: np.ndarray, pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
                prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd",
-               tail: tuple[float, float] | None = None, follow: float = 0.0) -> TypeCorrection:
+               tail: tuple[float, float] | None = None, follow: float = 0.0,
+               posteriors: bool = True) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -273,6 +270,9 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             take the position covariance ``P + F I``, the image point seen departing from the mapped one by a fresh
             offset the estimate follows; the posterior covariance is the estimate's own for that gain
             (:func:`~mmslam.slam.phd.follow.own_covariance`), a missed Gaussian keeps ``P``. 0: the update of eq. (5).
+        posteriors: False: only the terms ``logq`` (the particle weight's, :func:`correct` step 6); no posterior mean
+            is computed (``m_post`` rows start with NaN) and the heavy tail gives its likelihood alone
+            (:func:`~mmslam.slam.phd.terms._tail_loglik_batch`: ``inn.P_post`` is the core update's).
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -322,6 +322,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
     loglik, m_post, P_post = np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d))
     tailed = tail is not None and tail[0] > 0.0
     floor_q, floor_post = (-np.inf, -np.inf) if tailed else _skip_floors(log_clutter, prune)  # a mixture: no skips
+    floor_post = floor_post if posteriors else np.inf
     code = _TYPE_TERMS[geometry](g.w, pd, g.m, g.P, c(states, dtype=float), c(bs, dtype=float), ext, body_array(body),
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
                                              loglik, m_post, P_post, floor_q, floor_post, workspace(d))
@@ -333,8 +334,12 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
         Pp2 = np.empty((n, R.shape[0], d, d))
         _raise_on(_TYPE_TERMS[geometry](g.w, pd, g.m, c(g.P * K), c(states, dtype=float), c(bs, dtype=float), ext,
                                         body_array(body), c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index,
-                                        lq2, lk2, mp2, Pp2, -np.inf, -np.inf, workspace(d)), name)
-        inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
+                                        lq2, lk2, mp2, Pp2, -np.inf, floor_post, workspace(d)), name)
+        if posteriors:
+            inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
+        else:
+            inn = Innovation(np.empty((n, J)), m_post, P_post)
+            _tail_loglik_batch(loglik, lk2, math.log1p(-e) if e < 1.0 else -np.inf, math.log(e), inn.loglik)
         rows = det_index >= 0  # logq = log(p_D w) + log of the mixture likelihood
         logq[rows] += (inn.loglik - loglik)[det_index[rows]]
     if follow > 0.0 and n and J:  # J = 0: no detected term reads the posteriors
