@@ -1,5 +1,5 @@
 """The heavy-tailed likelihood of a type's Gaussians (``filter.types.<T>.tail_weight``, ``tail_scale``;
-slam/phd/ckf.py ``tail_mixture``, used by gmphd.type_terms): by hand, against two plain CKF updates, and end to
+slam/phd/tail.py ``tail_mixture``, used by gmphd.type_terms): by hand, against two plain CKF updates, and end to
 end (off by default)."""
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import pytest
 from mmslam.model import Bounce
 from mmslam.slam.core.gm import GM
 from mmslam.slam.models.measurement import measure
-from mmslam.slam.phd.ckf import Innovation, tail_mixture
+from mmslam.slam.phd.ckf import Innovation
+from mmslam.slam.phd.tail import tail_mixture
 from mmslam.slam.phd.gmphd import type_terms
 from mmslam.slam.specs.landmarks import landmark_type
 
@@ -209,3 +210,73 @@ def test_the_likelihoods_alone_are_the_full_updates_terms(tail, floors):
     assert lik.inn.m_post.shape[0] == (full.det_index >= 0).sum() > 0
     assert np.isnan(lik.inn.m_post[..., 0]).all()
     assert np.isfinite(full.inn.m_post[..., 0]).any()
+
+
+def test_the_moment_match_of_the_pairs_needed_only():
+    """``tail_mixture(..., need)``: the pairs needed are those of the full match bit for bit, the others have the
+    mixture's log-likelihood and NaN at the start of their mean and covariance; a mask of another shape is refused."""
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((4, 3, 3, 3))
+    P = A @ np.swapaxes(A, -1, -2) + np.eye(3)
+    core = Innovation(rng.standard_normal((4, 3)), rng.standard_normal((4, 3, 3)), P)
+    wide = Innovation(rng.standard_normal((4, 3)) - 1.0, rng.standard_normal((4, 3, 3)), 4.0 * P)
+    need = rng.random((4, 3)) < 0.5
+    need[0, 0], need[0, 1] = True, False
+    full, part = tail_mixture(core, wide, 0.2), tail_mixture(core, wide, 0.2, need)
+    np.testing.assert_array_equal(part.loglik, full.loglik)
+    np.testing.assert_array_equal(part.m_post[need], full.m_post[need])
+    np.testing.assert_array_equal(part.P_post[need], full.P_post[need])
+    assert np.isnan(part.m_post[~need][:, 0]).all() and np.isnan(part.P_post[~need][:, 0, 0]).all()
+    np.testing.assert_array_equal(tail_mixture(core, wide, 0.2, np.ones((4, 3), bool)).m_post, full.m_post)
+    with pytest.raises(ValueError, match="need has shape"):
+        tail_mixture(core, wide, 0.2, need.T)
+
+
+def test_the_pairs_read_by_hand():
+    """:func:`read_pairs` on two particles, two slots, two measurements: particle 0's slot 1 and particle 1's slot 0
+    are innovations 0 and 1 (the other slots have none); a pair is read where log q - log psi >= log prune."""
+    from mmslam.slam.phd.tail import read_pairs
+
+    det_index = np.array([[-1, 0], [1, -1]])
+    logq = np.array([[[0.0, 0.0], [-1.0, -9.0]], [[-3.0, -2.0], [0.0, 0.0]]])
+    logpsi = np.array([[-0.5, -0.5], [-0.5, 1.0]])
+    # innovation 0: -1 + 0.5 = -0.5, -9 + 0.5 = -8.5; innovation 1: -3 + 0.5 = -2.5, -2 - 1 = -3; log(0.06) = -2.81
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, 0.06), [[True, False], [True, False]])
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, None), np.ones((2, 2), bool))
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, 0.0), np.ones((2, 2), bool))
+
+
+@pytest.mark.parametrize("association", ["phd", "exclusive"])
+@pytest.mark.parametrize("prune", [1e-5, 0.05, None])
+def test_the_correction_matches_the_kept_components_only_and_equals_the_full_match(monkeypatch, association, prune):
+    """correct() leaves the tail's moment match to the corrected components (type_terms defer_tail): its corrected
+    map and log psi equal, array for array, those of the same correction with every pair matched in type_terms; with a
+    prune threshold the deferred match skips the pairs of a measurement and a Gaussian 200 m from its source."""
+    from mmslam.model import VA
+    from mmslam.slam.phd import gmphd, tail
+
+    g, s, Z = _scene(4)
+    Z = np.concatenate([Z, Z + 0.02])
+    kw = dict(association={VA: association}, missed={VA: "bernoulli"}, tails={VA: (0.2, 4.0)})
+
+    def run():
+        return gmphd.correct({VA: g}, s, Z, R, BS_POS, _pd, np.full(4, 0.5), math.log(1e-4), prune, {VA: None}, 3,
+                             {VA: landmark_type("VA")}, **kw)
+
+    counts, real = [], tail.tail_mixture
+
+    def counting(core, wide, e, need=None):
+        counts.append(core.loglik.size if need is None else int(np.sum(need)))
+        return real(core, wide, e, need)
+
+    monkeypatch.setattr(gmphd, "tail_mixture", counting)
+    maps, lpsi = run()
+    deferred = counts.pop()
+    real_terms = gmphd.type_terms
+    monkeypatch.setattr(gmphd, "type_terms", lambda *a, **k: real_terms(*a, **{**k, "defer_tail": False}))
+    full_maps, full_lpsi = run()
+    np.testing.assert_array_equal(lpsi, full_lpsi)
+    for key in ("w", "m", "P", "mask"):
+        np.testing.assert_array_equal(getattr(maps[VA], key), getattr(full_maps[VA], key))
+    assert counts == [4 * 2 * 4]  # the full match: every Gaussian of every particle with every measurement
+    assert (deferred < counts[0]) == (prune is not None) and deferred > 0  # the far pairs are pruned

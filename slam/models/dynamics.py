@@ -18,6 +18,8 @@ import numpy as np
 
 from mmslam.model import vehicle_ct, wrap_angle  # noqa: F401  (re-exported: the vehicle model, the angle convention)
 
+from ..core.gm import GM
+
 VEHICLE_DIM = 7
 VS_DIM = 7
 
@@ -85,3 +87,10 @@ def vs_ct(t: np.ndarray, dt: float) -> np.ndarray:
 def vs_ct_jacobian(t: np.ndarray, dt: float) -> np.ndarray:
     """Jacobian ``d vs_ct(t) / d t``, shape ``(..., 7, 7)``; exact, including ``xi -> 0`` (:func:`vs_ct_point`)."""
     return _vs_ct_both(t, dt)[1]
+
+
+def predict_static(g: GM, p_survival: float) -> GM:
+    """Static landmark prediction, paper eq. (4) without its births (identity dynamics): the map ``g`` (any batch
+    shape) with its weights times ``p_survival``; a Beta detection history ``pd_beta`` and the labels are kept as
+    they are."""
+    return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta, g.label)

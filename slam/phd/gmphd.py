@@ -29,13 +29,14 @@ import numpy as np
 from ..core.gm import GM
 from ..core.linalg import safe_cholesky
 from ..models.measurement import MEAS_DIM, LandmarkKind, check_geometry
-from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, tail_mixture, workspace
+from .ckf import BAD_INNOVATION_COV, BAD_POSITION_COV, Innovation, body_array, workspace
 from .association import exclusive_terms
 from .detection import bernoulli_missed_weight, detection_shares, expected_pd
 from .follow import offset_position, own_covariance, weight_mixture
 from .invariant import PHD_MASS_RTOL, check_phd_mass  # noqa: F401 (gmphd.check_phd_mass: correct() calls it)
+from .tail import read_pairs, tail_loglik, tail_mixture
 from .terms import (_TYPE_TERMS, _bs_loglik, _corrected_components, _detection_slots,  # noqa: F401
-                    _log_psi_parts, _lse_slots_kernel, _tail_loglik_batch, _write_corrected)
+                    _log_psi_parts, _lse_slots_kernel, _write_corrected)
 
 
 def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -103,7 +104,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             with at most one measurement: the detected and missed weights of
             :func:`~mmslam.slam.phd.association.exclusive_terms`; None or a type not in it: ``phd``).
         tails: type code -> ``(e, K)``, the heavy tail of the type's likelihood
-            (:func:`~mmslam.slam.phd.ckf.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian).
+            (:func:`~mmslam.slam.phd.tail.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian; its moment
+            match is made for the components kept only, in step 4).
         follows: type code -> ``F`` (m^2), the follow offset of the type's update (:func:`type_terms`; None or a
             type not in it: 0).
         weight_offsets: type code -> ``F_w`` (m^2 per axis, ``filter.types.<T>.weight_std`` squared): the offset
@@ -131,7 +133,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
     # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
     terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
                         None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"), tails.get(t),
-                        follows.get(t, 0.0))
+                        follows.get(t, 0.0), defer_tail=True)
              for t, g in maps.items()]  # 1.-2.
     lpsi = log_psi(terms, bs_term, log_clutter, (states.shape[0], J))  # 3.
     shares = weight_shares or {}
@@ -178,12 +180,6 @@ def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.nda
     return out
 
 
-def predict_static(g: GM, p_survival: float) -> GM:
-    """Static landmark prediction (identity dynamics): weights times ``p_survival`` (a Beta detection
-    history ``pd_beta`` and the labels are kept as they are)."""
-    return GM(g.w * p_survival, g.m, g.P, g.mask, g.pd_beta, g.label)
-
-
 def _per_measurement_cov(R: np.ndarray, J: int) -> np.ndarray:
     """``R`` as a C-contiguous ``(1, 5, 5)`` (one covariance for all) or ``(J, 5, 5)`` array; ValueError else."""
     R = np.asarray(R, float)
@@ -201,9 +197,10 @@ class TypeCorrection:
     ``logq (P, Q, J)``: ``log(p_D w N(z_j; zhat, S))`` (``-inf`` where masked or ``p_D = 0``);
     ``missed_w (P, Q)``: ``(1 - p_D) w`` (``missed = "bernoulli"``: :func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`
     without the scan; :func:`correct` gives it the scan's detection shares); ``pd (P, Q)``: the ``p_D`` of each
-    Gaussian; ``det_index (P, Q)``: index of the Gaussian in the
-    innovation ``inn`` (``-1`` where masked or ``p_D = 0``: no innovation is computed for
-    a Gaussian that cannot be detected, its detection terms are exactly zero).
+    Gaussian; ``det_index (P, Q)``: index of the Gaussian in the innovation ``inn`` (``-1`` where masked or
+    ``p_D = 0``: no innovation is computed for a Gaussian that cannot be detected, its detection terms are exactly
+    zero); ``tail``: the heavy tail's update with ``K P`` and ``e``, moment-matched with ``inn`` (then the update
+    with ``P``) by :func:`corrected_gm` (:func:`type_terms` ``defer_tail``).
 
     ``pred_mass (P,)``: the predicted mass ``sum_q w`` of the live slots (:func:`check_phd_mass`),
     computed by :func:`type_terms` (None for a hand-made one). ``lm_type``: the type's code (as
@@ -220,6 +217,7 @@ class TypeCorrection:
     name: str = ""
     pd: np.ndarray | None = None
     missed: str = "phd"
+    tail: tuple[Innovation, float] | None = None
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -231,7 +229,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
                extent: np.ndarray | None = None, log_clutter: float = -np.inf,
                prune: float | None = None, body: np.ndarray | None = None, missed: str = "phd",
                tail: tuple[float, float] | None = None, follow: float = 0.0,
-               posteriors: bool = True) -> TypeCorrection:
+               posteriors: bool = True, defer_tail: bool = False) -> TypeCorrection:
     """Detection terms of one map type (compiled loop over particles, Gaussians and measurements).
 
     Only the live Gaussians with ``p_D > 0`` (inside the FOV) get the CKF update
@@ -264,7 +262,7 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             as one landmark that exists with probability ``min(w, 1)``
             (:func:`~mmslam.slam.phd.detection.bernoulli_missed_weight`).
         tail: ``(e, K)`` with ``e > 0``: the likelihood of ``z_j`` given the Gaussian is the scale mixture
-            ``(1 - e) N(z_j; zhat, S(P)) + e N(z_j; zhat, S(K P))`` (:func:`~mmslam.slam.phd.ckf.tail_mixture`;
+            ``(1 - e) N(z_j; zhat, S(P)) + e N(z_j; zhat, S(K P))`` (:func:`~mmslam.slam.phd.tail.tail_mixture`;
             ``filter.types.<T>.tail_weight``, ``tail_scale``); None or ``e = 0``: the Gaussian likelihood of eq. (5).
         follow: ``F`` (m^2 per axis, ``filter.types.<T>.follow_std`` squared): the update's gain and likelihood
             take the position covariance ``P + F I``, the image point seen departing from the mapped one by a fresh
@@ -272,7 +270,9 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             (:func:`~mmslam.slam.phd.follow.own_covariance`), a missed Gaussian keeps ``P``. 0: the update of eq. (5).
         posteriors: False: only the terms ``logq`` (the particle weight's, :func:`correct` step 6); no posterior mean
             is computed (``m_post`` rows start with NaN) and the heavy tail gives its likelihood alone
-            (:func:`~mmslam.slam.phd.terms._tail_loglik_batch`: ``inn.P_post`` is the core update's).
+            (:func:`~mmslam.slam.phd.tail.tail_loglik`: ``inn.P_post`` is the core update's).
+        defer_tail: with a tail and no ``follow``: the tail's moment match is left to :func:`corrected_gm` (the
+            components it keeps only); ``inn`` is the update with ``P``, ``tail`` the one with ``K P`` and ``e``.
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
@@ -327,27 +327,26 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
                                              c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index, logq,
                                              loglik, m_post, P_post, floor_q, floor_post, workspace(d))
     _raise_on(code, name)
-    inn = Innovation(loglik, m_post, P_post)
+    inn, pending = Innovation(loglik, m_post, P_post), None
     if tailed and n and J:
         e, K = float(tail[0]), float(tail[1])
-        lq2, lk2, mp2 = np.empty((P_, Q, J)), np.empty((n, J)), np.empty((n, J, d))
-        Pp2 = np.empty((n, R.shape[0], d, d))
+        wide = Innovation(np.empty((n, J)), np.empty((n, J, d)), np.empty((n, R.shape[0], d, d)))
         _raise_on(_TYPE_TERMS[geometry](g.w, pd, g.m, c(g.P * K), c(states, dtype=float), c(bs, dtype=float), ext,
                                         body_array(body), c(np.reshape(Z, (J, MEAS_DIM)), dtype=float), R, det_index,
-                                        lq2, lk2, mp2, Pp2, -np.inf, floor_post, workspace(d)), name)
-        if posteriors:
-            inn = tail_mixture(inn, Innovation(lk2, mp2, Pp2), e)
+                                        np.empty((P_, Q, J)), wide.loglik, wide.m_post, wide.P_post, -np.inf,
+                                        floor_post, workspace(d)), name)
+        mixed = tail_loglik(loglik, wide.loglik, e)  # logq = log(p_D w) + log of the mixture likelihood
+        if posteriors and defer_tail and follow == 0.0:  # corrected_gm moment-matches the components it keeps
+            pending = (wide, e)
         else:
-            inn = Innovation(np.empty((n, J)), m_post, P_post)
-            _tail_loglik_batch(loglik, lk2, math.log1p(-e) if e < 1.0 else -np.inf, math.log(e), inn.loglik)
-        rows = det_index >= 0  # logq = log(p_D w) + log of the mixture likelihood
-        logq[rows] += (inn.loglik - loglik)[det_index[rows]]
+            inn = tail_mixture(inn, wide, e) if posteriors else Innovation(mixed, m_post, P_post)
+        logq[det_index >= 0] += (mixed - loglik)[det_index[det_index >= 0]]
     if follow > 0.0 and n and J:  # J = 0: no detected term reads the posteriors
         rows = det_index >= 0
         P0, Pf = np.empty((n, d, d)), np.empty((n, d, d))
         P0[det_index[rows]], Pf[det_index[rows]] = own.P[rows], g.P[rows]
         inn = Innovation(inn.loglik, inn.m_post, own_covariance(P0, Pf, inn.P_post))
-    return TypeCorrection(own, lm_type, logq, missed_w, inn, det_index, pred_mass, name, pd, missed)
+    return TypeCorrection(own, lm_type, logq, missed_w, inn, det_index, pred_mass, name, pd, missed, pending)
 
 
 def _raise_on(code: int, name: str) -> None:
@@ -377,10 +376,6 @@ def _skip_floors(log_clutter: float, prune: float | None) -> tuple[float, float]
     if prune is None or not prune > 0.0 or not log_clutter > -np.inf:
         return -np.inf, -np.inf
     return log_clutter + NEGLIGIBLE_LOG, log_clutter + math.log(prune) - 1e-9
-
-
-# One kernel per path geometry (the Bounce code a constant: ckf_update inlined once per kernel),
-# compiled only when a map of that geometry is first corrected; see mmslam.slam.phd.ckf._CKF_BATCH.
 
 
 def bs_logterm(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray,
@@ -482,6 +477,8 @@ def _corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: f
     g, inn = t.g, t.inn
     if np.shape(logpsi) != t.logq.shape[::2]:  # the kernel reads logpsi[p, j] unchecked
         raise ValueError(f"logpsi has shape {np.shape(logpsi)}; expected {t.logq.shape[::2]} (P, J)")
+    if t.tail is not None:  # the heavy tail's moment match, of the components kept only
+        inn = tail_mixture(inn, *t.tail, read_pairs(t.logq, logpsi, t.det_index, inn.loglik.shape[0], prune))
     if g.label is not None and np.shape(g.label) != g.w.shape:  # the kernel reads label[p, q] unchecked
         raise ValueError(f"label has shape {np.shape(g.label)}; expected the map's {g.w.shape} (P, Q)")
     c = np.ascontiguousarray

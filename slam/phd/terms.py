@@ -18,7 +18,7 @@ import numpy as np
 
 from ..core.jit import batch_kernel
 from ..models.measurement import MEAS_DIM, measure_point
-from .ckf import OK, ckf_update, gaussian_loglik, logaddexp
+from .ckf import OK, ckf_update, gaussian_loglik
 from .detection import detected_beta, missed_beta
 
 
@@ -120,16 +120,6 @@ def _type_terms_scatter(w, pd, m, P, states, b, extent, body, Z, R, det_index, l
 
 _TYPE_TERMS = (_type_terms_direct, _type_terms_mirror, _type_terms_scatter)
 """The :func:`type_terms` kernel of each :class:`mmslam.model.Bounce` code."""
-
-
-@batch_kernel
-def _tail_loglik_batch(l1: np.ndarray, lK: np.ndarray, log1me: float, loge: float, out: np.ndarray) -> None:
-    """``out[n, j] = log[(1 - e) N_1 + e N_K]`` from the two log-likelihoods ``l1``, ``lK`` ``(N, J)`` of each
-    Gaussian and measurement: the likelihood of :func:`~mmslam.slam.phd.ckf.tail_update` (the same operations)
-    without its posterior, for :func:`mmslam.slam.phd.gmphd.type_terms` with ``posteriors=False``."""
-    for n in range(l1.shape[0]):
-        for j in range(l1.shape[1]):
-            out[n, j] = logaddexp(log1me + l1[n, j], loge + lK[n, j])
 
 
 @batch_kernel(error_model="python")

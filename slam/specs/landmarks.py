@@ -42,9 +42,9 @@ import numpy as np
 from mmslam.errors import ConfigError, MmslamError
 from mmslam.model import OTHER, Bounce, LandmarkType, set_landmark_type_name, unknown_type_row
 
+from ..models.dynamics import predict_static
 from ..phd.birth import birth_from_moments
 from ..core.gm import NO_LABEL, GM, concat, concat_label, concat_pd_beta, ego_label
-from ..phd.gmphd import predict_static
 from ..phd.reduction import merge_pairs, prune_merge
 from .vehicle_body import vs_birth_moments, vs_body, vs_on_road
 
