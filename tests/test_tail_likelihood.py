@@ -213,8 +213,9 @@ def test_the_likelihoods_alone_are_the_full_updates_terms(tail, floors):
 
 
 def test_the_moment_match_of_the_pairs_needed_only():
-    """``tail_mixture(..., need)``: the pairs needed are those of the full match bit for bit, the others have the
-    mixture's log-likelihood and NaN at the start of their mean and covariance; a mask of another shape is refused."""
+    """``tail_mixture(..., need)``: the pairs needed are those of the full match bit for bit (one posterior covariance
+    for all measurements, and one per measurement), the others have the mixture's log-likelihood and NaN at the start
+    of their mean and covariance; a mask of another shape is refused."""
     rng = np.random.default_rng(5)
     A = rng.standard_normal((4, 3, 3, 3))
     P = A @ np.swapaxes(A, -1, -2) + np.eye(3)
@@ -230,20 +231,28 @@ def test_the_moment_match_of_the_pairs_needed_only():
     np.testing.assert_array_equal(tail_mixture(core, wide, 0.2, np.ones((4, 3), bool)).m_post, full.m_post)
     with pytest.raises(ValueError, match="need has shape"):
         tail_mixture(core, wide, 0.2, need.T)
+    per = Innovation(core.loglik, core.m_post, A @ np.swapaxes(A, -1, -2) + 2 * np.eye(3))  # one R per measurement
+    full, part = tail_mixture(per, wide, 0.3), tail_mixture(per, wide, 0.3, need)
+    np.testing.assert_array_equal(part.m_post[need], full.m_post[need])
+    np.testing.assert_array_equal(part.P_post[need], full.P_post[need])
 
 
 def test_the_pairs_read_by_hand():
-    """:func:`read_pairs` on two particles, two slots, two measurements: particle 0's slot 1 and particle 1's slot 0
-    are innovations 0 and 1 (the other slots have none); a pair is read where log q - log psi >= log prune."""
+    """:func:`read_pairs` on two particles, two slots, two measurements: particle 0's slots are innovations 0 and 1,
+    particle 1's slot 1 is innovation 2 (its slot 0 has none), so innovation and particle numbers differ; a pair is
+    read where log q - log psi(z_j) of its own particle is at least log prune (a pair at the threshold too)."""
     from mmslam.slam.phd.tail import read_pairs
 
-    det_index = np.array([[-1, 0], [1, -1]])
-    logq = np.array([[[0.0, 0.0], [-1.0, -9.0]], [[-3.0, -2.0], [0.0, 0.0]]])
-    logpsi = np.array([[-0.5, -0.5], [-0.5, 1.0]])
-    # innovation 0: -1 + 0.5 = -0.5, -9 + 0.5 = -8.5; innovation 1: -3 + 0.5 = -2.5, -2 - 1 = -3; log(0.06) = -2.81
-    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, 0.06), [[True, False], [True, False]])
-    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, None), np.ones((2, 2), bool))
-    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 2, 0.0), np.ones((2, 2), bool))
+    det_index = np.array([[0, 1], [-1, 2]])
+    logq = np.array([[[-1.0, -9.0], [-3.0, -2.0]], [[0.0, 0.0], [-2.0, -4.0]]])
+    logpsi = np.array([[-0.5, 1.0], [-2.0, -1.0]])
+    # log prune = log(0.06) = -2.813; innovation 0: -0.5, -10; 1: -2.5, -3; 2 (particle 1's psi): 0, -3
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, 0.06),
+                                  [[True, False], [True, False], [True, False]])
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, None), np.ones((3, 2), bool))
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, 0.0), np.ones((3, 2), bool))
+    at = np.exp(-3.0)  # innovation 1's second pair and innovation 2's second pair sit exactly at log prune = -3
+    np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, at)[:, 1], [False, True, True])
 
 
 @pytest.mark.parametrize("association", ["phd", "exclusive"])

@@ -8,6 +8,8 @@ neutral model module: the scenes' true trajectories use it too).
 
 VS (vehicle scatterer) state ``t = [x, y, z, vx, vy, vz, xi]``: Cartesian coordinated turn with
 unknown turn rate (Li & Jilkov 2003, sec. V-B), :func:`vs_ct` and its Jacobian :func:`vs_ct_jacobian`.
+
+Static landmarks (VA, SP) keep their place: :func:`predict_static`, paper eq. (4) without its births.
 """
 from __future__ import annotations
 

@@ -104,8 +104,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             with at most one measurement: the detected and missed weights of
             :func:`~mmslam.slam.phd.association.exclusive_terms`; None or a type not in it: ``phd``).
         tails: type code -> ``(e, K)``, the heavy tail of the type's likelihood
-            (:func:`~mmslam.slam.phd.tail.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian; its moment
-            match is made for the components kept only, in step 4).
+            (:func:`~mmslam.slam.phd.tail.tail_mixture`; None or a type not in it or ``e = 0``: Gaussian; without a
+            follow offset its moment match is made in step 4, for the components kept only).
         follows: type code -> ``F`` (m^2), the follow offset of the type's update (:func:`type_terms`; None or a
             type not in it: 0).
         weight_offsets: type code -> ``F_w`` (m^2 per axis, ``filter.types.<T>.weight_std`` squared): the offset
@@ -199,8 +199,8 @@ class TypeCorrection:
     without the scan; :func:`correct` gives it the scan's detection shares); ``pd (P, Q)``: the ``p_D`` of each
     Gaussian; ``det_index (P, Q)``: index of the Gaussian in the innovation ``inn`` (``-1`` where masked or
     ``p_D = 0``: no innovation is computed for a Gaussian that cannot be detected, its detection terms are exactly
-    zero); ``tail``: the heavy tail's update with ``K P`` and ``e``, moment-matched with ``inn`` (then the update
-    with ``P``) by :func:`corrected_gm` (:func:`type_terms` ``defer_tail``).
+    zero); ``deferred_tail``: None, or the heavy tail's update with ``K P`` (an :class:`Innovation` shaped as ``inn``)
+    and ``e``, moment-matched with ``inn`` (then the update with ``P``) by :func:`corrected_gm` (``defer_tail``).
 
     ``pred_mass (P,)``: the predicted mass ``sum_q w`` of the live slots (:func:`check_phd_mass`),
     computed by :func:`type_terms` (None for a hand-made one). ``lm_type``: the type's code (as
@@ -217,7 +217,7 @@ class TypeCorrection:
     name: str = ""
     pd: np.ndarray | None = None
     missed: str = "phd"
-    tail: tuple[Innovation, float] | None = None
+    deferred_tail: tuple[Innovation, float] | None = None
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -272,13 +272,14 @@ def type_terms(g: GM, kind: LandmarkKind, states: np.ndarray, Z: np.ndarray, R: 
             is computed (``m_post`` rows start with NaN) and the heavy tail gives its likelihood alone
             (:func:`~mmslam.slam.phd.tail.tail_loglik`: ``inn.P_post`` is the core update's).
         defer_tail: with a tail and no ``follow``: the tail's moment match is left to :func:`corrected_gm` (the
-            components it keeps only); ``inn`` is the update with ``P``, ``tail`` the one with ``K P`` and ``e``.
+            components it keeps only); ``inn`` is the update with ``P``, ``deferred_tail`` the one with ``K P``.
 
     Returns:
         The :class:`TypeCorrection`; its ``g`` holds C-contiguous copies (or the arrays themselves)
         of the map (with its ``pd_beta`` and ``label``: :func:`corrected_gm` carries them), its ``inn``
         the posteriors of the ``N`` detectable Gaussians: ``loglik (N, J)``, ``m_post (N, J, d)``,
-        ``P_post (N, 1 or J, d, d)``; its ``pred_mass (P,)``.
+        ``P_post (N, 1 or J, d, d)`` (``posteriors=False``: means NaN; ``defer_tail``: the update with ``P``);
+        its ``pred_mass (P,)``.
 
     Raises:
         FloatingPointError: a non-finite mean or covariance in the map (also outside the FOV and in
@@ -477,8 +478,8 @@ def _corrected_gm(t: TypeCorrection, Z: np.ndarray, logpsi: np.ndarray, prune: f
     g, inn = t.g, t.inn
     if np.shape(logpsi) != t.logq.shape[::2]:  # the kernel reads logpsi[p, j] unchecked
         raise ValueError(f"logpsi has shape {np.shape(logpsi)}; expected {t.logq.shape[::2]} (P, J)")
-    if t.tail is not None:  # the heavy tail's moment match, of the components kept only
-        inn = tail_mixture(inn, *t.tail, read_pairs(t.logq, logpsi, t.det_index, inn.loglik.shape[0], prune))
+    if t.deferred_tail is not None:  # the heavy tail's moment match, of the components kept only
+        inn = tail_mixture(inn, *t.deferred_tail, read_pairs(t.logq, logpsi, t.det_index, inn.loglik.shape[0], prune))
     if g.label is not None and np.shape(g.label) != g.w.shape:  # the kernel reads label[p, q] unchecked
         raise ValueError(f"label has shape {np.shape(g.label)}; expected the map's {g.w.shape} (P, Q)")
     c = np.ascontiguousarray

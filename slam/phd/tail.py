@@ -30,6 +30,13 @@ def logaddexp(a: float, b: float) -> float:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def mixture_loglik(l1: float, lK: float, log1me: float, loge: float) -> float:
+    """``log[(1 - e) N_1 + e N_K] = logaddexp(log(1 - e) + l1, log(e) + lK)`` from the log-likelihoods ``l1``, ``lK``
+    of one measurement under the updates with ``P`` and ``K P``; ``log1me = log(1 - e)``, ``loge = log(e)``."""
+    return logaddexp(log1me + l1, loge + lK)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def tail_update(l1: float, lK: float, m1: np.ndarray, mK: np.ndarray, P1: np.ndarray, PK: np.ndarray,
                 log1me: float, loge: float, m: np.ndarray, P: np.ndarray) -> float:
     """The heavy-tailed update of one Gaussian by one measurement, from its CKF updates with ``P`` and ``K P``.
@@ -43,9 +50,8 @@ def tail_update(l1: float, lK: float, m1: np.ndarray, mK: np.ndarray, P1: np.nda
     posteriors; ``log1me = log(1 - e)`` (``-inf`` for ``e = 1``), ``loge = log(e)``; ``m (d,)``, ``P (d, d)``
     receive the posterior. Returns ``l``.
     """
-    lc = log1me + l1
-    ll = logaddexp(lc, loge + lK)
-    a = math.exp(lc - ll) if ll > -np.inf and ll < np.inf else 0.0
+    ll = mixture_loglik(l1, lK, log1me, loge)
+    a = math.exp(log1me + l1 - ll) if ll > -np.inf and ll < np.inf else 0.0
     d = m.shape[0]
     for r in range(d):
         m[r] = a * m1[r] + (1.0 - a) * mK[r]
@@ -76,18 +82,18 @@ def _tail_mixture_batch(l1: np.ndarray, lK: np.ndarray, m1: np.ndarray, mK: np.n
                 ll[n, j] = tail_update(l1[n, j], lK[n, j], m1[n, j], mK[n, j], P1[n, r1], PK[n, rK], log1me, loge,
                                        m[n, j], P[n, j])
             else:
-                ll[n, j] = logaddexp(log1me + l1[n, j], loge + lK[n, j])
+                ll[n, j] = mixture_loglik(l1[n, j], lK[n, j], log1me, loge)
                 m[n, j, 0] = np.nan
                 P[n, j, 0, 0] = np.nan
 
 
 @batch_kernel
 def _tail_loglik_batch(l1: np.ndarray, lK: np.ndarray, log1me: float, loge: float, out: np.ndarray) -> None:
-    """``out[n, j] = log[(1 - e) N_1 + e N_K]`` from the two log-likelihoods ``l1``, ``lK`` ``(N, J)``: the
-    likelihood of :func:`tail_update` (the same operations) without its posterior."""
+    """``out[n, j]``: :func:`mixture_loglik` of the two log-likelihoods ``l1``, ``lK`` ``(N, J)``, the likelihood of
+    :func:`tail_update` without its posterior."""
     for n in range(l1.shape[0]):
         for j in range(l1.shape[1]):
-            out[n, j] = logaddexp(log1me + l1[n, j], loge + lK[n, j])
+            out[n, j] = mixture_loglik(l1[n, j], lK[n, j], log1me, loge)
 
 
 def _logs(e: float) -> tuple[float, float]:
@@ -108,7 +114,8 @@ def tail_mixture(core: Innovation, wide: Innovation, e: float, need: np.ndarray 
     """The CKF update of ``N`` Gaussians by ``J`` measurements under the heavy-tailed likelihood (:func:`tail_update`
     for each pair, compiled), from their updates with ``P`` and ``K P``.
 
-    ``e = 0`` or ``K = 1`` give the Gaussian update.
+    ``K = 1`` gives the Gaussian update (``e = 0`` is no tail: :func:`mmslam.slam.phd.gmphd.type_terms` does not call
+    this then).
 
     Args:
         core, wide: the :class:`~mmslam.slam.phd.ckf.Innovation` of the same ``N`` Gaussians and ``J`` measurements
@@ -133,8 +140,9 @@ def tail_mixture(core: Innovation, wide: Innovation, e: float, need: np.ndarray 
 
 def read_pairs(logq: np.ndarray, logpsi: np.ndarray, det_index: np.ndarray, n: int, prune: float | None) -> np.ndarray:
     """``(n, J)`` bool: the pairs (Gaussian ``det_index[p, q]``, measurement ``j``) whose posterior the corrected map
-    keeps, by the rule of :func:`mmslam.slam.phd.gmphd.corrected_gm`: ``log q - log psi(z_j) >= log prune``
-    (``prune`` None or 0: every pair).
+    may keep, by the rule of :func:`mmslam.slam.phd.gmphd.corrected_gm`, ``log q - log psi(z_j) >= log prune``
+    (``prune`` None or 0: every pair), with 1e-9 of margin (as :func:`mmslam.slam.phd.gmphd._skip_floors`): a pair
+    at the threshold is matched whatever the rounding, so a kept component never reads a mean not computed.
 
     Args: ``logq (P, Q, J)`` the detected terms, ``logpsi (P, J)``, ``det_index (P, Q)`` (``-1``: no innovation),
     ``n`` the number of innovations, ``prune`` the threshold of the corrected components.
@@ -144,5 +152,5 @@ def read_pairs(logq: np.ndarray, logpsi: np.ndarray, det_index: np.ndarray, n: i
         return np.ones((n, J), bool)
     rows = det_index >= 0
     need = np.zeros((n, J), bool)
-    need[det_index[rows]] = logq[rows] - logpsi[np.nonzero(rows)[0]] >= math.log(prune)
+    need[det_index[rows]] = logq[rows] - logpsi[np.nonzero(rows)[0]] >= math.log(prune) - 1e-9
     return need
