@@ -23,7 +23,7 @@ import mmslam.model as _model
 
 KERNEL_SOURCES = ("core/gm.py", "core/jit.py", "core/linalg.py", "core/trig.py", "models/dynamics.py",
                   "models/measurement.py", "models/vs.py", "phd/birth.py", "phd/ckf.py",
-                  "phd/detection.py", "phd/merging.py", "phd/reduction.py", "phd/terms.py",
+                  "phd/detection.py", "phd/merging.py", "phd/reduction.py", "phd/tail.py", "phd/terms.py",
                   "filter/rbpf.py", "sim/dft_kernels.py", "sim/nomp_kernels.py", "sim/sensor.py")
 """The ``slam/`` modules that define numba kernels, relative to the package (one hash over all of them)."""
 
