@@ -10,6 +10,7 @@ NumPy is imported). Reports the median and quartiles per variant and particle co
     python benchmarks/bench_filter.py --scaling        # also P = 100, 300, 1000, 3000 (first 20 steps)
     python benchmarks/bench_filter.py --cpu            # thread CPU time (busy machine)
     python benchmarks/bench_filter.py --set filter.types.VA.tail_weight=0.2   # paper data, a setting changed
+    python benchmarks/bench_filter.py --city           # the built-in VA row (a city scene's defaults) on the paper data
 
 docs/design.md section 8 targets: <= 10 ms median for ``proposed`` at P = 300; cost linear in P.
 
@@ -26,13 +27,15 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_v] = "1"
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from mmslam.raytrace.analytic import AnalyticSource  # noqa: E402
 from mmslam.errors import MmslamError  # noqa: E402
-from mmslam.scenes.scenario import load_preset, with_overrides  # noqa: E402
+from mmslam.scenes.scenario import DEFAULT_TYPE_PARAMS, load_preset, with_overrides  # noqa: E402
 from mmslam.scenes.trajectory import vehicle_trajectories  # noqa: E402
 from mmslam.slam.filter.run import CooperativeRun  # noqa: E402
 
@@ -44,6 +47,20 @@ def paper_data(steps: int):
     parts = [src.trace_step(k, states[k]) for k in range(steps)]
     paths = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
     return scn, states, paths
+
+
+def city_va_row() -> list[str]:
+    """``--set`` strings that give the paper data the built-in VA row (``DEFAULT_TYPE_PARAMS["VA"]``: what a scene
+    without a ``[filter.types.VA]`` table gets, the city defaults) in place of the ``paper`` preset's pinned one."""
+    row = DEFAULT_TYPE_PARAMS["VA"]
+    out = []
+    for f in dataclasses.fields(row):
+        v = getattr(row, f.name)
+        if v is None:
+            continue
+        text = json.dumps(v) if isinstance(v, str) else ("true" if v is True else "false" if v is False else repr(v))
+        out.append(f"filter.types.VA.{f.name}={text}")
+    return out
 
 
 def time_steps(scn, states, paths, variant: str, particles: int, steps: int, warmup: int,
@@ -83,15 +100,19 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a scenario parameter of the paper data (as mmslam slam --set), e.g. "
                          "filter.types.VA.tail_weight=0.2 to time the city VA row's heavy tail")
+    ap.add_argument("--city", action="store_true",
+                    help="time the built-in VA row (the defaults of a scene without a [filter.types.VA] table: the "
+                         "city defaults) instead of the paper preset's pinned one; --set applies on top")
     args = ap.parse_args()
     clock = time.thread_time if args.cpu else time.perf_counter
 
     scn, states, paths = paper_data(max(args.steps, args.scaling_steps))
     try:
-        scn = with_overrides(scn, args.set)
+        scn = with_overrides(scn, (city_va_row() if args.city else []) + args.set)
     except MmslamError as e:
         ap.error(str(e))
-    print(f"one vehicle-step (vehicle 1), analytic paper data{', --set ' + ' '.join(args.set) if args.set else ''}, "
+    print(f"one vehicle-step (vehicle 1), analytic paper data{' with the built-in VA row' if args.city else ''}"
+          f"{', --set ' + ' '.join(args.set) if args.set else ''}, "
           f"1 thread, {'CPU' if args.cpu else 'wall'} time; steps {args.warmup}..{args.steps - 1}")
     for v in args.variants.split(","):
         t, first = time_steps(scn, states, paths, v, args.particles, args.steps, args.warmup, clock=clock)

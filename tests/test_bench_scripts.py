@@ -152,6 +152,26 @@ def test_bench_filter_set_times_the_changed_setting_and_refuses_a_bad_one():
         assert "error:" in last and bad.split("=")[0].split(".")[-1] in last, (bad, p.stderr)
 
 
+def test_bench_filter_city_times_the_built_in_va_row():
+    """bench_filter --city gives the paper data the built-in VA row (every field of DEFAULT_TYPE_PARAMS["VA"], where
+    the paper preset pins its own) and says so; a --set still applies on top."""
+    import importlib.util
+
+    from mmslam.scenes.scenario import DEFAULT_TYPE_PARAMS, load_preset, with_overrides
+
+    spec = importlib.util.spec_from_file_location("bench_filter", FILTER)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    paper = load_preset("paper")
+    assert paper.filter.type_params("VA") != DEFAULT_TYPE_PARAMS["VA"]
+    assert with_overrides(paper, mod.city_va_row()).filter.type_params("VA") == DEFAULT_TYPE_PARAMS["VA"]
+    ok = _bench_filter("--city", "--set", "filter.types.VA.weight_share=0.5")
+    assert ok.returncode == 0, ok.stderr
+    head = ok.stdout.splitlines()[0]
+    assert "with the built-in VA row, --set filter.types.VA.weight_share=0.5" in head, head
+    assert re.search(r"proposed\s+P=\s*20: median\s+[\d.]+ ms", ok.stdout), ok.stdout
+
+
 def test_compare_traces_matches_rows_and_reports_the_differences(tmp_path):
     """benchmarks/compare_traces.py: a table against a copy with one row dropped, one ToA moved by 1e-4 m and one
     azimuth moved across the -pi / pi cut by 2e-6 rad: one row only in A, the rest matched, max |dToA| 1e-4 m and
