@@ -59,6 +59,7 @@ test-min: $(MIN_STAMP) llvm
 
 bench: setup
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+	@echo "== benchmarks/bench_filter.py --city (the city defaults' VA row)"; $(PY) benchmarks/bench_filter.py --city --variants proposed
 
 clean:
 	rm -rf $(VENV) $(VENV_MIN) out .pytest_cache build *.egg-info
