@@ -130,7 +130,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         if association.get(t, "phd") not in ("phd", "exclusive"):
             raise ValueError(f"association {association[t]!r}: expected 'phd' or 'exclusive'")
     exclusive = {t for t in maps if association.get(t, "phd") == "exclusive"}
-    # an exclusive type's detected weights are not the shares: every posterior is computed (no skip floors)
+    # an exclusive type's detected weights are not the shares: no skip floors (a tail's match waits for them, step 4)
     terms = [type_terms(g, kinds[t], states, Z, R, bs, pd_fn, extents.get(t), log_clutter,
                         None if t in exclusive else prune, bodies.get(t), missed.get(t, "phd"), tails.get(t),
                         follows.get(t, 0.0), defer_tail=True)
