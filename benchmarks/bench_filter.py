@@ -58,7 +58,7 @@ def city_va_row() -> list[str]:
         v = getattr(row, f.name)
         if v is None:
             continue
-        text = json.dumps(v) if isinstance(v, str) else ("true" if v is True else "false" if v is False else repr(v))
+        text = json.dumps(list(v) if isinstance(v, tuple) else v)  # TOML values: strings, numbers, booleans, arrays
         out.append(f"filter.types.VA.{f.name}={text}")
     return out
 

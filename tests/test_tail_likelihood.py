@@ -190,6 +190,8 @@ def test_tail_on_degenerate_shapes_against_two_plain_updates(P_, Q, J):
     else:
         np.testing.assert_array_equal(tt.logq, t1.logq)
     np.testing.assert_array_equal(tt.missed_w, t1.missed_w)
+    lik = type_terms(g, va, s, Z, R, BS_POS, _pd, tail=(e, K), posteriors=False)  # the weight offset's pass
+    np.testing.assert_array_equal(lik.logq, tt.logq)
 
 
 @pytest.mark.parametrize("tail", [None, (0.2, 4.0), (1.0, 3.0)])
@@ -253,6 +255,32 @@ def test_the_pairs_read_by_hand():
     np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, 0.0), np.ones((3, 2), bool))
     at = np.exp(-3.0)  # innovation 1's second pair and innovation 2's second pair sit exactly at log prune = -3
     np.testing.assert_array_equal(read_pairs(logq, logpsi, det_index, 3, at)[:, 1], [False, True, True])
+
+
+@pytest.mark.parametrize("P_, Q, J", [(1, 1, 1), (1, 0, 2), (2, 2, 0), (1, 2, 1)])
+def test_the_deferred_match_on_degenerate_shapes(monkeypatch, P_, Q, J):
+    """One particle, an empty map (Q = 0), an empty scan (J = 0): correct() with the tail's match deferred gives the
+    maps and log psi of the full match in type_terms, array for array (exclusive association, Bernoulli rule)."""
+    from mmslam.model import VA
+    from mmslam.slam.phd import gmphd
+
+    g, s, Z = _scene(P_)
+    g = GM(g.w[:, :Q], g.m[:, :Q], g.P[:, :Q], g.mask[:, :Q])
+    Z = np.concatenate([Z, Z])[:J]
+
+    def run():
+        return gmphd.correct({VA: g}, s, Z, R, BS_POS, _pd, np.full(P_, 0.5), math.log(1e-4), 1e-5, {VA: None}, 3,
+                             {VA: landmark_type("VA")}, association={VA: "exclusive"}, missed={VA: "bernoulli"},
+                             tails={VA: (0.2, 4.0)})
+
+    maps, lpsi = run()
+    real_terms = gmphd.type_terms
+    monkeypatch.setattr(gmphd, "type_terms", lambda *a, **k: real_terms(*a, **{**k, "defer_tail": False}))
+    full_maps, full_lpsi = run()
+    assert lpsi.shape == (P_, J)
+    np.testing.assert_array_equal(lpsi, full_lpsi)
+    for key in ("w", "m", "P", "mask"):
+        np.testing.assert_array_equal(getattr(maps[VA], key), getattr(full_maps[VA], key))
 
 
 @pytest.mark.parametrize("association", ["phd", "exclusive"])
