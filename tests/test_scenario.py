@@ -343,5 +343,6 @@ def test_held_out_scenes_are_written_as_a_user_would(path):
 def test_the_held_out_scenes_are_all_there():
     assert [p.stem for p in HELD_OUT] == ["etoile", "etoile2", "etoile3", "etoile4", "etoile5", "etoile6",
                                           "florence", "florence2", "florence3", "florence4", "florence5", "munich2",
-                                          "munich3", "munich4", "munich5", "munich6", "sanfrancisco", "sf3", "sf4",
+                                          "munich3", "munich4", "munich5", "munich6", "munich7",
+                                          "sanfrancisco", "sf3", "sf4",
                                           "sf5", "sf6", "sfhills", "sfhills2"]
