@@ -43,11 +43,12 @@ def variant_help() -> str:
 
 def register(app: typer.Typer) -> None:
     """Add ``mmslam slam`` to ``app``."""
+    from mmslam.slam.specs.variants import DEFAULT_VARIANT
 
     @app.command("slam")
     def slam_cmd(
         cache: Path = typer.Argument(..., help="Path cache directory (from `mmslam trace`)."),
-        variant: str = typer.Option("baseline", help="Filter variant. " + variant_help()),
+        variant: str = typer.Option(DEFAULT_VARIANT, help="Filter variant. " + variant_help()),
         particles: Optional[int] = typer.Option(None, help="Particles per vehicle (default: the scenario's "
                                                 "filter.particles)." + span(1, MAX_PARTICLES)),
         seed: int = typer.Option(0, help="Monte Carlo seed (measurement noise, clutter, prior, filter)." + span(0, MAX_SEED)),

@@ -162,3 +162,33 @@ def test_slam_ignore_types_leaves_those_paths_out_of_the_measurements(tmp_path, 
     assert main(args + ["--ignore-types", "WALL", "--out", str(tmp_path / "r3")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--ignore-types" in err and "WALL" in err and "\n" not in err
+
+
+def test_a_run_that_names_no_variant_runs_the_proposed_filter(tmp_path, capsys):
+    """`mmslam slam` without --variant, run_slam and run_filter without one run DEFAULT_VARIANT, the paper's filter
+    (proposed): it maps the other cars as VSs (VS estimates in the result's landmarks), which baseline does not; an
+    explicit --variant baseline still runs baseline."""
+    import inspect
+    import json
+
+    import pandas as pd
+
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.scenes.scenario import load_preset
+    from mmslam.slam.filter.run import CooperativeRun, run_filter, run_slam
+    from mmslam.slam.specs.variants import DEFAULT_VARIANT
+
+    assert DEFAULT_VARIANT == "proposed"
+    for f in (run_slam, run_filter, CooperativeRun.__init__):
+        assert inspect.signature(f).parameters["variant"].default == DEFAULT_VARIANT
+    scn = load_preset("paper")
+    cache = trace_scenario(scn, AnalyticSource(scn), tmp_path / "c", steps=7, progress=False)
+    types = {}
+    for name, extra in (("r", []), ("b", ["--variant", "baseline"])):
+        assert main(["slam", str(cache), "--particles", "5", "--steps", "7", "--out", str(tmp_path / name)] + extra) == 0
+        assert json.loads((tmp_path / name / "meta.json").read_text())["variant"] == ("proposed" if name == "r" else "baseline")
+        lm = pd.read_parquet(tmp_path / name / "landmarks.parquet")
+        types[name] = set(lm["type"].astype(str))
+    capsys.readouterr()
+    assert "VS" in types["r"] and "VS" not in types["b"]

@@ -42,7 +42,7 @@ from .local_filter import LocalFilter, StepEstimate
 from ..core.memory import retain_freed_memory
 from .rbpf import position_nees
 from .result import Result
-from ..specs.variants import VariantSpec, get_variant
+from ..specs.variants import DEFAULT_VARIANT, VariantSpec, get_variant
 
 VEH_DT = {"step": np.int32, "vehicle": np.int16, "x": float, "y": float, "z": float, "heading": float,
           "bias": float, "true_x": float, "true_y": float, "true_z": float, "true_heading": float,
@@ -175,7 +175,7 @@ class CooperativeRun:
     """
 
     def __init__(self, scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
-                 variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
+                 variant: str | VariantSpec = DEFAULT_VARIANT, particles: int | None = None, seed: int = 0,
                  steps: int | None = None, include_types: Sequence[int] | None = None, *,
                  measurement_update: bool = True, evaluate: bool = True, rays: dict[str, np.ndarray] | None = None,
                  estimates_dir: str | Path | None = None, source: str | None = None,
@@ -371,7 +371,7 @@ class CooperativeRun:
 
 
 def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
-               variant: str | VariantSpec = "baseline", particles: int | None = None, seed: int = 0,
+               variant: str | VariantSpec = DEFAULT_VARIANT, particles: int | None = None, seed: int = 0,
                steps: int | None = None, include_types: Sequence[int] | None = None,
                meta: dict[str, Any] | None = None, *, measurement_update: bool = True,
                rays: dict[str, np.ndarray] | None = None, estimates_dir: str | Path | None = None,
@@ -383,7 +383,8 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
         states: ``(steps, n_veh, 7)`` true vehicle states (cache ``states``).
         paths: ``paths`` table columns for (at least) these steps.
         variant: a registered variant (``baseline`` | ``cm1`` | ``proposed``, or the reference
-            ``odometry``: dead reckoning with the same prior and inputs) or a VariantSpec.
+            ``odometry``: dead reckoning with the same prior and inputs) or a VariantSpec; default
+            :data:`~mmslam.slam.specs.variants.DEFAULT_VARIANT` (``proposed``).
         particles: particles per vehicle (>= 1; None: the scenario's ``filter.particles``).
         seed: Monte Carlo seed (measurement noise, clutter, detections, prior, filter draws).
         steps: number of steps to run (default all of ``states``).
@@ -405,7 +406,7 @@ def run_filter(scn: Scenario, states: np.ndarray, paths: dict[str, np.ndarray],
                           source=source, known_map=known_map).run(meta)
 
 
-def run_slam(cache_dir: str | Path, variant: str | VariantSpec = "baseline", particles: int | None = None,
+def run_slam(cache_dir: str | Path, variant: str | VariantSpec = DEFAULT_VARIANT, particles: int | None = None,
              seed: int = 0, steps: int | None = None, include_types: Sequence[int] | None = None,
              overrides: Sequence[str] = (), compile_notice: Callable[[str], None] | None = None,
              known_map: KnownMap | None = None) -> Result:

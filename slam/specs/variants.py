@@ -115,6 +115,11 @@ for _v in (
                 predict_at_bs=True, vs_fusion=True, downlink_ego_removal=True),
 ):
     register_variant(_v)
+DEFAULT_VARIANT = "proposed"
+"""The variant of a run that names none (`mmslam slam`, :func:`~mmslam.slam.filter.run.run_slam`,
+:func:`~mmslam.slam.filter.run.run_filter`): the paper's filter, the one every figure of docs/city-slam.md is measured
+with. ``baseline`` (TWC2020) does not model the other cars: in a city their paths become false VAs (docs/city-slam.md,
+"The default variant")."""
 COMPARED_WITH = "baseline"
 """The variant every other one is compared with (paired differences in the ablation summary and report)."""
 BUILTIN_VARIANTS: tuple[str, ...] = tuple(_VARIANTS)
