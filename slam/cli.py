@@ -10,11 +10,14 @@ from mmslam.errors import Interrupted, MmslamError, was_interrupted
 from mmslam.limits import MAX_PARTICLES, MAX_SEED, MAX_STEPS, check_int, span
 
 
-def summarize(res) -> list[tuple[str, str, float]]:
-    """Mean GOSPA per (map, type) over the steps from the first fusion on: ``[(map, type, mean)]``.
+def summarize(res) -> list[tuple[str, str, float, float, float, float]]:
+    """Mean GOSPA per (map, type) over the steps from the first fusion on, with what it is measured against:
+    ``[(map, type, mean GOSPA (m), mean GOSPA of an empty map (m), mean truths, mean estimates)]``.
 
     The first fusion step is ``min(fusion.start)`` recorded in ``meta['fusion_start']`` (0 if
-    absent). Rows are in the order maps first appear in the metrics table, types VA, SP, VS.
+    absent). The empty map's GOSPA at a step is ``(c^p / alpha * n_true)^(1/p)`` (every truth missed), with the run's
+    ``meta['gospa']`` (``[evaluation]``; NaN for a result written before it was recorded). Rows are in the order maps
+    first appear in the metrics table, types VA, SP, VS.
     """
     import numpy as np
 
@@ -24,13 +27,17 @@ def summarize(res) -> list[tuple[str, str, float]]:
     m = res.metrics
     start = int(res.meta.get("fusion_start", 0))
     sel = np.asarray(m["step"]) >= start
+    g = res.meta.get("gospa")
+    n_true, n_est = np.asarray(m["n_true"], float), np.asarray(m["n_est"], float)
+    empty = ((g["c"] ** g["p"] / g["alpha"] * n_true) ** (1.0 / g["p"]) if g else np.full(n_true.shape, np.nan))
     maps = list(dict.fromkeys(np.asarray(m["map"])[sel].tolist()))
     out = []
     for mp in maps:
         for t in type_names:
             s = sel & (np.asarray(m["map"]) == mp) & (np.asarray(m["type"]) == t)
             if s.any():
-                out.append((mp, t, float(np.mean(np.asarray(m["gospa"])[s]))))
+                out.append((mp, t, float(np.mean(np.asarray(m["gospa"])[s])), float(np.mean(empty[s])),
+                            float(np.mean(n_true[s])), float(np.mean(n_est[s]))))
     return out
 
 
@@ -117,11 +124,19 @@ def register(app: typer.Typer) -> None:
                           f"{res.meta['steps']} steps (GOSPA means from step {res.meta.get('fusion_start', 0)})")
         tab.add_column("map")
         tab.add_column("type")
-        tab.add_column("mean GOSPA [m]", justify="right")
+        tab.add_column("mean GOSPA \\[m]", justify="right")
+        tab.add_column("empty map \\[m]", justify="right")
+        tab.add_column("ratio", justify="right")
+        tab.add_column("truths", justify="right")
+        tab.add_column("estimates", justify="right")
         rows = summarize(res)
-        for mp, t, g in rows:
-            tab.add_row(mp, t, f"{g:.2f}")
+        for mp, t, g, e, nt, ne in rows:
+            tab.add_row(mp, t, f"{g:.2f}", f"{e:.2f}", f"{g / e:.2f}" if e > 0 else "-", f"{nt:.1f}", f"{ne:.1f}")
         con.print(tab)
+        if rows:
+            con.print("empty map: the GOSPA of a map with no estimate (every truth missed); ratio: mean GOSPA over it "
+                      "(below 1: the map is better than none); truths, estimates: per step", highlight=False,
+                      soft_wrap=True)
         if not rows:  # e.g. --steps 4 on `paper`, whose first upload is at step 5: localisation only
             con.print(f"note: the run has {res.meta['steps']} steps and the first map fusion is at step "
                       f"{res.meta.get('fusion_start', 0)}: no map was fused or scored; run more steps, or set an "

@@ -192,3 +192,24 @@ def test_a_run_that_names_no_variant_runs_the_proposed_filter(tmp_path, capsys):
         types[name] = set(lm["type"].astype(str))
     capsys.readouterr()
     assert "VS" in types["r"] and "VS" not in types["b"]
+
+
+def test_summarize_sets_each_mean_gospa_against_the_empty_map():
+    """The empty map's GOSPA at a step is (c^p / alpha n_true)^(1/p), every truth missed (by hand: c = 20, p = 2,
+    alpha = 2: 1 truth 14.142, 2 truths 20, 4 truths 28.284 m); its mean over the scored steps (from the first fusion)
+    sits beside the mean GOSPA, with the mean truths and estimates. A result without meta['gospa'] gets NaN."""
+    import math
+    from types import SimpleNamespace
+
+    from mmslam.slam.cli import summarize
+
+    metrics = {"step": [4, 5, 6, 5, 6], "map": ["fused"] * 3 + ["car_a"] * 2, "type": ["VA"] * 5,
+               "gospa": [99.0, 10.0, 12.0, 5.0, 7.0], "n_true": [9, 2, 4, 1, 1], "n_est": [0, 1, 3, 1, 2]}
+    res = SimpleNamespace(metrics=metrics, meta={"fusion_start": 5, "gospa": {"c": 20.0, "p": 2.0, "alpha": 2.0}})
+    rows = summarize(res)
+    assert [r[:2] for r in rows] == [("fused", "VA"), ("car_a", "VA")]
+    mp, t, g, e, nt, ne = rows[0]
+    assert g == 11.0 and math.isclose(e, (20.0 + math.sqrt(800.0)) / 2, rel_tol=1e-12) and nt == 3.0 and ne == 2.0
+    assert math.isclose(rows[1][3], math.sqrt(200.0), rel_tol=1e-12) and rows[1][2] == 6.0
+    res.meta.pop("gospa")
+    assert math.isnan(summarize(res)[0][3])

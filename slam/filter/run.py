@@ -354,7 +354,9 @@ class CooperativeRun:
                               "height_process_std": self.process_std[:, 2].tolist(),
                               "process_std": self.process_std.tolist(),
                               "exact_truth": [not truth_has_process_noise(scn, n) for n in range(len(scn.vehicles))],
-                              "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version}
+                              "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version,
+                              "gospa": {"c": float(scn.evaluation.gospa_c), "p": float(scn.evaluation.gospa_p),
+                                        "alpha": float(scn.evaluation.gospa_alpha)}}
         cols, counts = self.meas.origin_counts()  # evaluation labels of the measurements (never used by the filter)
         md["measurement_counts"] = {"model": scn.sensor.model, "columns": cols,
                                     "per_step_vehicle": counts[:self.steps].tolist()}
