@@ -250,6 +250,12 @@ class TypeParams:
                                 "(weight_std alone); 0: no offset; no effect while weight_std = 0. A share below 1 "
                                 "keeps the sharp likelihood of a map that is right, which the offset alone flattens; "
                                 "the VA default is 0.2 (docs/city-slam.md, session 26)", "", lo=0.0, hi=1.0)
+    keep_tentative: bool = param(False, "at a downlink the vehicle keeps its particles' own tentative Gaussians of "
+                                 "this type (weight below fusion.average_prune, which the fused map prunes: a birth "
+                                 "detected once or twice) beside the fused map it receives, instead of losing them to "
+                                 "the overwrite (paper III-B2): with a filter.prune low enough that a birth outlives a "
+                                 "few missed steps, a wall a car sees at two steps apart can then be confirmed. "
+                                 "False: the paper's downlink (docs/city-slam.md, session 28)")
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

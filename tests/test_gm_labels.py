@@ -395,3 +395,23 @@ def test_fused_others_scores_the_vs_map_without_the_ego_uploads():
     assert mt["missed"][0] == pytest.approx(c ** 2 / 2) and mt["loc"][0] == pytest.approx(0.0)
     sc.record_others(0, {VS_SPEC.code: GM(g.w, g.m, g.P, g.mask)})  # no labels: nothing recorded
     assert len(sc.metrics.cols["map"]) == 1
+
+
+def test_downlink_keeps_the_tentative_gaussians_only_with_the_option():
+    """filter.types.VA.keep_tentative: after a downlink each particle holds the fused map and, after it, its own VA
+    Gaussians lighter than fusion.average_prune (0.1), with their labels; the confirmed ones (here 0.8) are replaced by
+    the fused map as in the paper. Without the option (the default) only the fused map is left."""
+    for keep in (False, True):
+        scn = with_overrides(load_preset("paper"), [f"filter.types.VA.keep_tentative={'true' if keep else 'false'}"])
+        f = LocalFilter(scn, "cm1", 3, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                        np.random.default_rng(0), vehicle=2)
+        own = _gm([0.8, 0.05, 0.02], [[0, 0, 10], [30, 0, 10], [60, 0, 10]], label=[5, 6, 7])
+        f.maps[VA] = own.take((None,)).take(np.zeros(3, int))
+        f.maps[VA].w[1, 2] = 0.5  # particle 1's third Gaussian is not tentative: the fused map replaces it
+        f.downlink({VA: _gm([0.9], [[1.0, 0, 10]], label=[17])})
+        g = f.maps[VA]
+        live = [sorted(zip(g.w[p][g.mask[p]].round(3).tolist(), g.label[p][g.mask[p]].tolist())) for p in range(3)]
+        if not keep:
+            assert live == [[(0.9, 17)]] * 3
+        else:
+            assert live == [[(0.02, 7), (0.05, 6), (0.9, 17)], [(0.05, 6), (0.9, 17)], [(0.02, 7), (0.05, 6), (0.9, 17)]]

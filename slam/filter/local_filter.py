@@ -34,7 +34,7 @@ from mmslam.scenes.scenario import Scenario
 
 from ..phd.birth import birth_moments_by_kind
 from ..models.dynamics import wrap_angle
-from ..core.gm import LABEL_BITS, GM, drop_dead_slots, ego_label, empty, random_walk, with_labels
+from ..core.gm import LABEL_BITS, GM, compact, concat, drop_dead_slots, ego_label, empty, random_walk, with_labels
 from ..phd.gmphd import correct
 from ..specs.landmarks import LandmarkSpec, check_type_rows, trace_cap
 from ..models.measurement import BS
@@ -282,6 +282,8 @@ class LocalFilter:
         countermeasure) the type's ``remove_ego`` (VS, with ``fusion.downlink_ego = "remove"``)
         drops the components matched to it first. The fused map's labels (``fusion.average_by_label``)
         go to every particle with it: after a downlink the particles' copies of a landmark share one.
+        A type with ``filter.types.<TYPE>.keep_tentative`` keeps each particle's own Gaussians lighter than
+        ``fusion.average_prune`` (the tentative ones, which the fused map prunes) after the fused ones.
         """
         for t, g in fused.items():
             if t not in self.maps:
@@ -292,4 +294,10 @@ class LocalFilter:
             if g.pd_beta is not None and self.fp.pd_beta_downlink == "prior":
                 g = g.copy()
                 g.pd_beta[...] = sp.pd_beta_prior(self.scn)
+            own = self.maps[t]
+            tentative = (own.mask & (own.w < self.scn.fusion.average_prune)
+                         if self.fp.type_params(sp.name).keep_tentative and own.capacity else None)
             self.maps[t] = _broadcast_gm(g, self.P)
+            if tentative is not None and tentative.any():
+                kept = GM(own.w, own.m, own.P, tentative, own.pd_beta, own.label)
+                self.maps[t] = compact(concat(self.maps[t], kept))
