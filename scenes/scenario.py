@@ -255,7 +255,8 @@ class TypeParams:
                                  "detected once or twice) beside the fused map it receives, instead of losing them to "
                                  "the overwrite (paper III-B2): with a filter.prune low enough that a birth outlives a "
                                  "few missed steps, a wall a car sees at two steps apart can then be confirmed. "
-                                 "False: the paper's downlink (docs/city-slam.md, session 28)")
+                                 "False: the paper's downlink. The VA default is true (with filter.prune 1e-5), by "
+                                 "a declared run on twenty city scenes (docs/city-slam.md, session 28)")
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "
@@ -271,12 +272,12 @@ class TypeParams:
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
     "BS": TypeParams(),
     "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", tail_weight=0.2,
-                     weight_std=0.6, weight_share=0.2, merge=6.0),
+                     weight_std=0.6, weight_share=0.2, keep_tentative=True, merge=6.0),
     "SP": TypeParams(), "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
 prior, threshold 0.5, the Bernoulli missed-detection rule, the exclusive association, the heavy tail 0.2, the weight
-offset 0.6 m at a share 0.2 and the merge gate 6, the city defaults of docs/city-slam.md; the ``paper`` preset sets
-0.95 / 0.7 / phd / phd / 0 / 0 / 49;
+offset 0.6 m at a share 0.2, the tentative Gaussians kept through the downlink and the merge gate 6, the city
+defaults of docs/city-slam.md; the ``paper`` preset sets 0.95 / 0.7 / phd / phd / 0 / 0 / false / 49;
 VS: p_D from the
 link budget under a power-aware sensor, docs/estimator.md 6b). A file's row replaces the keys it gives; a type
 without a row (e.g. a newly registered one) gets :class:`TypeParams`'s defaults."""
@@ -318,7 +319,9 @@ class FilterParams:
                                 "vehicle)", choices=("route", "sensor"))
     p_survival: float = param(0.99, "landmark survival probability per step", "", probability=True)
     birth_weight: float = param(1.5e-5, "weight of each birth Gaussian", "", lo=0.0, lo_open=True, hi=1.0)
-    prune: float = param(1e-4, "prune Gaussians of weight below this", "", lo=0.0, hi=1.0)
+    prune: float = param(1e-5, "prune Gaussians of weight below this (1e-5: a VA birth, weight birth_weight, outlives "
+                         "three missed steps, so a wall seen at two steps a few apart can be confirmed; the paper's "
+                         "1e-4 prunes a birth at its first miss; docs/city-slam.md, session 28)", "", lo=0.0, hi=1.0)
     merge: float = param(49.0, "merge gate U (squared Mahalanobis distance) in the reduction of the maps "
                          "of every type whose [filter.types.<TYPE>] row sets no merge of its own", "",
                          lo=0.0, hi=1e6)
