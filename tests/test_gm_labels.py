@@ -415,3 +415,28 @@ def test_downlink_keeps_the_tentative_gaussians_only_with_the_option():
             assert live == [[(0.9, 17)]] * 3
         else:
             assert live == [[(0.02, 7), (0.05, 6), (0.9, 17)], [(0.05, 6), (0.9, 17)], [(0.02, 7), (0.05, 6), (0.9, 17)]]
+
+
+def test_downlink_keeps_a_tentative_gaussians_own_beta_and_gives_the_fused_ones_the_prior():
+    """With learnt p_D (filter.pd_model = beta, pd_beta_downlink = prior, the city defaults): the kept tentative
+    Gaussian carries its own Beta (s, t) through the downlink, the fused Gaussian gets the type's birth prior, and a
+    particle with no tentative Gaussian (P = 1 here too: the batch of one) holds the fused map alone."""
+    scn = with_overrides(load_preset("paper"), ["filter.types.VA.keep_tentative=true", "filter.pd_model=beta",
+                                                "filter.pd_beta_downlink=prior"])
+    prior = landmark_type("VA").pd_beta_prior(scn)
+    for P in (1, 2):
+        f = LocalFilter(scn, "cm1", P, np.array([20.0, 5.0, 1.5, 0.3, 10.0, 0.0, 0.5]), R, 1e-3, _pd(0.5),
+                        np.random.default_rng(0), vehicle=2)
+        own = _gm([[0.05]] * P, [[[30, 0, 10]]] * P, label=[[6]] * P)
+        own.pd_beta = np.array([[[3.0, 1.0]]] * P)
+        if P == 2:
+            own.w[1, 0] = 0.5  # particle 1's Gaussian is confirmed: not kept
+        f.maps[VA] = own
+        fused = _gm([0.9], [[1.0, 0, 10]], label=[17])
+        fused.pd_beta = np.array([[7.0, 2.0]])
+        f.downlink({VA: fused})
+        g = f.maps[VA]
+        for p in range(P):
+            rows = sorted((round(float(w), 3), tuple(b)) for w, b, k in zip(g.w[p], g.pd_beta[p], g.mask[p]) if k)
+            want = [(0.05, (3.0, 1.0)), (0.9, tuple(prior))] if p == 0 else [(0.9, tuple(prior))]
+            assert rows == want
