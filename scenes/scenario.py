@@ -1030,7 +1030,8 @@ def parameter_reference() -> str:
         out.extend(f"| `{k}` | {d} | {u} | {_cell(b)} | {_cell(doc)} |" for k, d, u, b, doc in param_rows(cls, section))
         out.append("")
         if cls is FilterParams:
-            rows = ", ".join(f"{n} (" + ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+            rows = ", ".join(f"{n} (" + ", ".join(f"{k} {str(v).lower()}" if isinstance(v, bool) else
+                                                  f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
                                                   for k, v in dataclasses.asdict(r).items()
                                                   if v is not None) + ")" for n, r in DEFAULT_TYPE_PARAMS.items())
             aliases = ", ".join(f"`{a}`" for a in TYPE_PARAM_ALIASES)
