@@ -459,7 +459,8 @@ class EvalParams:
     gospa_c: float = param(20.0, "GOSPA cut-off distance c", "m", lo=0.0, lo_open=True, hi=1e6)
     gospa_alpha: float = param(2.0, "GOSPA alpha", "", lo=0.0, lo_open=True, hi=2.0)
     truth_set: str = param("seen", "static landmarks (VA, SP) a map is scored against: seen (each from the first "
-                           "step a vehicle could detect it; the fused map: any vehicle) or all (every VA / SP in the "
+                           "step a vehicle could detect it; the fused map: any vehicle; a vehicle's map after a "
+                           "downlink also: any vehicle, up to the downlink's step) or all (every VA / SP in the "
                            "run's paths, FOV or not, from step 0: the TWC2020 code's scoring)",
                            choices=("seen", "all"))
     fused_steps: str = param("all", "steps the headline mean of the fused map's GOSPA covers: all (every step from "

@@ -4,7 +4,9 @@ Truth of a map of type ``t`` at step ``k`` (:class:`MapScorer`):
 
 - static types (VA, SP): every landmark the vehicle could have detected so far, i.e. present in
   its paths *and* inside its FOV at some step ``<= k`` (:func:`first_seen`); the fused map's truth
-  is the union over vehicles; a VA of order 2 (a double specular bounce, ``bounces = 2``, landmark the
+  is the union over vehicles; a vehicle's map after a downlink holds the fused map, so its truth also
+  holds every landmark some vehicle could have detected by the step of its last downlink
+  (:meth:`MapScorer.record_downlink`, :func:`truth_union`); a VA of order 2 (a double specular bounce, ``bounces = 2``, landmark the
   image of an image: docs/estimator.md) is a VA like one of order 1 (a fixed point the filter can map),
   keyed by its image position like every VA (:func:`truth_keys`), in the truth and the visible counts alike;
 - moving types (VS): the other vehicles within the FOV radius of the vehicle at step ``k``;
@@ -237,6 +239,15 @@ def truth_static(seen: Seen, k: int) -> np.ndarray:
     return np.array(pts, float).reshape(-1, 3)
 
 
+def truth_union(own: Seen, fused: Seen, k: int, k_fused: int) -> np.ndarray:
+    """``(n, 3)`` positions of the landmarks in ``own`` first seen at or before step ``k`` and of those in ``fused``
+    first seen at or before ``k_fused`` (a landmark in both counts once; ``k_fused < 0``: ``own`` alone): the truth
+    of a vehicle's map at ``k`` whose last downlink of the fused map was at ``k_fused``."""
+    pts = {q: p for q, (s, p) in fused.items() if s <= k_fused}
+    pts.update({q: p for q, (s, p) in own.items() if s <= k})
+    return np.array(list(pts.values()), float).reshape(-1, 3)
+
+
 def merge_seen(per_veh: list[Seen]) -> Seen:
     """Union of the vehicles' first-seen maps (earliest step wins): the fused map's truth."""
     out: Seen = {}
@@ -293,6 +304,8 @@ class MapScorer:
         else:
             self.seen = first_seen(paths, n_veh, steps, pos, scn.sensor, res)
         self.seen_all = {t: merge_seen(v) for t, v in self.seen.items()}
+        self.downlinks = [-1] * n_veh
+        """per vehicle: the step of its last downlink of the fused map (-1: none yet)"""
         self.visible = visible_counts(paths, n_veh, steps, pos, scn.sensor, res)
         self.types = evaluated_types()
         self.thresholds = {s.code: s.threshold(scn) for s in self.types}
@@ -309,8 +322,14 @@ class MapScorer:
                 out[spec.code] = (others[np.linalg.norm(others - ts[0:3], axis=1) <= r] if len(others)
                                   else np.zeros((0, 3)))
             else:
-                out[spec.code] = truth_static(self.seen[spec.code][n], k)
+                out[spec.code] = truth_union(self.seen[spec.code][n], self.seen_all[spec.code], k,
+                                             self.downlinks[n])
         return out
+
+    def record_downlink(self, n: int, k: int) -> None:
+        """Vehicle ``n`` received the fused map at step ``k`` (after its row of step ``k``): from step ``k + 1`` on its
+        maps' truth holds every landmark some vehicle could have detected by ``k`` (:func:`truth_union`)."""
+        self.downlinks[n] = int(k)
 
     def fused_truth(self, k: int) -> dict[int, np.ndarray]:
         """Type code -> ``(n, 3)`` true positions for the BS map at step ``k`` (all vehicles for moving types)."""

@@ -311,6 +311,8 @@ class CooperativeRun:
             return False
         fused = self.center.fuse(est.avg_maps, np.array(self._acc_fov[n]), est.mean, est.cov, vehicle=n)
         self.filters[n].downlink(fused, ego_gaussian(est.mean, est.cov, self.scn.filter.vs_process_std))
+        if self.scorer is not None:  # its maps now hold the fused map: so does their truth
+            self.scorer.record_downlink(n, k)
         self._acc_fov[n] = []
         return True
 
