@@ -80,7 +80,7 @@ def test_canyon_like_pair_in_the_correction():
     R = np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2
     out = {}
     for assoc in ("phd", "exclusive"):
-        res, _ = correct({VA: g.copy()}, s, Z, R, bs, pd_fn, np.zeros(1), np.log(1e-6), None, {VA: None}, 0,
+        res, _, _ = correct({VA: g.copy()}, s, Z, R, bs, pd_fn, np.zeros(1), np.log(1e-6), None, {VA: None}, 0,
                          {VA: VA_SPEC}, missed={VA: "bernoulli"}, association={VA: assoc})
         out[assoc] = res[VA]
     # dense layout: Q missed slots, then (q, j) at Q + q J + j
@@ -141,7 +141,7 @@ def test_exclusive_association_keeps_the_mass_bound_with_either_missed_rule():
         for missed in ("bernoulli", "phd"):
             g = GM(np.array([[w0]]), va[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
             for prune in (None, 1e-5):
-                out, _ = correct({VA: g.copy()}, s, Z, np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2, bs, pd_fn,
+                out, _, _ = correct({VA: g.copy()}, s, Z, np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2, bs, pd_fn,
                                  np.zeros(1), np.log(1e-6), prune, {VA: None}, 0, {VA: VA_SPEC},
                                  missed={VA: missed}, association={VA: "exclusive"})
                 mass = float(out[VA].w[out[VA].mask].sum())

@@ -81,14 +81,14 @@ def test_corrected_components_inherit_their_predicted_slots_label():
     lpsi = np.zeros((1, 2))
     dense = corrected_gm(tc, Z, lpsi)
     np.testing.assert_array_equal(dense.label, [[7, 9, 7, 7, 9, 9]])
-    maps, _ = correct({VA: g}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1), LOG_CLUTTER, 1e-3, {}, 0, KINDS)
+    maps, _, _ = correct({VA: g}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1), LOG_CLUTTER, 1e-3, {}, 0, KINDS)
     c = maps[VA]
     live = c.mask[0]
     near0 = np.linalg.norm(c.m[0, :, :3] - x0, axis=-1) < np.linalg.norm(c.m[0, :, :3] - x1, axis=-1)
     assert live.sum() >= 3
     np.testing.assert_array_equal(c.label[0, live], np.where(near0[live], 7, 9))
     np.testing.assert_array_equal(c.label[0, ~live], NO_LABEL)
-    unlabelled, _ = correct({VA: GM(g.w, g.m, g.P, g.mask)}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1),
+    unlabelled, _, _ = correct({VA: GM(g.w, g.m, g.P, g.mask)}, STATE[None], Z, R, BS, _pd(0.9), np.zeros(1),
                             LOG_CLUTTER, 1e-3, {}, 0, KINDS)
     assert unlabelled[VA].label is None
     np.testing.assert_array_equal(unlabelled[VA].w, c.w)

@@ -431,7 +431,7 @@ def test_correct_with_per_measurement_R_extent_and_beta_equals_per_gaussian_inno
     def pd_fn(u, x, t):
         return np.where(np.linalg.norm(x - u, axis=-1) < 200.0, 0.8, 0.0)
 
-    out, lpsi = correct(maps, s, Z, Rz, BS_POS, pd_fn, p_bs, lc, prune, ext, 3, KINDS)
+    out, lpsi, _ = correct(maps, s, Z, Rz, BS_POS, pd_fn, p_bs, lc, prune, ext, 3, KINDS)
     # reference: every live Gaussian with p_D > 0 on its own through ckf.innovate
     ref = {}
     for t, g in maps.items():
@@ -522,7 +522,7 @@ def test_skipped_work_changes_no_corrected_component(lm_type):
     keep = np.isfinite(skipped.logq)
     assert np.array_equal(skipped.logq[keep], full.logq[keep])
     p_bs = np.full(P_, 0.95)
-    out, lpsi = correct({lm_type: g}, s, Z, R, BS_POS, _pd, p_bs, lc, prune, {}, 0, KINDS)
+    out, lpsi, _ = correct({lm_type: g}, s, Z, R, BS_POS, _pd, p_bs, lc, prune, {}, 0, KINDS)
     lpsi_ref = log_psi([full], bs_logterm(s, Z, R, BS_POS, p_bs), lc, (P_, Z.shape[0]))
     ref = corrected_gm(full, Z, lpsi_ref, prune=prune)
     np.testing.assert_allclose(lpsi, lpsi_ref, rtol=1e-12)

@@ -571,7 +571,7 @@ def test_type_terms_log_psi_and_corrected_gm_equal_the_per_gaussian_phd_update(s
         _unchanged(lpsi_snap, "corrected_gm (log psi)")
     # the whole correction in one call (gmphd.correct) gives the same maps and log psi
     with np.errstate(divide="ignore"):
-        maps_c, lpsi_c = gmphd.correct(maps, s, Z, R, BS_POS, pd_fn, np.full(P_, P_DETECT if with_bs else 0.0),
+        maps_c, lpsi_c, _ = gmphd.correct(maps, s, Z, R, BS_POS, pd_fn, np.full(P_, P_DETECT if with_bs else 0.0),
                                        log_clutter, prune, {}, 0, KINDS)
     for sn in snaps:
         _unchanged(sn, "correct")

@@ -81,7 +81,7 @@ def test_with_measurements_only_the_missed_terms_change_and_degenerate_shapes_ho
     def run(missed, q):
         g = GM(np.full((1, q), 0.8), np.tile(va, (1, q, 1)), np.broadcast_to(np.eye(3), (1, q, 3, 3)).copy(),
                np.ones((1, q), bool))
-        out, lpsi = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
+        out, lpsi, _ = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
                             np.log(1e-3), None, {VA: None}, 0, kinds, missed={VA: missed})
         return out[VA], lpsi
 
@@ -123,7 +123,7 @@ def test_a_confirmed_va_detected_at_every_step_keeps_its_mass():
     kinds = {VA: _filter("phd").specs[VA]}
     z = measure(s[0], va, int(kinds[VA].geometry), np.asarray(scn.bs, float))[None]
     g = GM(np.array([[1.0]]), va[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
-    out, _ = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
+    out, _, _ = correct({VA: g}, s, z, np.eye(5) * 0.01, np.asarray(scn.bs, float), pd_fn, np.zeros(1),
                      np.log(1e-6), None, {VA: None}, 0, kinds, missed={VA: "bernoulli"})
     live = out[VA].w[out[VA].mask]
     share = live[1]  # the PHD's detection term s

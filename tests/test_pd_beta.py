@@ -44,7 +44,7 @@ def _pd_const(p, fov=np.inf):
 
 
 def _correct(g: GM, lm_type: int, pd_fn, Z: np.ndarray):
-    maps, _ = correct({lm_type: g}, STATE[None], Z, R, BS, pd_fn, np.zeros(1), LOG_CLUTTER, None, {}, 0, KINDS)
+    maps, _, _ = correct({lm_type: g}, STATE[None], Z, R, BS, pd_fn, np.zeros(1), LOG_CLUTTER, None, {}, 0, KINDS)
     return maps[lm_type]
 
 

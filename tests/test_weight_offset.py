@@ -34,21 +34,25 @@ def _map(P: np.ndarray = P0, n: int = 2) -> GM:
               np.tile([3.0, 1.0], (n, 1, 1)), np.arange(n)[:, None].astype(np.int64))
 
 
-def _correct(g: GM, states: np.ndarray, Z: np.ndarray, city: bool, **kw):
-    return correct({VA: g}, states, Z, R, BS, _pd, np.zeros(states.shape[0]), LOG_C, 1e-5, {VA: None}, 3,
-                   {VA: landmark_type(VA)}, **(CITY if city else {}), **kw)
+def _correct(g: GM, states: np.ndarray, Z: np.ndarray, city: bool, own: bool = False, **kw):
+    """``correct``'s maps and the weight's ``log psi`` (with ``own``: also the maps' own ``log psi``)."""
+    out = correct({VA: g}, states, Z, R, BS, _pd, np.zeros(states.shape[0]), LOG_C, 1e-5, {VA: None}, 3,
+                  {VA: landmark_type(VA)}, **(CITY if city else {}), **kw)
+    return out if own else out[:2]
 
 
 @pytest.mark.parametrize("city", [False, True], ids=["paper row", "city row (exclusive, Bernoulli, tail)"])
 def test_the_weight_offset_changes_the_weight_only(city):
     """Two particles (one at the true pose, one 0.6 m off), one VA, two measurements (the VA's and one 1 m off it):
     with F_w = 0.5 m^2 the corrected maps are those without it (every array equal), and log psi is that of the same
-    correction of the map widened to P + F_w (computed the plain way), which differs from the map's own."""
+    correction of the map widened to P + F_w (computed the plain way), which differs from the map's own; the third
+    output, the maps' own log psi, is that of the plain correction."""
     states = np.stack([STATE, STATE + [0.6, -0.2, 0.0, 0.0, 0.0, 0.0, 0.0]])
     Z = np.stack([measure(STATE, X, Bounce.MIRROR, BS), measure(STATE, X + [0.8, 0.6, 0.0], Bounce.MIRROR, BS)])
     F = 0.5
     plain_maps, plain_lpsi = _correct(_map(), states, Z, city)
-    maps, lpsi = _correct(_map(), states, Z, city, weight_offsets={VA: F})
+    maps, lpsi, own = _correct(_map(), states, Z, city, own=True, weight_offsets={VA: F})
+    np.testing.assert_array_equal(own, plain_lpsi)
     for key in ("w", "m", "P", "mask", "pd_beta", "label"):
         np.testing.assert_array_equal(getattr(maps[VA], key), getattr(plain_maps[VA], key))
     _, wide_lpsi = _correct(_map(P0 + F * np.eye(3)), states, Z, city)
@@ -96,7 +100,7 @@ def test_the_offset_of_one_type_leaves_the_other_types_terms_and_adds_to_the_fol
 
     def run(va: GM, sp: GM, **kw):
         return correct({VA: va, SP: sp}, states, Z, R, BS, _pd, np.zeros(2), LOG_C, 1e-5, {VA: None, SP: None}, 3,
-                       kinds, association={VA: "exclusive"}, missed={VA: "bernoulli"}, **kw)
+                       kinds, association={VA: "exclusive"}, missed={VA: "bernoulli"}, **kw)[:2]
 
     _, lpsi = run(_map(), _map(), weight_offsets={SP: 0.5})
     _, want = run(_map(), _map(P0 + 0.5 * np.eye(3)))

@@ -3,7 +3,8 @@
 One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 
 1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
-   states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``);
+   states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``; with
+   ``filter.adaptive_birth`` times ``c(z) / psi(z)`` of the particle's correction of that ``z``, step 2);
    particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
    and the vehicle's process noise (:func:`~mmslam.slam.filter.process_noise.vehicle_process_std`); each map through its
    type's ``predict``
@@ -150,6 +151,11 @@ class LocalFilter:
         self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim, with_label=self._labels)
                                     for t, s in self.specs.items()}
         self._prev_Z: np.ndarray | None = None
+        self._unexplained: np.ndarray | None = None
+        """``(P, J)`` ``c(z_j) / psi_p(z_j)`` of the last correction (``filter.adaptive_birth``), else None"""
+        if self.fp.adaptive_birth and self.log_clutter == -np.inf:
+            raise MmslamError("filter.adaptive_birth = true needs a clutter intensity > 0 (sensor.clutter_rate); "
+                              "set filter.adaptive_birth = false")
         self._k = -1
         self.vehicle = int(vehicle)
         if known_map is not None and known_map.type_code not in self.specs:
@@ -173,7 +179,8 @@ class LocalFilter:
             moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t, sp in self.specs.items():
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
-                births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn))
+                births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn,
+                                                     self._unexplained))
                 if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
                     births[t], self._next_label = with_labels(births[t], self._next_label)
                     if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice
@@ -207,12 +214,14 @@ class LocalFilter:
             self.maps[t] = self.known_map.mixture(self._k, self.vehicle, self.P,
                                                   self.specs[t].pd_beta_prior(self.scn) is not None, self._labels)
         p_bs = self.pd_fn(self.s[:, 0:3], self._bs_rows, BS)
-        corrected, lpsi = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
-                                  p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
-                                  self._body, self._missed, self._association, self._tail, self._follow,
-                                  self._weight_offset, self._weight_share)
+        corrected, lpsi, own = correct({t: self.maps[t] for t in self.types}, self.s, Z, R, self.bs, self.pd_fn,
+                                       p_bs, self.log_clutter, self.fp.prune, self._extent, self._k, self.specs,
+                                       self._body, self._missed, self._association, self._tail, self._follow,
+                                       self._weight_offset, self._weight_share)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
+        if self.fp.adaptive_birth:  # the share of each z_j that no map and not the BS explained: its births' weight
+            self._unexplained = np.exp(np.minimum(self.log_clutter - own, 0.0))
 
     def reduce(self) -> None:
         """``prune_merge`` of every map (prune, merge, cap, max position trace of the moving types,
@@ -245,6 +254,8 @@ class LocalFilter:
             idx = systematic_resample(w, self.rng)
             self.s = self.s[idx]
             self.maps = {t: _take(g, idx) for t, g in self.maps.items()}
+            if self._unexplained is not None:
+                self._unexplained = self._unexplained[idx]
             self.logw = np.full(self.P, -np.log(self.P))
             return e, True
         return e, False

@@ -239,11 +239,11 @@ def birth_moments(states: np.ndarray, Z: np.ndarray, R: np.ndarray, geometry: in
 
 
 @batch_kernel
-def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray, weight: float, moving: bool,
+def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray, weight: np.ndarray, moving: bool,
             vel_var: np.ndarray, turn_std: float, turn_mean: float, w: np.ndarray, m: np.ndarray, P: np.ndarray,
             mask: np.ndarray) -> None:
     """Birth Gaussians of every particle ``p`` and kept measurement ``j = cols[c]`` (``cols (C,)``) in slot
-    ``c``: where ``ok[p, j]`` weight ``weight`` at the position moments ``mean[p, j] (3,)``,
+    ``c``: where ``ok[p, j]`` weight ``weight[p, j]`` (``(P, J)``) at the position moments ``mean[p, j] (3,)``,
     ``cov[p, j] (3, 3)`` (``moving``: the 7-D VS birth :func:`~mmslam.slam.models.vs.vs_birth_mean_point`,
     :func:`~mmslam.slam.models.vs.vs_birth_cov_point`), else ``w = 0``, ``m = 0``, ``P = I``.
     Writes ``w (P, C)``, ``m (P, C, d)``, ``P (P, C, d, d)``, ``mask (P, C) = ok[:, cols]``."""
@@ -255,7 +255,7 @@ def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray,
                 w[p, c] = 0.0
                 dead_gaussian(m[p, c], P[p, c])
                 continue
-            w[p, c] = weight
+            w[p, c] = weight[p, j]
             if moving:
                 vs_birth_mean_point(mean[p, j], turn_mean, m[p, c])
                 vs_birth_cov_point(cov[p, j], vel_var, turn_std, P[p, c])
@@ -267,13 +267,14 @@ def _births(mean: np.ndarray, cov: np.ndarray, ok: np.ndarray, cols: np.ndarray,
 
 
 def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok: np.ndarray,
-                       kind: LandmarkKind, birth_weight: float,
+                       kind: LandmarkKind, birth_weight: float | np.ndarray,
                        pd_fn: Callable[[np.ndarray, np.ndarray, int], np.ndarray],
                        vs_velocity_var: tuple[float, float, float] = (100.0, 100.0, 0.09),
                        vs_turn_std: float = np.pi / 2, *, drop_dead: bool = False) -> GM:
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
 
-    ``states (P, 7)``, ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``. The type (``kind``,
+    ``states (P, 7)``, ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``; ``birth_weight``: one weight for
+    every birth, or ``(P, J)`` the weight of the birth of ``z_j`` in particle ``p`` (an adaptive birth). The type (``kind``,
     :class:`~mmslam.slam.models.measurement.LandmarkKind`, e.g. its spec) decides: a range-gated type's births need
     ``p_D > 0`` at their mean (``pd_fn (P, J)``, or an array that broadcasts to it); a 7-D (moving,
     VS) type gets the velocity / turn-rate prior (:func:`~mmslam.slam.models.vs.vs_birth_mean`,
@@ -307,8 +308,12 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     d = VS_DIM if moving else 3
     out = (shape[0], cols.shape[0])
     w, m, P, mask = np.empty(out), np.empty(out + (d,)), np.empty(out + (d, d)), np.empty(out, bool)
+    try:
+        weight = np.ascontiguousarray(np.broadcast_to(np.asarray(birth_weight, dtype=float), shape))
+    except ValueError:
+        raise ValueError(f"birth_weight has shape {np.shape(birth_weight)}; expected one weight or {shape}") from None
     _births(np.ascontiguousarray(mean, dtype=float), np.ascontiguousarray(cov, dtype=float), ok, cols,
-            float(birth_weight), moving, vel_var, float(vs_turn_std), DEFAULT_TURN_MEAN, w, m, P, mask)
+            weight, moving, vel_var, float(vs_turn_std), DEFAULT_TURN_MEAN, w, m, P, mask)
     return GM(w, m, P, mask)
 
 

@@ -49,7 +49,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             tails: Mapping[int, tuple[float, float]] | None = None,
             follows: Mapping[int, float] | None = None,
             weight_offsets: Mapping[int, float] | None = None,
-            weight_shares: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray]:
+            weight_shares: Mapping[int, float] | None = None) -> tuple[dict[int, GM], np.ndarray, np.ndarray]:
     """The PHD correction of every map of every particle with one measurement set.
 
     For each particle ``p`` with vehicle state ``s_p`` and each map type ``t`` (predicted
@@ -115,7 +115,8 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
             offset's terms are not computed).
 
     Returns:
-        The corrected maps (same keys) and ``log psi (P, J)`` of the particle weight (step 6).
+        The corrected maps (same keys), ``log psi (P, J)`` of the particle weight (step 6) and ``log psi (P, J)`` of
+        the maps' own terms (step 3; the same array without a weight offset).
 
     Raises:
         FloatingPointError: a non-finite or non-positive-definite covariance, ``psi(z) = 0``, or a
@@ -164,7 +165,7 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
         check_phd_mass(tc.g, g, J, tc.name, step,
                        masses=None if tc.pred_mass is None else (tc.pred_mass, mass))  # 5.
         out[tc.lm_type] = g
-    return out, lpsi_w
+    return out, lpsi_w, lpsi
 
 
 def _log_others(terms: list[TypeCorrection], tc: TypeCorrection, bs_term: np.ndarray | None, log_clutter: float,

@@ -25,8 +25,7 @@ VS            3      SCATTER     7      fov_range      CT (eq. 2)  ``F_AA`` (cm1
 - **parameters**: its row of the per-type table ``[filter.types.<NAME>]`` (detection probability
   ``p_detect``, estimate threshold ``threshold``, merge gate ``merge``;
   :class:`mmslam.scenes.scenario.TypeParams`), or the row named by ``params``.
-- **evaluation**: ``moving`` types (VS) are scored against the other vehicles' true positions,
-  static ones against the landmarks first seen so far.
+- **evaluation**: ``moving`` types (VS) against the other vehicles' true positions, static ones the landmarks seen.
 
 Adding a type (docs/extending.md): make a :class:`LandmarkSpec` with its functions and
 :func:`register_landmark_type` it; a :class:`~mmslam.slam.specs.variants.VariantSpec` naming it in
@@ -107,8 +106,8 @@ class LandmarkSpec:
             detection probability (:mod:`mmslam.slam.phd.detection`; VA and SP, not the moving VS).
         predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
             (births are added to the predicted map).
-        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn) -> GM`` with ``moments`` =
-            ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
+        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn, unexplained) -> GM`` (:func:`birth_point`), ``moments``
+            = ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
         extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
             landmark state's position (None: a point).
         body: ``body(scn) -> (4,) or None``, the body ``[length, width, height, depth]`` (m) at whose
@@ -228,15 +227,17 @@ def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
 
 
 def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
-                scn: "Scenario", pd_fn: PdFn) -> GM:
+                scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None) -> GM:
     """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
     step's measurements, one slot per measurement with a birth in some particle
     (:func:`mmslam.slam.phd.birth.birth_from_moments`; a 7-D VS birth gets the
     velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``),
-    with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one."""
+    with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one. ``unexplained (P, J)``
+    (``filter.adaptive_birth``): each birth's weight is ``birth_weight x unexplained[p, j]``; None: ``birth_weight``."""
     fp = scn.filter
-    born = birth_from_moments(states, *moments, spec, fp.birth_weight, pd_fn, fp.vs_birth_velocity_var,
-                              fp.vs_birth_turn_std, drop_dead=True)
+    weight = fp.birth_weight * (1.0 if unexplained is None else np.asarray(unexplained, float))
+    born = birth_from_moments(states, *moments, spec, weight, pd_fn, fp.vs_birth_velocity_var, fp.vs_birth_turn_std,
+                              drop_dead=True)
     prior = spec.pd_beta_prior(scn)
     if prior is not None:
         born.pd_beta = np.broadcast_to(np.asarray(prior, float), born.w.shape + (2,)).copy()
@@ -244,10 +245,9 @@ def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.nd
 
 
 def birth_vs(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
-             scn: "Scenario", pd_fn: PdFn) -> GM:
-    """:func:`birth_point` of a VS from :func:`~mmslam.slam.specs.vehicle_body.vs_birth_moments` (births on the
-    road band only, at the antenna behind a bounce on the car body)."""
-    return birth_point(states, vs_birth_moments(states, moments, scn), spec, scn, pd_fn)
+             scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None) -> GM:
+    """:func:`birth_point` of a VS from :func:`~mmslam.slam.specs.vehicle_body.vs_birth_moments` (road band only)."""
+    return birth_point(states, vs_birth_moments(states, moments, scn), spec, scn, pd_fn, unexplained)
 
 
 def vs_extent(scn: "Scenario") -> np.ndarray | None:
