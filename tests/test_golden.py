@@ -54,7 +54,8 @@ def test_run_on_stored_city_trace_reproduces_golden(name):
 
 def test_city_fixture_runs_the_city_defaults():
     """The canyon fixture is a run of what `paper` pins away: the scenario has the VA heavy tail, the exclusive
-    association, the Bernoulli missed-detection rule, the weight offset at a share and merge gate 6; the run kept a
+    association, the Bernoulli missed-detection rule, the weight offset at a share and merge gate 6, the tentative VAs kept through
+    the downlink and the adaptive birth; the run kept a
     Beta p_D and a label per fused Gaussian (learnt p_D, label averaging), mapped VAs and VSs, and the stored trace
     has VA and VS paths."""
     scn = mg.canyon()
@@ -62,6 +63,7 @@ def test_city_fixture_runs_the_city_defaults():
     assert (va.tail_weight, va.association, va.missed, va.merge) == (0.2, "exclusive", "bernoulli", 6.0)
     assert (va.weight_std, va.weight_share) == (0.6, 0.2)  # the weight offset at a share (docs/city-slam.md)
     assert scn.filter.pd_model == "beta" and scn.fusion.average_by_label
+    assert va.keep_tentative and scn.filter.prune == 1e-5 and scn.filter.adaptive_birth  # sessions 28, 29
     f = mg.load(GOLDEN / "city_proposed_p30.npz")
     assert "fused/VA/pd_beta" in f and "fused/VA/label" in f
     assert f["fused/VA/w"].size > 0 and f["fused/VS/w"].size > 0

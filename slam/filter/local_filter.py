@@ -154,7 +154,7 @@ class LocalFilter:
         self._unexplained: np.ndarray | None = None
         """``(P, J)`` ``c(z_j) / psi_p(z_j)`` of the last correction (``filter.adaptive_birth``), else None"""
         if self.fp.adaptive_birth and self.log_clutter == -np.inf:
-            raise MmslamError("filter.adaptive_birth = true needs a clutter intensity > 0 (sensor.clutter_rate); "
+            raise MmslamError("filter.adaptive_birth = true needs a clutter intensity > 0 (sensor.clutter_mean > 0); "
                               "set filter.adaptive_birth = false")
         self._k = -1
         self.vehicle = int(vehicle)
