@@ -324,8 +324,8 @@ class FilterParams:
                                  "that particle's maps nor the BS explained z at the correction that saw it, so a "
                                  "measurement of a mapped landmark births no duplicate; needs a clutter intensity "
                                  "> 0. False: every measurement births at birth_weight (the paper's). The default is "
-                                 "true by a declared run on twenty city scenes: no map or RMSE worse, a city run "
-                                 "about 25% faster (docs/city-slam.md, session 29)")
+                                 "true by a declared run on twenty city scenes: no RMSE worse, no map past its target, a "
+                                 "city run 30-40% faster (docs/city-slam.md, session 29)")
     prune: float = param(1e-5, "prune Gaussians of weight below this (1e-5: a VA birth, weight birth_weight, outlives "
                          "three missed steps, so a wall seen at two steps a few apart can be confirmed; the paper's "
                          "1e-4 prunes a birth at its first miss; docs/city-slam.md, session 28)", "", lo=0.0, hi=1.0)
