@@ -322,8 +322,9 @@ class FilterParams:
     adaptive_birth: bool = param(True, "adaptive birth (Ristic, Clark, Vo & Vo 2012): the birth of a measurement z in "
                                  "a particle has weight birth_weight x c(z) / psi(z), the probability that neither "
                                  "that particle's maps nor the BS explained z at the correction that saw it, so a "
-                                 "measurement of a mapped landmark births no duplicate; needs a clutter intensity "
-                                 "> 0. False: every measurement births at birth_weight (the paper's). The default is "
+                                 "measurement of a mapped landmark births no duplicate (without clutter, sensor.clutter_mean "
+                                 "= 0, c / psi is 0: the plain birth, and mmslam slam says so). False: every "
+                                 "measurement births at birth_weight (the paper's). The default is "
                                  "true by a declared run on twenty city scenes: no RMSE worse, no map past its target, a "
                                  "city run 30-40% faster (docs/city-slam.md, session 29)")
     prune: float = param(1e-5, "prune Gaussians of weight below this (1e-5: a VA birth, weight birth_weight, outlives "

@@ -4,10 +4,8 @@ nor the BS explained at the correction that saw it (``slam/filter/local_filter.p
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 import mmslam.slam.filter.local_filter as lf
-from mmslam.errors import MmslamError
 from mmslam.model import SP, VA, Bounce
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.filter.local_filter import LocalFilter
@@ -75,7 +73,33 @@ def test_resampling_takes_each_particles_share_along():
     np.testing.assert_array_equal(f._unexplained, before[idx])
 
 
-def test_the_adaptive_birth_needs_clutter():
-    with pytest.raises(MmslamError, match="adaptive_birth"):
-        _filter(True, clutter=0.0)
-    _filter(False, clutter=0.0)  # the plain birth needs none
+def test_without_clutter_every_measurement_births_at_the_full_weight():
+    """Without a clutter term ``c / psi`` is 0 for every measurement: the option then leaves the plain birth (the
+    filter says so in ``adaptive_birth``), and the births equal the plain filter's."""
+    plain, adaptive = _filter(False, clutter=0.0), _filter(True, clutter=0.0)
+    assert adaptive.fp.adaptive_birth and not adaptive.adaptive_birth and _filter(True).adaptive_birth
+    Z = _scan(plain.scn)
+    for f in (plain, adaptive):
+        f.step(Z)
+        f.predict(10.0, 0.0)
+    assert adaptive._unexplained is None
+    np.testing.assert_array_equal(adaptive.maps[VA].w, plain.maps[VA].w)
+
+
+def test_mmslam_slam_says_in_one_line_when_no_clutter_leaves_the_plain_birth(tmp_path):
+    """run_slam's notice (what ``mmslam slam`` prints) on a paper cache with the adaptive birth on: with
+    ``sensor.clutter_mean = 0`` one line says every measurement births at the full weight, and the meta records the
+    birth as not adaptive; with clutter, no such line and an adaptive birth."""
+    from mmslam.raytrace.analytic import AnalyticSource
+    from mmslam.raytrace.cache import load_cache
+    from mmslam.raytrace.trace import trace_scenario
+    from mmslam.slam.filter.run import run_slam
+
+    scn = load_preset("paper")
+    path = load_cache(trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=3, progress=False)).path
+    for clutter, lines, adaptive in (("0", 1, False), ("1", 0, True)):
+        said: list[str] = []
+        r = run_slam(path, "proposed", particles=5, seed=0, compile_notice=said.append,
+                     overrides=["filter.adaptive_birth=true", f"sensor.clutter_mean={clutter}"])
+        assert len([s for s in said if s.startswith("filter.adaptive_birth: no clutter")]) == lines
+        assert r.meta["adaptive_birth"] is adaptive

@@ -153,9 +153,9 @@ class LocalFilter:
         self._prev_Z: np.ndarray | None = None
         self._unexplained: np.ndarray | None = None
         """``(P, J)`` ``c(z_j) / psi_p(z_j)`` of the last correction (``filter.adaptive_birth``), else None"""
-        if self.fp.adaptive_birth and self.log_clutter == -np.inf:
-            raise MmslamError("filter.adaptive_birth = true needs a clutter intensity > 0 (sensor.clutter_mean > 0); "
-                              "set filter.adaptive_birth = false")
+        self.adaptive_birth = bool(self.fp.adaptive_birth) and self.log_clutter > -np.inf
+        """``filter.adaptive_birth`` where it is defined: without clutter ``c / psi`` is 0, so every measurement
+        births at ``filter.birth_weight`` (the caller says so, ``meta["adaptive_birth"]``)"""
         self._k = -1
         self.vehicle = int(vehicle)
         if known_map is not None and known_map.type_code not in self.specs:
@@ -220,7 +220,7 @@ class LocalFilter:
                                        self._weight_offset, self._weight_share)
         self.maps.update(corrected)
         self.logw = self.logw + lpsi.sum(axis=1)  # paper eq. (6)
-        if self.fp.adaptive_birth:  # the share of each z_j that no map and not the BS explained: its births' weight
+        if self.adaptive_birth:  # the share of each z_j that no map and not the BS explained: its births' weight
             self._unexplained = np.exp(np.minimum(self.log_clutter - own, 0.0))
 
     def reduce(self) -> None:

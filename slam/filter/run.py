@@ -354,6 +354,7 @@ class CooperativeRun:
                               "fusion_start": int(min(scn.fusion.start)), "vs_body_model": self.vs_body_model,
                               "p_detect_from_link": self.p_detect_from_link,
                               "height_process_std": self.process_std[:, 2].tolist(),
+                              "adaptive_birth": bool(self.filters and self.filters[0].adaptive_birth),
                               "process_std": self.process_std.tolist(),
                               "exact_truth": [not truth_has_process_noise(scn, n) for n in range(len(scn.vehicles))],
                               "wall_time_s": time.perf_counter() - self.t0, "mmslam_version": mm_version,
@@ -475,6 +476,9 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = DEFAULT_VARIANT
                        f"x, y {ps[:, 0].max():.3g} m, heading {ps[:, 3].max():.3g} rad per step (filter.motion_jitter_std "
                        "with the odometry's error; sensor.vehicle_noise_std only where sensor.true_process_noise "
                        "gives a ct car's truth that noise)")
+    if compile_notice is not None and scn.filter.adaptive_birth and not res.meta.get("adaptive_birth"):
+        compile_notice("filter.adaptive_birth: no clutter (sensor.clutter_mean = 0), so no share of a measurement is "
+                       "unexplained; every measurement births at filter.birth_weight")
     hz = res.meta.get("height_process_std") or []
     if compile_notice is not None and any(h > scn.sensor.vehicle_noise_std[2] for h in hz):
         compile_notice("height process noise from the routes' slope (filter.height_process = route): " + ", ".join(
