@@ -54,10 +54,9 @@ def test_run_on_stored_city_trace_reproduces_golden(name):
 
 def test_city_fixture_runs_the_city_defaults():
     """The canyon fixture is a run of what `paper` pins away: the scenario has the VA heavy tail, the exclusive
-    association, the Bernoulli missed-detection rule, the weight offset at a share and merge gate 6, the tentative VAs kept through
-    the downlink and the adaptive birth; the run kept a
-    Beta p_D and a label per fused Gaussian (learnt p_D, label averaging), mapped VAs and VSs, and the stored trace
-    has VA and VS paths."""
+    association, the Bernoulli missed-detection rule, the weight offset at a share and merge gate 6, the tentative VAs
+    kept through the downlink and the adaptive birth; the run kept a Beta p_D and a label per fused Gaussian (learnt
+    p_D, label averaging), mapped VAs and VSs, and the stored trace has VA and VS paths."""
     scn = mg.canyon()
     va = scn.filter.type_params("VA")
     assert (va.tail_weight, va.association, va.missed, va.merge) == (0.2, "exclusive", "bernoulli", 6.0)

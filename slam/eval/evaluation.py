@@ -6,9 +6,10 @@ Truth of a map of type ``t`` at step ``k`` (:class:`MapScorer`):
   its paths *and* inside its FOV at some step ``<= k`` (:func:`first_seen`); the fused map's truth
   is the union over vehicles; a vehicle's map after a downlink holds the fused map, so its truth also
   holds every landmark some vehicle could have detected by the step of its last downlink
-  (:meth:`MapScorer.record_downlink`, :func:`truth_union`); a VA of order 2 (a double specular bounce, ``bounces = 2``, landmark the
-  image of an image: docs/estimator.md) is a VA like one of order 1 (a fixed point the filter can map),
-  keyed by its image position like every VA (:func:`truth_keys`), in the truth and the visible counts alike;
+  (:meth:`MapScorer.record_downlink`, :func:`truth_union`); a VA of order 2 (a double specular bounce,
+  ``bounces = 2``, landmark the image of an image: docs/estimator.md) is a VA like one of order 1 (a fixed point
+  the filter can map), keyed by its image position like every VA (:func:`truth_keys`), in the truth and the
+  visible counts alike;
 - moving types (VS): the other vehicles within the FOV radius of the vehicle at step ``k``;
   for the fused map, every vehicle.
 

@@ -274,13 +274,13 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     """Birth GM of one type from :func:`birth_moments` output (see :func:`birth_gm`).
 
     ``states (P, 7)``, ``mean (P, J, 3)``, ``cov (P, J, 3, 3)``, ``ok (P, J)``; ``birth_weight``: one weight for
-    every birth, or ``(P, J)`` the weight of the birth of ``z_j`` in particle ``p`` (an adaptive birth). The type (``kind``,
-    :class:`~mmslam.slam.models.measurement.LandmarkKind`, e.g. its spec) decides: a range-gated type's births need
-    ``p_D > 0`` at their mean (``pd_fn (P, J)``, or an array that broadcasts to it); a 7-D (moving,
-    VS) type gets the velocity / turn-rate prior (:func:`~mmslam.slam.models.vs.vs_birth_mean`,
-    :func:`~mmslam.slam.models.vs.vs_birth_covariance`). Slot ``j`` holds the births of ``z_j``; with
-    ``drop_dead`` the measurements without a birth in any particle have no slot (the others keep
-    their order). Raises ValueError if the shapes do not fit (the compiled loop reads them unchecked).
+    every birth, or ``(P, J)`` the weight of the birth of ``z_j`` in particle ``p`` (an adaptive birth). The type
+    (``kind``, :class:`~mmslam.slam.models.measurement.LandmarkKind`, e.g. its spec) decides: a range-gated type's
+    births need ``p_D > 0`` at their mean (``pd_fn (P, J)``, or an array that broadcasts to it); a 7-D (moving, VS)
+    type gets the velocity / turn-rate prior (:func:`~mmslam.slam.models.vs.vs_birth_mean`,
+    :func:`~mmslam.slam.models.vs.vs_birth_covariance`). Slot ``j`` holds the births of ``z_j``; with ``drop_dead``
+    the measurements without a birth in any particle have no slot (the others keep their order).
+    Raises ValueError if the shapes do not fit (the compiled loop reads them unchecked).
     """
     spec = kind
     shape = np.shape(ok)
