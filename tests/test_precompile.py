@@ -62,12 +62,14 @@ print(json.dumps(out))
 
 @pytest.mark.parametrize("sets", ["", "filter.vs_body_model=ellipsoid",
                                   "filter.types.VA.tail_weight=0.2;filter.types.VA.association=\"exclusive\";"
-                                  "filter.types.VA.weight_std=0.6;filter.types.VA.weight_share=0.2"])
+                                  "filter.types.VA.weight_std=0.6;filter.types.VA.weight_share=0.2",
+                                  "filter.adaptive_birth=true"])
 def test_run_slam_neither_compiles_nor_loads_kernels_while_its_clock_runs(cache, sets):
     """``meta['wall_time_s']`` (the per-run time of ``mmslam slam`` and of every ablation job) covers
     the filter only: every kernel a variant calls is compiled / loaded before the run starts, also those of
     the car-body VS model that traced sources use and those of the city VA row (the heavy tail's combination,
-    the exclusive association, the weight offset's likelihoods), which the paper data keep off. Fails when the signature table misses a kernel (re-record it:
+    the exclusive association, the weight offset's likelihoods) and of the adaptive birth (per-birth weights), which
+    the paper data keep off. Fails when the signature table misses a kernel (re-record it:
     ``python -m mmslam.slam.filter.record_kernels ANALYTIC_CACHE TRACED_CACHE``)."""
     variants = [v for v in variant_names()]
     res = subprocess.run([sys.executable, "-c", _PROBE, cache, sets, *variants], capture_output=True, text=True,

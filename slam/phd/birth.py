@@ -309,7 +309,7 @@ def birth_from_moments(states: np.ndarray, mean: np.ndarray, cov: np.ndarray, ok
     out = (shape[0], cols.shape[0])
     w, m, P, mask = np.empty(out), np.empty(out + (d,)), np.empty(out + (d, d)), np.empty(out, bool)
     try:
-        weight = np.ascontiguousarray(np.broadcast_to(np.asarray(birth_weight, dtype=float), shape))
+        weight = np.array(np.broadcast_to(np.asarray(birth_weight, dtype=float), shape), order="C")  # writable
     except ValueError:
         raise ValueError(f"birth_weight has shape {np.shape(birth_weight)}; expected one weight or {shape}") from None
     _births(np.ascontiguousarray(mean, dtype=float), np.ascontiguousarray(cov, dtype=float), ok, cols,
