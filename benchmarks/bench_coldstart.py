@@ -67,7 +67,8 @@ def install_compile(numba_dir: str) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--variant", default="proposed", help="the variant run (default: mmslam slam's own, proposed; baseline until session 28)")
+    ap.add_argument("--variant", default="proposed",
+                    help="the variant run (default: mmslam slam's own, proposed; baseline until session 28)")
     ap.add_argument("--repeat", type=int, default=2, help="cold runs (each on a new NUMBA_CACHE_DIR)")
     ap.add_argument("--serial", action="store_true", help="compile in the run's own process only")
     a = ap.parse_args()

@@ -89,7 +89,8 @@ def test_without_clutter_every_measurement_births_at_the_full_weight():
 def test_mmslam_slam_says_in_one_line_when_no_clutter_leaves_the_plain_birth(tmp_path):
     """run_slam's notice (what ``mmslam slam`` prints) on a paper cache with the adaptive birth on: with
     ``sensor.clutter_mean = 0`` one line says every measurement births at the full weight, and the meta records the
-    birth as not adaptive; with clutter, no such line and an adaptive birth."""
+    birth as not adaptive; with clutter, no such line and an adaptive birth; the odometry reference, which births
+    nothing, no line."""
     from mmslam.raytrace.analytic import AnalyticSource
     from mmslam.raytrace.cache import load_cache
     from mmslam.raytrace.trace import trace_scenario
@@ -97,9 +98,10 @@ def test_mmslam_slam_says_in_one_line_when_no_clutter_leaves_the_plain_birth(tmp
 
     scn = load_preset("paper")
     path = load_cache(trace_scenario(scn, AnalyticSource(scn), tmp_path, steps=3, progress=False)).path
-    for clutter, lines, adaptive in (("0", 1, False), ("1", 0, True)):
+    for variant, clutter, lines, adaptive in (("proposed", "0", 1, False), ("proposed", "1", 0, True),
+                                              ("odometry", "0", 0, False)):  # dead reckoning births nothing
         said: list[str] = []
-        r = run_slam(path, "proposed", particles=5, seed=0, compile_notice=said.append,
+        r = run_slam(path, variant, particles=5, seed=0, compile_notice=said.append,
                      overrides=["filter.adaptive_birth=true", f"sensor.clutter_mean={clutter}"])
         assert len([s for s in said if s.startswith("filter.adaptive_birth: no clutter")]) == lines
         assert r.meta["adaptive_birth"] is adaptive

@@ -171,6 +171,32 @@ def test_birth_kernels_reject_shapes_that_do_not_fit():
         birth_from_moments(s, mean[:, :2], cov, ok, landmark_type(SP), 1e-4, _pd)
     with pytest.raises(ValueError, match="pd_fn"):
         birth_from_moments(s, mean, cov, ok, landmark_type(SP), 1e-4, lambda u, x, t: np.ones((4, 3, 2)))
+    with pytest.raises(ValueError, match="birth_weight has shape"):  # per-birth weights of another shape
+        birth_from_moments(s, mean, cov, ok, landmark_type(SP), np.ones((4, 2)), _pd)
+
+
+@pytest.mark.parametrize("P, J", [(1, 1), (1, 3), (5, 1), (3, 0)])
+def test_per_birth_weights_equal_the_scalar_birth_times_the_weights(P, J):
+    """A ``(P, J)`` weight (the adaptive birth's) gives the scalar kernel's births with each live slot's weight
+    replaced by its own, every other array bit for bit, on degenerate shapes too (one particle, one or no
+    measurement); dead slots keep weight 0; the caller's weight array is not written."""
+    from mmslam.slam.phd.birth import birth_from_moments, birth_moments
+
+    rng = np.random.default_rng(6)
+    s = _random_states(rng, P)
+    Z = np.array([measure(s[0], rng.uniform(-60, 60, 3) + [0, 0, 5], Bounce.MIRROR, BS_POS)
+                  for _ in range(J)], float).reshape(J, 5)
+    mean, cov, ok = birth_moments(s, Z, R, Bounce.MIRROR, BS_POS)
+    if J > 1:
+        ok[0, 1] = False
+    share = rng.uniform(0.0, 1.0, (P, J))
+    keep = share.copy()
+    plain = birth_from_moments(s, mean, cov, ok, landmark_type(VA), 2e-5, _pd)
+    per = birth_from_moments(s, mean, cov, ok, landmark_type(VA), 2e-5 * share, _pd)
+    assert per.w.shape == (P, J) and np.array_equal(share, keep)
+    assert np.array_equal(per.w, np.where(plain.mask, 2e-5 * share, 0.0))
+    for a, b in ((per.m, plain.m), (per.P, plain.P), (per.mask, plain.mask)):
+        assert np.array_equal(a, b)
 
 
 def test_birth_moments_of_one_r_equal_those_of_r_per_measurement():

@@ -476,7 +476,8 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = DEFAULT_VARIANT
                        f"x, y {ps[:, 0].max():.3g} m, heading {ps[:, 3].max():.3g} rad per step (filter.motion_jitter_std "
                        "with the odometry's error; sensor.vehicle_noise_std only where sensor.true_process_noise "
                        "gives a ct car's truth that noise)")
-    if compile_notice is not None and scn.filter.adaptive_birth and not res.meta.get("adaptive_birth"):
+    if (compile_notice is not None and scn.filter.adaptive_birth and res.meta.get("measurement_update")
+            and not res.meta.get("adaptive_birth")):  # odometry births nothing: no notice
         compile_notice("filter.adaptive_birth: no clutter (sensor.clutter_mean = 0), so no share of a measurement is "
                        "unexplained; every measurement births at filter.birth_weight")
     hz = res.meta.get("height_process_std") or []
