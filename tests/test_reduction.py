@@ -262,6 +262,21 @@ def test_compact_equals_stable_argsort_gather(presorted):
         assert np.array_equal(out.P[..., :k, :, :], np.take_along_axis(g.P, order[..., None, None], -3))
 
 
+
+def test_compact_zeroes_the_weights_of_masked_slots_at_every_capacity():
+    # a mixture whose masked slots still hold weights (the keep_tentative downlink builds one: GM(own.w, ..., tentative));
+    # the padding branch (capacity above the slots) used to return them unzeroed
+    from mmslam.slam.core.gm import compact
+
+    w = np.array([[0.2, 0.9, 0.5]])
+    mask = np.array([[True, False, True]])
+    g = GM(w, np.zeros((1, 3, 3)), np.broadcast_to(np.eye(3), (1, 3, 3, 3)).copy(), mask)
+    for cap in (None, 2, 3, 5):
+        out = compact(g, cap)
+        assert (out.w[~out.mask] == 0.0).all(), cap
+        assert np.array_equal(out.w[out.mask], [0.5, 0.2])
+
+
 def test_moment_match_equals_the_textbook_formula():
     from mmslam.slam.phd.reduction import moment_match
 

@@ -187,11 +187,10 @@ def compact(g: GM, capacity: int | None = None) -> GM:
     P = g.P.reshape(n, q, g.dim, g.dim)[rows, o].reshape(B + (k, g.dim, g.dim))
     pd_beta = None if g.pd_beta is None else g.pd_beta.reshape(n, q, 2)[rows, o].reshape(B + (k, 2))
     label = None if g.label is None else g.label.reshape(n, q)[rows, o].reshape(B + (k,))
+    out = GM(np.where(mask, w, 0.0), m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL))
     if k < cap:  # pad when capacity exceeds current slots
-        pad = empty(B, cap - k, g.dim, g.pd_beta is not None, g.label is not None)
-        return concat(GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL)), pad)
-    w = np.where(mask, w, 0.0)
-    return GM(w, m, P, mask, pd_beta, None if label is None else np.where(mask, label, NO_LABEL))
+        return concat(out, empty(B, cap - k, g.dim, g.pd_beta is not None, g.label is not None))
+    return out
 
 
 @nb.njit(cache=True)
