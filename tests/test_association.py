@@ -184,3 +184,46 @@ def test_degenerate_shapes_against_the_closed_form(missed):
                     else w[k, 0] * (1 - p[k, 0]) / (1 - w[k, 0] * p[k, 0]))
         assert miss[k, 0] == pytest.approx(exp_miss, rel=1e-9)
     assert det[2, 0, 0] == 0.0 and miss[2, 0] == 0.0
+
+
+def test_two_exclusive_types_each_see_the_others_own_terms_whatever_their_order():
+    """With VA and SP both exclusive, each type's other explanations (clutter, BS, the other type) are the other
+    type's own detection terms, not its rewritten BP marginals: the correction is the same in either order of the
+    maps, and SP's result does not depend on whether VA is exclusive or not (it used to, in one of the orders)."""
+    from mmslam.model import SP
+    from mmslam.slam.models.measurement import measure
+    from mmslam.slam.phd.gmphd import correct
+    from mmslam.slam.specs.landmarks import SP_SPEC, VA_SPEC
+
+    scn = load_preset("paper")
+    bs = np.asarray(scn.bs, float)
+    s = np.array([[0.0, 0.0, 1.5, 0.0, 10.0, 0.0, 0.0], [0.3, -0.2, 1.5, 0.01, 10.0, 0.0, 0.0]])
+    va, sp = np.array([60.0, 30.0, 10.0]), np.array([40.0, 12.0, 2.0])
+    z_va = measure(s[0], va, int(VA_SPEC.geometry), bs)
+    Z = np.stack([z_va, measure(s[0], sp, int(SP_SPEC.geometry), bs), z_va + 0.02])
+    g_va = GM(np.array([[0.8, 0.3]] * 2), np.stack([va, va + 1.0])[None].repeat(2, 0),
+              np.stack([np.eye(3) * 4.0, np.eye(3)])[None].repeat(2, 0), np.ones((2, 2), bool))
+    # a wide SP Gaussian whose terms reach the VA's measurements too
+    g_sp = GM(np.array([[0.9]] * 2), sp[None, None].repeat(2, 0), (np.eye(3) * 400.0)[None, None].repeat(2, 0),
+              np.ones((2, 1), bool))
+    pd_fn = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.6)  # noqa: E731
+    R = np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2
+    specs = {VA: VA_SPEC, SP: SP_SPEC}
+
+    def run(order, va_assoc):
+        maps = {t: {VA: g_va, SP: g_sp}[t].copy() for t in order}
+        out, lw, _ = correct(maps, s, Z, R, bs, pd_fn, np.zeros(2), np.log(1e-6), None, {VA: None, SP: None}, 0,
+                             {t: specs[t] for t in order}, missed={VA: "bernoulli", SP: "phd"},
+                             association={VA: va_assoc, SP: "exclusive"})
+        return out, lw
+
+    a, la = run((VA, SP), "exclusive")
+    b, lb = run((SP, VA), "exclusive")
+    c, _ = run((VA, SP), "phd")
+    np.testing.assert_allclose(la, lb, rtol=1e-12)
+    for t in (VA, SP):
+        np.testing.assert_allclose(a[t].w, b[t].w, rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(a[SP].w, c[SP].w, rtol=1e-12, atol=1e-300)
+    # the SP Gaussian does compete for the VA's measurements (else the check above tests nothing)
+    # the SP Gaussian does reach the VA's measurements (1e-11 of its mass each), so its other explanations there matter
+    assert (a[SP].w[:, [1, 3]] > 1e-12).all() and (a[SP].w[:, 2] > 0.99).all()

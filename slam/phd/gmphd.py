@@ -149,12 +149,13 @@ def correct(maps: dict[int, GM], states: np.ndarray, Z: np.ndarray, R: np.ndarra
                           replace(off[tc.lm_type], logq=weight_mixture(tc.logq, off[tc.lm_type].logq,
                                                                        shares.get(tc.lm_type, 1.0)))
                           for tc in terms], bs_term, log_clutter, lpsi.shape)
-    out = {}
+    out = {}  # 4. each exclusive type's other explanations from every type's own terms, before any is rewritten
+    others = {tc.lm_type: _log_others(terms, tc, bs_term, log_clutter, lpsi.shape) for tc in terms
+              if tc.lm_type in exclusive and J}
     for tc in terms:
-        if tc.lm_type in exclusive and J:  # 4. one measurement per landmark: BP marginals as detected weights
+        if tc.lm_type in others:  # 4. one measurement per landmark: BP marginals as detected weights
             det, miss = exclusive_terms(np.where(tc.g.mask, tc.g.w, 0.0), np.where(tc.g.mask, tc.pd, 0.0), tc.logq,
-                                        _log_others(terms, tc, bs_term, log_clutter, lpsi.shape), lpsi,
-                                        tc.missed)
+                                        others[tc.lm_type], lpsi, tc.missed)
             with np.errstate(divide="ignore"):
                 tc.logq = np.where(det > 0.0, np.log(np.where(det > 0.0, det, 1.0)), -np.inf) + lpsi[:, None, :]
             tc.missed_w = np.where(tc.g.mask, miss, tc.missed_w)
