@@ -127,7 +127,7 @@ def register(app: typer.Typer) -> None:
         check_overrides(scn, sets_c, arms)  # values too: before the lock, the trace and any write
         particles = particles_for(scn, sets_c, particles)
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
-            precheck_ablation(out, scn.name, source, steps, particles, sets_c)
+            precheck_ablation(out, scn.name, source, steps, particles, sets_c, scn.to_dict())
             start_ablation_dir(out, force)
             cache = prepare_cache(scn, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
                                   samples=samples)

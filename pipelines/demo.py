@@ -61,7 +61,7 @@ def run_demo(source: str = "sionna", mc: int = 10, particles: int | None = None,
 
     out = Path(out)
     with locked(out, "ablation"):
-        precheck_ablation(out, DEMO_SCENARIO, source, None, particles, ())
+        precheck_ablation(out, DEMO_SCENARIO, source, None, particles, (), load_preset(DEMO_SCENARIO).to_dict())
         start_ablation_dir(out, force)  # checked before the trace
         cache = prepare_cache(DEMO_SCENARIO, source, out, progress=progress)
         run = run_ablation(cache, out, VARIANTS, mc=mc, particles=particles, executor=executor, workers=workers,

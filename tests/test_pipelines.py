@@ -332,6 +332,32 @@ def test_resume_rejects_other_particles_and_keeps_jobs(tmp_path: Path, capsys: p
     assert sorted(p.name for p in (out / "jobs").iterdir()) == before
 
 
+
+def test_resume_rejects_a_scenario_file_whose_filter_table_changed(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The same scenario file with another [filter] value (the trace unchanged) used to reuse every stored job,
+    computed with the old value, and label them with the new one; now it is refused in one line before anything runs."""
+    from mmslam.scenes.scenario import preset_path
+
+    toml = preset_path("paper").read_text()
+    assert "merge = 49.0" in toml
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    a.write_text(toml)
+    b.write_text(toml.replace("merge = 49.0", "merge = 4.0", 1))
+    out = tmp_path / "abl"
+    argv = ["ablate", "--variants", "proposed", "--source", "analytic", "--steps", "4", "--mc", "1",
+            "--particles", "5", "--out", str(out), "--quiet"]
+    code, _, err = _run_cli([argv[0], str(a), *argv[1:]], capsys)
+    assert code == 0, err
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "jobs").rglob("*")}
+    spec = (out / "ablation.json").read_text()
+    code, _, err = _run_cli([argv[0], str(b), *argv[1:]], capsys)
+    _assert_one_line_error(code, err, "filter.merge: 49.0 -> 4.0", "another --out")
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "jobs").rglob("*")} == before
+    assert (out / "ablation.json").read_text() == spec
+    code, _, err = _run_cli([argv[0], str(a), *argv[1:]], capsys)  # the same file again resumes (nothing to run)
+    assert code == 0, err
+
 def test_bad_cli_input_gives_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "bad"
     code, _, err = _run_cli(["ablate", "paper", "--variants", "baseline,nope", "--out", str(out)] + SMALL, capsys)

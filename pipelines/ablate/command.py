@@ -49,18 +49,21 @@ def check_overrides(info: dict[str, Any] | Any, sets: Sequence[str], arms: Seque
 
 
 def precheck_ablation(out_dir: str | Path, scenario_name: str, source: str, steps: int | None, particles: int,
-                      sets: Sequence[str]) -> None:
+                      sets: Sequence[str], scenario: dict[str, Any] | None = None) -> None:
     """Refuse, before the trace, a run that :func:`run_ablation` would refuse after it.
 
     An existing ablation in ``out_dir`` asked for other steps, particles (resolved: see
-    :func:`particles_for`), ``--set`` values, scenario or source: nothing is traced (the cache is
-    not extended) and nothing is written.
+    :func:`particles_for`), ``--set`` values, scenario or source, or ran with other scenario settings
+    (``scenario``: the resolved scenario's :meth:`~mmslam.scenes.scenario.Scenario.to_dict`, e.g. a ``[filter]``
+    table edited in its file): nothing is traced (the cache is not extended) and nothing is written.
     """
     out = Path(out_dir)
     if not (out / ABLATION_FILE).is_file():
         return
     new: dict[str, Any] = {"scenario_name": scenario_name, "source": source, "particles": int(particles),
                            "sets": list(parse_sets(sets))}
+    if scenario is not None:
+        new["scenario"] = scenario
     if steps is not None:
         new["steps"] = int(steps)
     _check_compatible(out, read_ablation(out), new)

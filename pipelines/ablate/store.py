@@ -98,7 +98,33 @@ def _jsonable(o: Any) -> Any:
     raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
+SETTING_SECTIONS = ("sensor", "filter", "fusion", "evaluation")
+"""The scenario's run parameters (besides ``seed``) that change a job's result without changing the trace."""
+
+
+def settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """``"section.key: old -> new"`` for each run parameter (``seed`` and :data:`SETTING_SECTIONS`, nested keys
+    dotted) on which two resolved scenarios (:meth:`~mmslam.scenes.scenario.Scenario.to_dict`) differ."""
+    def flat(d: Any, prefix: str) -> dict[str, Any]:
+        if not isinstance(d, dict):
+            return {prefix: d}
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}.{k}"))
+        return out
+
+    a = {**flat(old.get("seed"), "seed"), **{k: v for s in SETTING_SECTIONS for k, v in flat(old.get(s, {}), s).items()}}
+    b = {**flat(new.get("seed"), "seed"), **{k: v for s in SETTING_SECTIONS for k, v in flat(new.get(s, {}), s).items()}}
+    return [f"{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
 def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
+    if isinstance(old.get("scenario"), dict) and isinstance(new.get("scenario"), dict):
+        diff = settings_diff(old["scenario"], new["scenario"])
+        if diff:  # e.g. a [filter] table edited in the scenario file: the stored jobs ran with the old values
+            more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
+            raise ConfigError(f"{out_dir} holds an ablation run with other scenario settings ({'; '.join(diff[:3])}"
+                              f"{more}); use another --out or delete {out_dir / JOBS_DIR}")
     for key, flag in (("config_hash", "the trace (scenario / source)"), ("scenario_name", "the scenario"),
                       ("source", "--source"), ("particles", "--particles"), ("steps", "--steps"),
                       ("sets", "--set"), ("truth", "--truth")):
