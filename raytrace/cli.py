@@ -158,7 +158,7 @@ def register(app: typer.Typer, scene: typer.Typer | None = None) -> None:
             with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
                 src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
             d = trace_scenario(scn, src, out, steps=steps, chunk_steps=chunk_steps, force=force,
-                               progress=not quiet, executor=ex)
+                               progress=not quiet, executor=ex, notice=lambda s: typer.echo(f"note: {s}", err=True))
         from mmslam.raytrace.cache import load_cache
         from mmslam.raytrace.trace import coverage_warnings
 

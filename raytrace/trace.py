@@ -34,7 +34,7 @@ from mmslam.raytrace.cache import (
 )
 from mmslam.raytrace.schema import PATH_COLUMNS, RAY_COLUMNS, SCHEMA_VERSION, PathSource, sort_paths, sort_rays
 from mmslam.scenes.geometry import check_bs_position, check_vehicle_overlaps, check_vehicle_poses
-from mmslam.scenes.scenario import Scenario, default_settings, scenario_settings
+from mmslam.scenes.scenario import Scenario, default_settings, scenario_settings, settings_diff
 from mmslam.scenes.trajectory import true_trajectories
 
 SourceFactory = Callable[..., PathSource]
@@ -272,7 +272,7 @@ def coverage_warnings(paths: dict[str, np.ndarray], steps: int, vehicle_names: l
 
 def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, steps: int | None = None,
                    chunk_steps: int = 5, force: bool = False, progress: bool = True,
-                   executor: "DaskExecutor | None" = None) -> Path:
+                   executor: "DaskExecutor | None" = None, notice: Callable[[str], None] | None = None) -> Path:
     """Trace ``steps`` steps of ``scn`` with ``source`` into a cache under ``out_root``.
 
     Args:
@@ -288,6 +288,9 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         executor: trace the chunks on a Dask cluster (:class:`DaskExecutor`); ``None`` traces them here.
             Either way this process alone writes the cache, chunk by chunk in step order, so the
             tables are the same and an interrupted run resumes after the last written chunk.
+        notice: gets one line when an existing cache of this configuration stored other run parameters (``seed``,
+            ``[sensor]``, ``[filter]``, ``[fusion]``, ``[evaluation]``): they follow this run, the traced paths do not
+            change, and a later ``mmslam slam`` on the cache uses them.
 
     Returns:
         The cache directory.
@@ -316,18 +319,24 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
             shutil.rmtree(cache_dir)
         cache_dir.mkdir(parents=True, exist_ok=True)
         remove_temp_files(cache_dir)
-        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor)
+        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor, notice)
     finally:
         release_lock(lock)
 
 
 def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int, chunk_steps: int,
-                progress: bool, executor: "DaskExecutor | None" = None) -> Path:
+                progress: bool, executor: "DaskExecutor | None" = None,
+                notice: Callable[[str], None] | None = None) -> Path:
     """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
     if (cache_dir / MANIFEST).is_file():
         m = read_manifest(cache_dir)
         _check_existing(cache_dir, m, scn, source)
+        diff = settings_diff(m.get("resolved_scenario") or {}, scn.to_dict())
+        if diff and notice is not None:
+            more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
+            notice(f"{cache_dir}: its stored settings now follow this scenario ({'; '.join(diff[:3])}{more}); the "
+                   "traced paths are unchanged, and mmslam slam on this cache uses the new settings")
         m["resolved_scenario"] = scn.to_dict()  # non-geometry parameters follow the latest run
         m["scenario_settings"], m["settings_defaults"] = scenario_settings(scn), default_settings()
         m["steps_requested"] = max(n_steps, int(m["steps_completed"]))

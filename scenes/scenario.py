@@ -1170,6 +1170,22 @@ def _scenario_file_data(scn: Scenario) -> dict[str, Any] | None:
         return None
 
 
+def settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """``"section.key: old -> new"`` for each run parameter (``seed`` and :data:`PARAM_SECTIONS`, nested keys
+    dotted) on which two resolved scenarios (:meth:`~mmslam.scenes.scenario.Scenario.to_dict`) differ."""
+    def flat(d: Any, prefix: str) -> dict[str, Any]:
+        if not isinstance(d, dict):
+            return {prefix: d}
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}.{k}"))
+        return out
+
+    a = {**flat(old.get("seed"), "seed"), **{k: v for s in PARAM_SECTIONS for k, v in flat(old.get(s, {}), s).items()}}
+    b = {**flat(new.get("seed"), "seed"), **{k: v for s in PARAM_SECTIONS for k, v in flat(new.get(s, {}), s).items()}}
+    return [f"{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
 def scenario_settings(scn: Scenario) -> dict[str, Any] | None:
     """The parameter tables (``[sensor]``, ``[filter]``, ``[fusion]``, ``[evaluation]``) as ``scn``'s own
     file writes them (a preset's or a TOML file's; only the keys it sets), or None when ``scn`` did not

@@ -64,6 +64,28 @@ def test_trace_resume_via_cli_is_idempotent(tmp_path, capsys):
     assert rc == 0 and load_cache(out3[-1]).manifest["chunks"] == before  # deterministic re-trace
 
 
+
+def test_retrace_with_other_filter_settings_says_so_in_one_line(tmp_path, capsys):
+    """The same geometry with another [filter] value re-uses the cache (no path changes) but its stored settings
+    follow the new file, which changes what mmslam slam runs: trace says so (it used to rewrite them silently)."""
+    from mmslam.scenes.scenario import preset_path
+
+    toml = preset_path("paper").read_text()
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    a.write_text(toml)
+    b.write_text(toml.replace("merge = 49.0", "merge = 4.0", 1))
+    root = tmp_path / "c"
+    argv = ["--source", "analytic", "--out", str(root), "--steps", "4", "--quiet"]
+    assert main(["trace", str(a), *argv]) == 0
+    capsys.readouterr()
+    assert main(["trace", str(a), *argv]) == 0  # unchanged: no note
+    assert "note:" not in capsys.readouterr().err
+    assert main(["trace", str(b), *argv]) == 0
+    cap = capsys.readouterr()
+    notes = [ln for ln in cap.err.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 1 and "filter.merge: 49.0 -> 4.0" in notes[0] and "traced paths are unchanged" in notes[0]
+    assert load_cache(cap.out.strip().splitlines()[-1]).scenario.filter.merge == 4.0
+
 @pytest.mark.parametrize("args, needle", [
     (["trace", "nosuchscenario", "--source", "analytic"], "unknown scenario 'nosuchscenario'"),
     (["trace", "paper", "--source", "raytracer"], "--source 'raytracer'"),

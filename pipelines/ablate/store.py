@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from mmslam.errors import CacheError, ConfigError, MmslamError
+from mmslam.scenes.scenario import settings_diff
 from mmslam.pipelines.ablate.executors import _one_line
 from mmslam.pipelines.ablate.options import ABLATION_FILE, JOBS_DIR, SUMMARY_JSON, SUMMARY_PARQUET, Job, job_dir
 
@@ -96,26 +97,6 @@ def _jsonable(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
-
-
-SETTING_SECTIONS = ("sensor", "filter", "fusion", "evaluation")
-"""The scenario's run parameters (besides ``seed``) that change a job's result without changing the trace."""
-
-
-def settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    """``"section.key: old -> new"`` for each run parameter (``seed`` and :data:`SETTING_SECTIONS`, nested keys
-    dotted) on which two resolved scenarios (:meth:`~mmslam.scenes.scenario.Scenario.to_dict`) differ."""
-    def flat(d: Any, prefix: str) -> dict[str, Any]:
-        if not isinstance(d, dict):
-            return {prefix: d}
-        out: dict[str, Any] = {}
-        for k, v in d.items():
-            out.update(flat(v, f"{prefix}.{k}"))
-        return out
-
-    a = {**flat(old.get("seed"), "seed"), **{k: v for s in SETTING_SECTIONS for k, v in flat(old.get(s, {}), s).items()}}
-    b = {**flat(new.get("seed"), "seed"), **{k: v for s in SETTING_SECTIONS for k, v in flat(new.get(s, {}), s).items()}}
-    return [f"{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
 
 
 def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
