@@ -257,6 +257,16 @@ class TypeParams:
                                  "few missed steps, a wall a car sees at two steps apart can then be confirmed. "
                                  "False: the paper's downlink. The VA default is true (with filter.prune 1e-5), by "
                                  "a declared run on twenty city scenes (docs/city-slam.md, session 28)")
+    birth_existence: float = param(0.0, "weight of a birth that is a new landmark by its own measurement, in place of "
+                                   "filter.birth_weight (times c(z) / psi(z) with filter.adaptive_birth): its AOD fits "
+                                   "the AOD the birth predicts (chi-square, 2 degrees of freedom, within its 99.9 % "
+                                   "point), its path bounces more than filter.vs_birth_height above or below the "
+                                   "antenna (within that band it may come off a car body), and no Gaussian of the "
+                                   "particle's map nor another birth of the scan lies within the type's merge gate of "
+                                   "it (mmslam.slam.phd.first_detection). Such a landmark is mapped from its first "
+                                   "detection instead of its second: a wall a car passes once. 0: every birth at "
+                                   "filter.birth_weight (the paper). For a static type (a VS is born in the car band "
+                                   "only, so it never applies there); docs/city-slam.md", "", lo=0.0, hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "

@@ -3,8 +3,9 @@
 One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 
 1. prediction (``k > 0``): birth Gaussians from the previous step's measurements and particle
-   states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``; with
-   ``filter.adaptive_birth`` times ``c(z) / psi(z)`` of the particle's correction of that ``z``, step 2);
+   states (each type's ``birth`` on its geometry's inversion, weight ``filter.birth_weight``, or the type's
+   ``birth_existence`` for a birth that is a new landmark by its own measurement, :mod:`~mmslam.slam.phd.first_detection`;
+   with ``filter.adaptive_birth`` times ``c(z) / psi(z)`` of the particle's correction of that ``z``, step 2);
    particles propagated by the CT model (eq. 1) with the known speed / turn rate of step ``k-1``
    and the vehicle's process noise (:func:`~mmslam.slam.filter.process_noise.vehicle_process_std`); each map through its
    type's ``predict``
@@ -34,6 +35,7 @@ from mmslam.errors import MmslamError
 from mmslam.scenes.scenario import Scenario
 
 from ..phd.birth import birth_moments_by_kind
+from ..phd.first_detection import new_landmark_births
 from ..models.dynamics import wrap_angle
 from ..core.gm import LABEL_BITS, GM, compact, concat, drop_dead_slots, ego_label, empty, random_walk, with_labels
 from ..phd.gmphd import correct
@@ -178,9 +180,14 @@ class LocalFilter:
             kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}))
             moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t, sp in self.specs.items():
+                geo = int(sp.geometry)
+                # the births that are new landmarks by their own measurement (filter.types.<T>.birth_existence)
+                new = (new_landmark_births(self.s, self._prev_Z, self.R, moments[geo], geo, self.bs,
+                                           self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t])
+                       if self.fp.type_params(sp.name).birth_existence > 0 else None)
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
-                births[t] = drop_dead_slots(sp.birth(self.s, moments[int(sp.geometry)], sp, self.scn, self.pd_fn,
-                                                     self._unexplained))
+                births[t] = drop_dead_slots(sp.birth(self.s, moments[geo], sp, self.scn, self.pd_fn,
+                                                     self._unexplained, new))
                 if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
                     births[t], self._next_label = with_labels(births[t], self._next_label)
                     if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice

@@ -106,7 +106,7 @@ class LandmarkSpec:
             detection probability (:mod:`mmslam.slam.phd.detection`; VA and SP, not the moving VS).
         predict: ``predict(map, births or None, scn) -> map``, the local prediction from k-1 to k
             (births are added to the predicted map).
-        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn, unexplained) -> GM`` (:func:`birth_point`), ``moments``
+        birth: ``birth(states (P, 7), moments, spec, scn, pd_fn, unexplained, new) -> GM`` (:func:`birth_point`), ``moments``
             = ``(mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of the geometry's inversion.
         extent: ``extent(scn) -> (3, 3) or None``, covariance of the measured point about the
             landmark state's position (None: a point).
@@ -227,15 +227,15 @@ def predict_vs_map(g: GM, born: GM | None, scn: "Scenario") -> GM:
 
 
 def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
-                scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None) -> GM:
-    """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous
-    step's measurements, one slot per measurement with a birth in some particle
-    (:func:`mmslam.slam.phd.birth.birth_from_moments`; a 7-D VS birth gets the
-    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``filter.vs_birth_turn_std``),
-    with the type's Beta detection prior (:meth:`LandmarkSpec.pd_beta_prior`) where it has one. ``unexplained (P, J)``
-    (``filter.adaptive_birth``): each birth's weight is ``birth_weight x unexplained[p, j]``; None: ``birth_weight``."""
+                scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None, new: np.ndarray | None = None) -> GM:
+    """Birth Gaussians (weight ``filter.birth_weight``) at the inverted points of the previous step's measurements, one
+    slot per measurement with a birth in some particle (:func:`mmslam.slam.phd.birth.birth_from_moments`; a 7-D VS birth:
+    velocity / turn-rate prior ``filter.vs_birth_velocity_var``, ``vs_birth_turn_std``), the type's Beta detection prior
+    where it has one. ``new (P, J)`` bool: the births that are new landmarks by their own measurement (``first_detection``)
+    weigh the type's ``birth_existence`` instead; ``unexplained (P, J)`` (``filter.adaptive_birth``): times it."""
     fp = scn.filter
-    weight = fp.birth_weight * (1.0 if unexplained is None else np.asarray(unexplained, float))
+    weight = (fp.birth_weight if new is None else np.where(new, spec.type_params(scn).birth_existence, fp.birth_weight)
+              ) * (1.0 if unexplained is None else np.asarray(unexplained, float))
     born = birth_from_moments(states, *moments, spec, weight, pd_fn, fp.vs_birth_velocity_var, fp.vs_birth_turn_std,
                               drop_dead=True)
     prior = spec.pd_beta_prior(scn)
@@ -245,9 +245,9 @@ def birth_point(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.nd
 
 
 def birth_vs(states: np.ndarray, moments: tuple[np.ndarray, np.ndarray, np.ndarray], spec: LandmarkSpec,
-             scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None) -> GM:
+             scn: "Scenario", pd_fn: PdFn, unexplained: np.ndarray | None = None, new: np.ndarray | None = None) -> GM:
     """:func:`birth_point` of a VS from :func:`~mmslam.slam.specs.vehicle_body.vs_birth_moments` (road band only)."""
-    return birth_point(states, vs_birth_moments(states, moments, scn), spec, scn, pd_fn, unexplained)
+    return birth_point(states, vs_birth_moments(states, moments, scn), spec, scn, pd_fn, unexplained, new)
 
 
 def vs_extent(scn: "Scenario") -> np.ndarray | None:
