@@ -1,0 +1,102 @@
+"""Births that are new landmarks by their own measurement (``filter.types.<T>.birth_existence``,
+``slam/phd/first_detection.py``): the AOD fit, the bounce height, the merge gate, and the birth weights."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmslam.model import Bounce
+from mmslam.scenes.scenario import load_preset, with_overrides
+from mmslam.slam.core.gm import GM
+from mmslam.slam.models.measurement import measure
+from mmslam.slam.phd.birth import birth_moments_by_kind
+from mmslam.slam.phd.first_detection import (FIT_GATE, aod_fit, bounce_height, new_landmark_births,
+                                             within_merge_gate)
+
+MIR = int(Bounce.MIRROR)
+BS = np.array([0.0, 0.0, 40.0])
+STATE = np.array([[20.0, 10.0, 1.5, 0.2, 8.0, 0.0, 0.0]])
+R = np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2
+VA = np.array([100.0, 0.0, 40.0])  # the BS mirrored in the wall x = 50
+
+
+def _moments(Z: np.ndarray, states: np.ndarray = STATE):
+    return birth_moments_by_kind(states, Z, R, (MIR,), BS)[MIR]
+
+
+def test_the_bounce_height_of_a_wall_path_by_hand():
+    # the path car -> wall x = 50 -> BS: the bounce point is where the segment car -> image source crosses x = 50,
+    # t = 30 / 80 of the way: z = 1.5 + 0.375 (40 - 1.5) = 15.9375, 14.4375 m above the antenna
+    Z = measure(STATE[0], VA, MIR, BS)[None]
+    assert bounce_height(STATE, Z, BS)[0, 0] == pytest.approx(14.4375, abs=1e-9)
+
+
+def test_the_aod_fit_matches_a_linearised_covariance_and_gates_a_wrong_aod():
+    """``q`` against an independent computation: the AOD Jacobian by central differences, ``S = J P J^T + R_aod``
+    (the cubature rule is exact for the linear part); a noise-free path fits (q = 0 up to rounding), the same path
+    with its AOD azimuth moved by 0.1 rad (10 sigma) does not."""
+    z = measure(STATE[0], VA, MIR, BS)
+    Z = np.stack([z, z + [0.0, 0.1, 0.0, 0.0, 0.0]])
+    mean, cov, ok = _moments(Z)
+    assert ok.all()
+    q = aod_fit(STATE, Z, R, mean, cov, MIR, BS)
+    assert q[0, 0] < 1e-3 and q[0, 1] > FIT_GATE  # (the birth's mean is the cubature images' mean: not exact)
+    m, P = mean[0, 1], cov[0, 1]
+    J = np.empty((2, 3))
+    for a in range(3):
+        d = np.zeros(3)
+        d[a] = 1e-4
+        J[:, a] = (measure(STATE[0], m + d, MIR, BS)[1:3] - measure(STATE[0], m - d, MIR, BS)[1:3]) / 2e-4
+    S = J @ P @ J.T + R[1:3, 1:3]
+    e = Z[1, 1:3] - measure(STATE[0], m, MIR, BS)[1:3]
+    assert q[0, 1] == pytest.approx(float(e @ np.linalg.solve(S, e)), rel=2e-2)
+
+
+def test_the_merge_gate_by_hand():
+    mean = np.zeros((1, 1, 3))
+    cov = np.eye(3)[None, None] * 4.0  # std 2 m: a point 2 sqrt(6) m away is at the gate 6
+    r = 2.0 * np.sqrt(6.0)
+    pts = np.array([[[r * 0.999, 0.0, 0.0], [0.0, r * 1.001, 0.0]]])
+    assert within_merge_gate(mean, cov, pts[:, :1], np.ones((1, 1), bool), 6.0)[0, 0]
+    assert not within_merge_gate(mean, cov, pts[:, 1:], np.ones((1, 1), bool), 6.0)[0, 0]
+    assert not within_merge_gate(mean, cov, pts[:, :1], np.zeros((1, 1), bool), 6.0)[0, 0]  # a dead slot
+
+
+def test_which_births_are_new_landmarks():
+    """A wall path far from everything: new. The same with a Gaussian of the particle's map on it, or with a second
+    image source 0.5 m beside it in the scan: not new (the reduction would merge them). A path off a car body (its
+    bounce point at the antenna's height) and one with a wrong AOD: not new."""
+    z = measure(STATE[0], VA, MIR, BS)
+    car_image = np.array([60.0, 30.0, 1.5])  # a vertical car side: the bounce point at the antenna height
+    Z = np.stack([z, measure(STATE[0], car_image, MIR, BS)])
+    assert new_landmark_births(STATE, Z, R, _moments(Z), MIR, BS, 3.0, 6.0, None).tolist() == [[True, False]]
+    bad = (z + [0.0, 0.2, 0.0, 0.0, 0.0])[None]  # the same TOA and AOA (the same birth), a wrong AOD
+    assert not new_landmark_births(STATE, bad, R, _moments(bad), MIR, BS, 3.0, 6.0, None)[0, 0]
+    assert abs(bounce_height(STATE, Z[1:2], BS)[0, 0]) < 3.0
+    on_map = GM(np.array([[1.0]]), VA[None, None], np.eye(3)[None, None] * 0.25, np.ones((1, 1), bool))
+    assert not new_landmark_births(STATE, Z[:1], R, _moments(Z[:1]), MIR, BS, 3.0, 6.0, on_map)[0, 0]
+    far = GM(np.array([[1.0]]), (VA + [0.0, 40.0, 0.0])[None, None], np.eye(3)[None, None] * 0.25,
+             np.ones((1, 1), bool))
+    assert new_landmark_births(STATE, Z[:1], R, _moments(Z[:1]), MIR, BS, 3.0, 6.0, far)[0, 0]
+    pair = np.stack([z, measure(STATE[0], VA + [0.0, 0.5, 0.0], MIR, BS)])
+    assert not new_landmark_births(STATE, pair, R, _moments(pair), MIR, BS, 3.0, 6.0, None).any()
+
+
+def test_the_births_weigh_birth_existence_where_new_and_the_plain_weight_elsewhere():
+    from mmslam.slam.specs.landmarks import VA_SPEC, birth_point
+
+    scn = with_overrides(load_preset("paper"), ["filter.types.VA.birth_existence=0.9"])
+    states = np.repeat(STATE, 2, axis=0)
+    z = measure(STATE[0], VA, MIR, BS)
+    Z = np.stack([z, measure(STATE[0], VA + [0.0, -30.0, 0.0], MIR, BS)])
+    mom = birth_moments_by_kind(states, Z, R, (MIR,), BS)[MIR]
+    new = np.array([[True, False], [False, True]])
+    unexplained = np.array([[1.0, 0.5], [0.25, 1.0]])
+    pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.5)  # noqa: E731
+    g = birth_point(states, mom, VA_SPEC, scn, pd, unexplained, new)
+    bw = scn.filter.birth_weight
+    np.testing.assert_allclose(g.w, [[0.9, bw * 0.5], [bw * 0.25, 0.9]], rtol=1e-15)
+    plain = birth_point(states, mom, VA_SPEC, scn, pd, unexplained)
+    np.testing.assert_allclose(plain.w, bw * unexplained, rtol=1e-15)
+    np.testing.assert_array_equal(plain.m, g.m)
+    assert load_preset("paper").filter.types["VA"].birth_existence == 0.0  # the paper's birth
