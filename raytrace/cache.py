@@ -599,7 +599,7 @@ def load_cache(path: str | Path) -> PathCache:
         path: a cache directory, or a root directory holding exactly one cache.
 
     Raises:
-        CacheError: missing directory / manifest, a schema version other than 2 or 3, missing,
+        CacheError: missing directory / manifest, no traced step, a schema version other than 2 or 3, missing,
             truncated or modified chunk files, columns off-schema, non-contiguous steps, a NaN in a
             path column where none is allowed (``bounce_*`` only for LOS, ``lm_*`` only for OTHER,
             ``power_db`` anywhere), or a transmitter column other than the scenario's BS.
@@ -624,6 +624,9 @@ def load_cache(path: str | Path) -> PathCache:
             settings_known = False
     names = list(m["vehicle_names"])
     n_done = int(m["steps_completed"])
+    if n_done == 0:
+        raise CacheError(f"{d}: holds no traced step (its trace stopped before the first chunk); re-run mmslam trace "
+                         f"on its scenario with the same --out to fill it, or delete {d}")
     how = {"version": int(m["schema_version"]), "bs": scn.bs_array}
     vparts, pparts = [], []
     for c in checked_chunks(m, mp):

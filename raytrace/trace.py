@@ -304,6 +304,8 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
 
     check_scene(scn, n_steps)  # before anything is written
     check_cache_root(out_root, force)
+    states = true_trajectories(scn, n_steps)
+    check_vehicle_poses(scn, states)  # every pose against the scene meshes, before any tracing or write
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)
     if output_kind(cache_dir.parent) != CACHE_ROOT_KIND:
@@ -317,16 +319,30 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
                              "did not write, even with --force)")
         if force and cache_dir.exists():
             shutil.rmtree(cache_dir)
+        created = not cache_dir.exists()
         cache_dir.mkdir(parents=True, exist_ok=True)
         remove_temp_files(cache_dir)
-        return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor, notice)
+        try:
+            return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor, notice, states)
+        except BaseException:
+            if created and _steps_on_disk(cache_dir) == 0:  # nothing traced: leave no empty cache behind
+                shutil.rmtree(cache_dir, ignore_errors=True)
+            raise
     finally:
         release_lock(lock)
 
 
+def _steps_on_disk(cache_dir: Path) -> int:
+    """The completed steps the manifest in ``cache_dir`` records (0 without a readable one)."""
+    try:
+        return int(read_manifest(cache_dir)["steps_completed"])
+    except (CacheError, KeyError, TypeError, ValueError, OSError):
+        return 0
+
+
 def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int, chunk_steps: int,
                 progress: bool, executor: "DaskExecutor | None" = None,
-                notice: Callable[[str], None] | None = None) -> Path:
+                notice: Callable[[str], None] | None = None, states: np.ndarray | None = None) -> Path:
     """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
     if (cache_dir / MANIFEST).is_file():
@@ -352,8 +368,9 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
     if done >= n_steps:
         return cache_dir
 
-    states = true_trajectories(scn, n_steps)
-    check_vehicle_poses(scn, states)  # every pose against the scene meshes, before any tracing
+    if states is None:
+        states = true_trajectories(scn, n_steps)
+        check_vehicle_poses(scn, states)  # every pose against the scene meshes, before any tracing
     bar = None
     if progress:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,

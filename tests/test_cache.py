@@ -108,6 +108,29 @@ def test_resume_after_crash_equals_uninterrupted_run(tmp_path, paper):
     assert [c["sha256"] for c in got.manifest["chunks"]] == [c["sha256"] for c in ref.manifest["chunks"]]
 
 
+
+def test_a_trace_that_stops_before_its_first_chunk_leaves_no_empty_cache(tmp_path, paper):
+    """A failure (or Ctrl-C) before the first chunk used to leave a cache of 0 steps, on which `mmslam paths` crashed
+    with exit 1; now the new, empty cache is removed, and an old one of 0 steps is a one-line CacheError."""
+    bad = FailingSource(paper, fail_at=1)
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, bad, tmp_path / "run", steps=6, chunk_steps=3, progress=False)
+    d = cache_dir_for(tmp_path / "run", paper, bad)
+    assert not d.exists()
+    # a cache of 0 steps an earlier version left behind: refused in one line naming it and the fix
+    d = trace_scenario(paper, AnalyticSource(paper), tmp_path / "old", steps=3, chunk_steps=3, progress=False)
+    m = json.loads((d / MANIFEST).read_text())
+    m.update(steps_completed=0, chunks=[])
+    (d / MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(CacheError, match="holds no traced step") as e:
+        load_cache(d)
+    assert "\n" not in str(e.value) and "mmslam trace" in str(e.value)
+    # a failure after a chunk keeps the chunk (resumable)
+    bad = FailingSource(paper, fail_at=4)
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, bad, tmp_path / "run2", steps=6, chunk_steps=3, progress=False)
+    assert load_cache(cache_dir_for(tmp_path / "run2", paper, bad)).steps == 3
+
 def test_longer_steps_extend_a_shorter_cache(tmp_path, paper):
     ref = load_cache(trace_scenario(paper, AnalyticSource(paper), tmp_path / "ref", steps=12,
                                     chunk_steps=5, progress=False))
