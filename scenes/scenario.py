@@ -939,7 +939,10 @@ def _street_vehicles(src: str, data: dict[str, Any], raw_v: list, bs: tuple[floa
                 raise _err(src, f"{w}route[{j}]", f"[{x:g}, {y:g}] is outside the street map of the xml_scene "
                            f"(x {x0:.0f}..{x1:.0f} m, y {y0:.0f}..{y1:.0f} m); choose a point inside it "
                            "(points inside are snapped to the nearest street)")
-        wp = ctx.route(xy, ah)
+        try:
+            wp = ctx.route(xy, ah)
+        except ConfigError as e:  # no street path between two of its points: name the file and the key
+            raise _err(src, w + "route", str(e)) from None
         if len(wp) < 2:  # every point snapped to one street cell: no route to drive
             raise _err(src, w + "route", "its points all snap to one place on the streets; give points along a "
                        "street, farther apart (mmslam scene streets draws them)")

@@ -113,6 +113,29 @@ route = [[-60.0, -3.0], [{x1 + 500.0}, 0.0]]
     assert "\n" not in str(e.value)
 
 
+
+def test_route_points_on_streets_that_do_not_connect_name_the_file_and_the_key(tmp_path, monkeypatch):
+    """The planner's "no street connects" error used to name only the two points; now the file and the vehicle's key
+    too (the street graph of a shipped scene with a cut street, stood in for by the planner raising it)."""
+    from mmslam.scenes import streets
+
+    def cut(self, xy, antenna_height):
+        raise ConfigError("no street connects ([1.0, 2.0]) and ([3.0, 4.0]); pick points on connected streets")
+
+    monkeypatch.setattr(streets._StreetContext, "route", cut)
+    toml = tmp_path / "r.toml"
+    toml.write_text("""
+name = "routed"
+xml_scene = "sionna:simple_street_canyon"
+bs = [-33.0, -10.0, 25.0]
+[[vehicles]]
+name = "car_r"
+route = [[-60.0, -3.0], [0.0, 0.0]]
+""")
+    with pytest.raises(ConfigError, match=r"r\.toml: key 'vehicles\[0\]\.route': no street connects") as e:
+        load_scenario(toml)
+    assert "\n" not in str(e.value)
+
 def test_every_scenario_file_key_is_in_the_reference():
     """``mmslam scene reference`` (docs/scenario.md) lists each key a scenario file may hold."""
     from mmslam.scenes import scenario as S
