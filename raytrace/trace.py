@@ -304,8 +304,6 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
 
     check_scene(scn, n_steps)  # before anything is written
     check_cache_root(out_root, force)
-    states = true_trajectories(scn, n_steps)
-    check_vehicle_poses(scn, states)  # every pose against the scene meshes, before any tracing or write
     cache_dir = cache_dir_for(out_root, scn, source)
     cache_dir.parent.mkdir(parents=True, exist_ok=True)
     if output_kind(cache_dir.parent) != CACHE_ROOT_KIND:
@@ -323,7 +321,7 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
         cache_dir.mkdir(parents=True, exist_ok=True)
         remove_temp_files(cache_dir)
         try:
-            return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor, notice, states)
+            return _trace_into(scn, source, cache_dir, n_steps, chunk_steps, progress, executor, notice)
         except BaseException:
             if created and _steps_on_disk(cache_dir) == 0:  # nothing traced: leave no empty cache behind
                 shutil.rmtree(cache_dir, ignore_errors=True)
@@ -342,9 +340,10 @@ def _steps_on_disk(cache_dir: Path) -> int:
 
 def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int, chunk_steps: int,
                 progress: bool, executor: "DaskExecutor | None" = None,
-                notice: Callable[[str], None] | None = None, states: np.ndarray | None = None) -> Path:
+                notice: Callable[[str], None] | None = None) -> Path:
     """Resume / extend the cache in ``cache_dir`` (writer lock held) up to ``n_steps`` steps."""
 
+    states = None
     if (cache_dir / MANIFEST).is_file():
         m = read_manifest(cache_dir)
         _check_existing(cache_dir, m, scn, source)
@@ -356,7 +355,9 @@ def _trace_into(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int
         m["resolved_scenario"] = scn.to_dict()  # non-geometry parameters follow the latest run
         m["scenario_settings"], m["settings_defaults"] = scenario_settings(scn), default_settings()
         m["steps_requested"] = max(n_steps, int(m["steps_completed"]))
-    else:
+    else:  # a new cache: every pose against the scene meshes before its manifest is written
+        states = true_trajectories(scn, n_steps)
+        check_vehicle_poses(scn, states)
         m = _new_manifest(scn, source, n_steps)
     done = int(m["steps_completed"])
     # orphaned chunk files past the manifest (killed between chunk write and manifest write)

@@ -261,12 +261,14 @@ class TypeParams:
                                    "filter.birth_weight (times c(z) / psi(z) with filter.adaptive_birth): its AOD fits "
                                    "the AOD the birth predicts (chi-square, 2 degrees of freedom, within its 99.9 % "
                                    "point), its path bounces more than filter.vs_birth_height above or below the "
-                                   "antenna (within that band it may come off a car body), and no Gaussian of the "
+                                   "antenna (within that band it may come off a car body), no Gaussian of the "
                                    "particle's map nor another birth of the scan lies within the type's merge gate of "
-                                   "it (mmslam.slam.phd.first_detection). Such a landmark is mapped from its first "
+                                   "it, and the BS's line of sight does not explain it "
+                                   "(mmslam.slam.phd.first_detection). Such a landmark is mapped from its first "
                                    "detection instead of its second: a wall a car passes once. 0: every birth at "
-                                   "filter.birth_weight (the paper). For a static type (a VS is born in the car band "
-                                   "only, so it never applies there); docs/city-slam.md", "", lo=0.0, hi=1.0)
+                                   "filter.birth_weight (the paper). Meant for a static type (a VS is born in the car "
+                                   "band, which the second condition rules out); docs/city-slam.md", "", lo=0.0,
+                                   hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "
                                 "joins (canyon: two 1.53 m apart) also when the heavy tail (tail_weight) has grown "
@@ -1185,7 +1187,8 @@ def _scenario_file_data(scn: Scenario) -> dict[str, Any] | None:
 
 def settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     """``"section.key: old -> new"`` for each run parameter (``seed`` and :data:`PARAM_SECTIONS`, nested keys
-    dotted) on which two resolved scenarios (:meth:`~mmslam.scenes.scenario.Scenario.to_dict`) differ."""
+    dotted) on which two resolved scenarios (:meth:`~mmslam.scenes.scenario.Scenario.to_dict`) differ; a key only one
+    of them has (a parameter added or removed between the versions that wrote them) is left out."""
     def flat(d: Any, prefix: str) -> dict[str, Any]:
         if not isinstance(d, dict):
             return {prefix: d}
@@ -1196,7 +1199,8 @@ def settings_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
 
     a = {**flat(old.get("seed"), "seed"), **{k: v for s in PARAM_SECTIONS for k, v in flat(old.get(s, {}), s).items()}}
     b = {**flat(new.get("seed"), "seed"), **{k: v for s in PARAM_SECTIONS for k, v in flat(new.get(s, {}), s).items()}}
-    return [f"{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+    # a key on one side only is a parameter one of the two versions does not have: not comparable
+    return [f"{k}: {a[k]} -> {b[k]}" for k in sorted(set(a) & set(b)) if a[k] != b[k]]
 
 
 def scenario_settings(scn: Scenario) -> dict[str, Any] | None:

@@ -100,3 +100,41 @@ def test_the_births_weigh_birth_existence_where_new_and_the_plain_weight_elsewhe
     np.testing.assert_allclose(plain.w, bw * unexplained, rtol=1e-15)
     np.testing.assert_array_equal(plain.m, g.m)
     assert load_preset("paper").filter.types["VA"].birth_existence == 0.0  # the paper's birth
+
+
+def test_a_failed_birth_and_the_line_of_sight_are_never_new_and_nothing_raises():
+    """A SCATTER birth of a measurement whose path length is below the BS distance (clutter, or the line of sight with
+    a low clock bias) has every image at the antenna, a singular spread: it is not new and raises nothing. The line of
+    sight births a VA at the BS, whose AOD fits any: the line of sight explains it, so it is not new either (found by
+    a review: with the adaptive birth off it was born at birth_existence), whatever the particle's clock bias."""
+    sc = int(Bounce.SCATTER)
+    z_sp = measure(STATE[0], np.array([60.0, 20.0, 10.0]), sc, BS)
+    clutter = np.array([5.0, 0.3, -0.1, 0.2, 0.0])
+    Z = np.stack([z_sp, clutter])
+    mom = birth_moments_by_kind(STATE, Z, R, (sc,), BS)[sc]
+    assert mom[2].tolist() == [[True, False]]
+    assert new_landmark_births(STATE, Z, R, mom, sc, BS, 3.0, 6.0, None).tolist() == [[True, False]]
+    los = measure(STATE[0], BS, int(Bounce.DIRECT), BS)[None]
+    lows = np.repeat(STATE, 5, axis=0)
+    lows[:, 6] = np.linspace(-0.3, 0.3, 5)  # particles' clock biases about the true one
+    assert not new_landmark_births(lows, los, R, birth_moments_by_kind(lows, los, R, (MIR,), BS)[MIR], MIR, BS, 3.0,
+                                   6.0, None).any()
+
+
+@pytest.mark.parametrize("row", ["VA", "SP", "VS"])
+def test_a_local_filter_runs_with_birth_existence_on_any_type(row):
+    from mmslam.slam.filter.local_filter import LocalFilter
+
+    scn = with_overrides(load_preset("paper"), [f"filter.types.{row}.birth_existence=0.5", "filter.vs_birth_height=3",
+                                                "filter.adaptive_birth=false"])
+    bs = np.asarray(scn.bs, float)
+    s0 = np.array([20.0, 10.0, 1.5, 0.2, 8.0, 0.0, 0.0])
+    Z = np.stack([measure(s0, bs, int(Bounce.DIRECT), bs), measure(s0, bs + [60.0, -30.0, 0.0], MIR, bs),
+                  measure(s0, np.array([40.0, 20.0, 12.0]), int(Bounce.SCATTER), bs), [5.0, 0.3, -0.1, 0.2, 0.0]])
+    pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.9)  # noqa: E731
+    f = LocalFilter(scn, "proposed", 8, s0, R, 1e-3, pd, np.random.default_rng(3), vehicle=0)
+    f.step(Z)
+    f.step(Z, 8.0, 0.0)
+    va = f.maps[1]
+    near_bs = np.linalg.norm(va.m[..., 0:3] - bs, axis=-1) < 5.0
+    assert not (va.mask & near_bs & (va.w > 1e-3)).any()  # the line of sight births no VA of weight at the BS

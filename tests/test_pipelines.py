@@ -721,3 +721,19 @@ def test_e2e_report_has_a_step_viewer_per_variant(e2e: dict) -> None:
         ex = np.asarray(res.vehicles["x"])[(np.asarray(res.vehicles["step"]) == STEPS - 1)
                                              & (np.asarray(res.vehicles["vehicle"]) == 0)][0]
         assert data["vehicles"][0]["est"][-1][0] == pytest.approx(ex, abs=0.005)
+
+
+def test_settings_diff_lists_changed_run_parameters_and_skips_keys_one_version_lacks() -> None:
+    """A parameter added since an ablation was written (absent from its stored scenario) is not a difference: the
+    folder can still be resumed after an upgrade (found by a review); a changed value is, nested keys dotted."""
+    from mmslam.scenes.scenario import load_preset, settings_diff
+
+    new = load_preset("street").to_dict()
+    old = json.loads(json.dumps(new))
+    del old["filter"]["types"]["VA"]["birth_existence"]
+    assert settings_diff(old, new) == []
+    old["filter"]["types"]["VA"]["merge"] = 4.0
+    old["seed"] = new["seed"] + 1
+    assert settings_diff(old, new) == [f"filter.types.VA.merge: 4.0 -> {new['filter']['types']['VA']['merge']}",
+                                       f"seed: {new['seed'] + 1} -> {new['seed']}"]
+    assert settings_diff(new, json.loads(json.dumps(new))) == []

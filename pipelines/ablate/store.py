@@ -105,7 +105,8 @@ def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -
         if diff:  # e.g. a [filter] table edited in the scenario file: the stored jobs ran with the old values
             more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
             raise ConfigError(f"{out_dir} holds an ablation run with other scenario settings ({'; '.join(diff[:3])}"
-                              f"{more}); use another --out or delete {out_dir / JOBS_DIR}")
+                              f"{more}); use another --out, or delete {out_dir / JOBS_DIR} and {out_dir / ABLATION_FILE} "
+                              "to start it over")
     for key, flag in (("config_hash", "the trace (scenario / source)"), ("scenario_name", "the scenario"),
                       ("source", "--source"), ("particles", "--particles"), ("steps", "--steps"),
                       ("sets", "--set"), ("truth", "--truth")):
@@ -113,8 +114,8 @@ def _check_compatible(out_dir: Path, old: dict[str, Any], new: dict[str, Any]) -
             continue
         if old.get(key, {"sets": [], "truth": "fixed"}.get(key)) != new.get(key):
             raise ConfigError(f"{out_dir} holds an ablation with {key}={old.get(key)} but this run asks "
-                              f"{key}={new.get(key)} ({flag}); use another --out or delete "
-                              f"{out_dir / JOBS_DIR}")
+                              f"{key}={new.get(key)} ({flag}); use another --out, or delete "
+                              f"{out_dir / JOBS_DIR} and {out_dir / ABLATION_FILE} to start it over")
 
 
 def _check_job_meta(out_dir: Path, job: Job, particles: int, steps: int, overrides: Sequence[str]) -> None:

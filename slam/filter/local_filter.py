@@ -184,7 +184,7 @@ class LocalFilter:
                 # the births that are new landmarks by their own measurement (filter.types.<T>.birth_existence)
                 new = (new_landmark_births(self.s, self._prev_Z, self.R, moments[geo], geo, self.bs,
                                            self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t])
-                       if self.fp.type_params(sp.name).birth_existence > 0 else None)
+                       if sp.type_params(self.scn).birth_existence > 0 else None)
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[geo], sp, self.scn, self.pd_fn,
                                                      self._unexplained, new))

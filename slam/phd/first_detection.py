@@ -16,9 +16,11 @@ Three stages, each ``(P, J)`` over particles ``p`` and measurements ``z_j`` (:fu
 2. off the car band (:func:`bounce_height`): the path bounces (the single-scatter point of ``z_j``) more than
    ``band`` (``filter.vs_birth_height``) above or below the antenna; within it the path may come off a car body, a
    VS the filter cannot tell from a wall at its first detection;
-3. resolved (:func:`within_merge_gate`): no Gaussian of the particle's map and no other birth of the scan lies
-   within the type's merge gate of the birth (the squared Mahalanobis distance under the birth's covariance, the
-   candidate's covariance as in the reduction's test): the reduction would merge it into one of them.
+3. resolved (:func:`within_merge_gate`, :func:`los_fit`): no Gaussian of the particle's map and no other birth of the
+   scan lies within the type's merge gate of the birth (the squared Mahalanobis distance under the birth's covariance,
+   the candidate's covariance as in the reduction's test: the reduction would merge it into one of them), and the
+   BS's line of sight, a known landmark, does not explain the measurement within :data:`LOS_GATE` (the line of sight
+   births a VA at the BS, whose AOD fits any; with ``filter.adaptive_birth`` its ``c / psi`` is ~0 anyway).
 """
 from __future__ import annotations
 
@@ -31,6 +33,8 @@ from ..models.measurement import measure, residual
 
 FIT_GATE = 13.8155
 """The 99.9 % point of chi-square with 2 degrees of freedom (``-2 ln 0.001``): the AOD fit's gate."""
+LOS_GATE = 20.515
+"""The 99.9 % point of chi-square with 5 degrees of freedom: a measurement the line of sight explains."""
 
 
 def aod_fit(states: np.ndarray, Z: np.ndarray, R: np.ndarray, mean: np.ndarray, cov: np.ndarray,
@@ -79,6 +83,15 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
     return np.where(valid, x[..., 2] - states[:, None, 2], np.nan)
 
 
+def los_fit(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray) -> np.ndarray:
+    """``(P, J)``: ``r^T R^-1 r`` of each measurement's residual ``r`` against the line of sight ``h(s_p, b)``
+    (:func:`~mmslam.slam.models.measurement.measure`, DIRECT; azimuths wrapped; ``R (5, 5)`` or ``(J, 5, 5)``)."""
+    zhat = measure(states[:, None, :], np.asarray(bs, float), int(Bounce.DIRECT), bs)  # (P, 1, 5)
+    r = residual(Z[None, :, :], zhat)
+    Rinv = np.linalg.inv(np.asarray(R, float))
+    return np.einsum("pja,...jab,pjb->pj", r, Rinv if Rinv.ndim == 3 else Rinv[None], r)
+
+
 def within_merge_gate(mean: np.ndarray, cov: np.ndarray, m: np.ndarray, live: np.ndarray, gate: float) -> np.ndarray:
     """``(P, J)``: whether some point ``m[p, q]`` (``(P, Q, 3)``, ``live (P, Q)``) lies within ``gate`` of birth
     ``N(mean[p, j], cov[p, j])``: ``(m - mean)^T cov^-1 (m - mean) <= gate`` (the reduction's merge test,
@@ -99,12 +112,16 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     :func:`~mmslam.slam.phd.birth.birth_moments_by_kind` for ``geometry``) that are new landmarks by their own
     measurement: the module's three stages (AOD fit within :data:`FIT_GATE`, bounce more than ``band`` m off the
     antenna height, no Gaussian of the particle's map ``g`` (batch ``(P,)``; None: none) nor another birth of the
-    scan within the merge ``gate``)."""
+    scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it)."""
     mean, cov, ok = (np.asarray(a) for a in moments)
     states, Z = np.asarray(states, float), np.asarray(Z, float)
     out = ok.copy()
     if not out.any():
         return out
+    # a failed birth (its path length not above the BS distance: every image at the antenna) may hold a singular or
+    # non-finite spread; it is never new, and never another birth's neighbour (masked below): a unit stand-in
+    mean = np.where(ok[..., None], mean, 0.0)
+    cov = np.where(ok[..., None, None], cov, np.eye(3))
     out &= aod_fit(states, Z, R, mean, cov, geometry, bs) <= FIT_GATE  # 1.
     with np.errstate(invalid="ignore"):
         out &= np.abs(bounce_height(states, Z, bs)) > band  # 2. (NaN: False)
@@ -115,6 +132,7 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     for j in range(J):
         near_births[:, j] = within_merge_gate(mean[:, j:j + 1], cov[:, j:j + 1], mean, others[:, j], gate)[:, 0]
     out &= ~near_births
+    out &= los_fit(states, Z, R, bs) > LOS_GATE
     if g is not None and g.capacity:
         out &= ~within_merge_gate(mean, cov, g.m[..., 0:3], g.mask, gate)
     return out
