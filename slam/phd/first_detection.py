@@ -30,6 +30,7 @@ from mmslam.model import Bounce
 
 from ..core.gm import GM
 from ..models.measurement import measure, residual
+from .birth import invert_sp
 
 FIT_GATE = 13.8155
 """The 99.9 % point of chi-square with 2 degrees of freedom (``-2 ln 0.001``): the AOD fit's gate."""
@@ -77,8 +78,6 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
     meets the ellipsoid of its TOA path length about the BS and the antenna,
     :func:`~mmslam.slam.phd.birth.invert_point` with SCATTER: the bounce point of a single-bounce path, a specular
     one included); NaN where the measurement has none (path length not above the BS distance)."""
-    from .birth import invert_sp
-
     x, valid = invert_sp(states[:, None, :], Z[None, :, :], bs)
     return np.where(valid, x[..., 2] - states[:, None, 2], np.nan)
 
@@ -125,13 +124,12 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     out &= aod_fit(states, Z, R, mean, cov, geometry, bs) <= FIT_GATE  # 1.
     with np.errstate(invalid="ignore"):
         out &= np.abs(bounce_height(states, Z, bs)) > band  # 2. (NaN: False)
-    others = np.broadcast_to(ok[:, None, :] & ~np.eye(Z.shape[0], dtype=bool), ok.shape + (Z.shape[0],))
-    # 3. the other births of the scan, one row per birth j (each sees all but itself), and the particle's map
-    J = Z.shape[0]
-    near_births = np.zeros_like(out)
-    for j in range(J):
-        near_births[:, j] = within_merge_gate(mean[:, j:j + 1], cov[:, j:j + 1], mean, others[:, j], gate)[:, 0]
-    out &= ~near_births
+    # 3. the other births of the scan (birth j against every live j' != j, under j's covariance), the line of sight
+    # and the particle's map
+    others = ok[:, None, :] & ~np.eye(Z.shape[0], dtype=bool)  # (P, J, J')
+    D = mean[:, None, :, :] - mean[:, :, None, :]  # (P, J, J', 3): j' relative to j
+    d2 = np.einsum("pjqa,pjab,pjqb->pjq", D, np.linalg.inv(cov), D)
+    out &= ~(others & (d2 <= gate)).any(-1)
     out &= los_fit(states, Z, R, bs) > LOS_GATE
     if g is not None and g.capacity:
         out &= ~within_merge_gate(mean, cov, g.m[..., 0:3], g.mask, gate)
