@@ -265,9 +265,14 @@ class TypeParams:
                                    "particle's map nor another birth of the scan lies within the type's merge gate of "
                                    "it, and the BS's line of sight does not explain it "
                                    "(mmslam.slam.phd.first_detection). Such a landmark is mapped from its first "
-                                   "detection instead of its second: a wall a car passes once. 0: every birth at "
-                                   "filter.birth_weight (the paper). Meant for a static type (a VS is born in the car "
-                                   "band, which the second condition rules out); docs/city-slam.md", "", lo=0.0,
+                                   "detection instead of its second: a wall a car passes once. With labels "
+                                   "(fusion.average_by_label) and a Beta p_D (filter.pd_model beta) another car gets "
+                                   "it through the downlink only once it is confirmed, detected at a second step by "
+                                   "the car that bore it or matched at the BS with another car's "
+                                   "(mmslam.slam.filter.confirmation); the BS map holds it from the start. 0: every "
+                                   "birth at filter.birth_weight (the paper). Meant for a static type (a VS is born "
+                                   "in the car band, which the second condition rules out); docs/city-slam.md", "",
+                                   lo=0.0,
                                    hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
                                 "not set: filter.merge. The VA default, 6, keeps apart image sources that U = 49 "

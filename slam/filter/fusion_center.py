@@ -8,7 +8,9 @@ own ``E[p_D]``, reaches ``fusion.gamma_detect``; with ``pd_beta_downlink = "prio
 the uploader's ``p_D`` of a landmark it does not hold) take part in the type's fusion operator
 (AA fusion, eq. 8; VS: ego averaging, eq. 11, and VS fusion, eqs. 16-20, when the variant asks);
 then the type's reduction. Between uploads, variants with ``predict_at_bs`` predict the maps of
-types that have a BS predictor (VS, eq. 15, no birth).
+types that have a BS predictor (VS, eq. 15, no birth). The downlink to vehicle ``n`` is the fused maps less the
+first-detection landmarks that another car bore and that are not yet confirmed (:mod:`.confirmation`; the BS map
+keeps them).
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from ..core.gm import GM, empty
 from ..fusion.operators import ego_gaussian  # noqa: F401  (public here too)
 from ..specs.landmarks import FusionInput, LandmarkSpec, landmark_types, vs_extent  # noqa: F401  (vs_extent: public here)
 from ..specs.variants import VariantSpec, get_variant
+from .confirmation import Confirmation, Unconfirmed
 
 
 def filter_detect_probs(scn: Scenario) -> dict[int, float]:
@@ -38,6 +41,8 @@ class FusionCenter:
         # each type's fusion operator, chosen once by the variant (e.g. the proposed VS fusion)
         self.operators = {t: s.fusion_operator(self.variant) for t, s in self.specs.items()}
         self.maps: dict[int, GM] = {t: empty((), 0, s.state_dim) for t, s in self.specs.items()}
+        self.confirmation = Confirmation(self.types)
+        """the first-detection landmarks held back from the cars that did not bear them (:mod:`.confirmation`)"""
 
     def predict(self) -> None:
         """Variants with ``predict_at_bs``: predict every fused map whose type has a BS predictor (VS)."""
@@ -48,8 +53,10 @@ class FusionCenter:
                 self.maps[t] = spec.predict_at_bs(self.maps[t], self.scn)
 
     def fuse(self, avg_maps: dict[int, GM], fov_positions: np.ndarray, ego_mean: np.ndarray,
-             ego_cov: np.ndarray, vehicle: int | None = None) -> dict[int, GM]:
-        """Fuse one vehicle's upload into the BS maps; returns the fused maps (for the downlink).
+             ego_cov: np.ndarray, vehicle: int | None = None,
+             unconfirmed: Unconfirmed | None = None) -> dict[int, GM]:
+        """Fuse one vehicle's upload into the BS maps; returns the maps to downlink to it: the fused maps less the
+        first-detection landmarks another car bore that are not yet confirmed (:mod:`.confirmation`).
 
         Args:
             avg_maps: type code -> the vehicle's averaged map (batch ``()``).
@@ -58,6 +65,8 @@ class FusionCenter:
             ego_mean, ego_cov: the vehicle's state posterior mean ``(7,)`` and covariance ``(7, 7)``.
             vehicle: the vehicle's index: its ego Gaussian's label in the VS map
                 (:func:`mmslam.slam.core.gm.ego_label`, with ``fusion.average_by_label``); None: no label.
+            unconfirmed: the vehicle's first-detection landmarks not yet detected at a second step
+                (:attr:`LocalFilter.unconfirmed`); None: none.
         """
         from ..phd.detection import expected_pd
         from ..fusion.operators import in_accumulated_fov
@@ -76,6 +85,11 @@ class FusionCenter:
                 # the uploading vehicle's p_D of a landmark it does not hold: the type's (with a Beta learnt
                 # per vehicle, pd_beta_downlink = prior, its birth prior's mean; docs/city-slam.md)
                 inside &= spec.p_detect(self.scn) >= gamma
+            if unconfirmed is not None and vehicle is not None:
+                self.confirmation.upload(t, vehicle, unconfirmed.labels.get(t, set()))
             fused, pairs = self.operators[t](bs_map, ue, inside, ctx)
+            self.confirmation.fuse_pairs(t, fused, pairs)
             self.maps[t] = spec.reduce_fused(fused, pairs, self.scn, spec)
-        return dict(self.maps)
+        if vehicle is None:
+            return dict(self.maps)
+        return {t: self.confirmation.for_vehicle(t, g, vehicle) for t, g in self.maps.items()}

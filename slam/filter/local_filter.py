@@ -16,7 +16,8 @@ One local step (:meth:`LocalFilter.step`), for vehicle ``n`` at step ``k``:
 3. reduction per type (``prune_merge``: prune, merge, cap, max_trace);
 4. estimates with the corrected weights: weighted-mean state, averaged maps (eq. 7,
    ``average_map`` with ``fusion.average_prune``; with ``fusion.average_by_label`` the particles'
-   copies of one labelled landmark pooled first);
+   copies of one labelled landmark pooled first); a first-detection landmark whose averaged Beta count rose since its
+   birth is confirmed (:attr:`LocalFilter.unconfirmed`, :mod:`~mmslam.slam.filter.confirmation`);
 5. systematic resampling when ``ESS < resample_ess P`` (no roughening: the process noise added
    at every prediction keeps the particles diverse).
 
@@ -41,6 +42,7 @@ from ..core.gm import LABEL_BITS, GM, compact, concat, drop_dead_slots, ego_labe
 from ..phd.gmphd import correct
 from ..specs.landmarks import LandmarkSpec, check_type_rows, trace_cap
 from ..models.measurement import BS
+from .confirmation import Unconfirmed, detected_since_birth, fresh_labels
 from .known_map import KnownMap
 from .rbpf import (ess, init_particles, normalise_log_weights, propagate, systematic_resample,
                    weighted_state_cov, weighted_state_mean)
@@ -166,6 +168,13 @@ class LocalFilter:
         self.process_std = np.asarray(scn.sensor.vehicle_noise_std if process_std is None else process_std, float)
         if self.process_std.shape != (7,) or not (self.process_std >= 0).all():
             raise MmslamError(f"process_std={self.process_std.tolist()}: expected 7 stds >= 0")
+        self.unconfirmed = Unconfirmed(self.types)
+        """this car's first-detection landmarks not yet detected at a second step (:mod:`.confirmation`)"""
+        self._confirm = {t: sp.pd_beta_prior(scn)[0] for t, sp in self.specs.items()
+                         if self._labels and sp.type_params(scn).birth_existence > 0
+                         and sp.pd_beta_prior(scn) is not None}
+        """type code -> prior Beta ``s0``: the types whose first-detection births are confirmed before other cars
+        get them (labels and a Beta detection model needed)"""
         self._next_label = int(vehicle) << LABEL_BITS
         self._ego_label = ego_label(vehicle)  # the last of the vehicle's range: not a birth's
         """the label of the next birth (``fusion.average_by_label``)"""
@@ -190,6 +199,8 @@ class LocalFilter:
                                                      self._unexplained, new))
                 if self._labels:  # one label per birth column: the same landmark hypothesis in every particle
                     births[t], self._next_label = with_labels(births[t], self._next_label)
+                    if t in self._confirm:
+                        self.unconfirmed.born(t, fresh_labels(births[t], self.fp.birth_weight))
                     if self._next_label > self._ego_label:  # 2^40 - 1 births: never in practice
                         raise MmslamError(f"vehicle {self._ego_label >> LABEL_BITS} ran out of birth labels")
         self.s = propagate(self.s, speed, turn_rate, self.dt, self.process_std, self.rng)
@@ -252,6 +263,8 @@ class LocalFilter:
             avg[t] = (average_map(g, w, fu.average_prune, self.specs[t].merge_gate(self.scn), fp.max_gaussians,
                                   trace_cap(self.specs[t], self.scn), by_label=fu.average_by_label)
                       if g.capacity else empty((), 0, self.specs[t].state_dim, with_label=self._labels))
+            if t in self._confirm:
+                self.unconfirmed.detected(t, detected_since_birth(avg[t], self._confirm[t]))
         return mean, cov, avg
 
     def resample(self, w: np.ndarray) -> tuple[float, bool]:

@@ -309,7 +309,8 @@ class CooperativeRun:
         self._acc_fov[n].append(est.mean[0:3])
         if self.center is None or k not in self.schedule[n]:
             return False
-        fused = self.center.fuse(est.avg_maps, np.array(self._acc_fov[n]), est.mean, est.cov, vehicle=n)
+        fused = self.center.fuse(est.avg_maps, np.array(self._acc_fov[n]), est.mean, est.cov, vehicle=n,
+                                 unconfirmed=self.filters[n].unconfirmed)
         self.filters[n].downlink(fused, ego_gaussian(est.mean, est.cov, self.scn.filter.vs_process_std))
         if self.scorer is not None:  # its maps now hold the fused map: so does their truth
             self.scorer.record_downlink(n, k)
