@@ -142,3 +142,38 @@ def test_scores_rmse_over_the_masked_vehicle_steps_by_hand():
     assert out["va"] == pytest.approx(3.0) and out["sp"] == pytest.approx(4.0) and out["sp_false"] == pytest.approx(4.0)
     assert out["nees"] == 3.0  # the median of 5, 1 and 3 at k >= 1 (a singular covariance's NaN left out)
     assert "rmse_nlos_va" not in b.scores(SimpleNamespace(metrics=metrics, vehicles=vehicles), 1, nlos, ev)
+
+
+def _pool():
+    here = Path(__file__).parents[1] / "benchmarks"
+    import sys
+    sys.path.insert(0, str(here))
+    spec = importlib.util.spec_from_file_location("city_va_pool", here / "city_va_pool.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_pool_resumes_from_its_chunks_and_merges_them_in_seed_order(tmp_path):
+    """Every chunk of a scene already there: nothing runs, and the merged file holds the rows of both chunks in seed
+    order with the seed-independent summary (the paired statistics left to the reader)."""
+    import json
+
+    p = _pool()
+    assert p.scene_of("/x/munich3-sionna-38b59ff16ca9961c") == "munich3" and p.chunks([1, 2, 3], 2) == [[1, 2], [3]]
+    cache = tmp_path / "sf4-sionna-03c7ed2cd4377767"
+    cache.mkdir()
+    out = tmp_path / "run"
+    (out / "chunks").mkdir(parents=True)
+    for ss in ([7, 8], [9]):
+        rows = [{"seed": s, "va": float(s)} for s in reversed(ss)]
+        doc = [{"scene": "sf4", "cache": str(cache), "rows": rows,
+                "summary": {"floor2": [0.5, 0.0], "va": [float(ss[0]), 0.1], "va-cmp_va": [1.0, 2.0]}}]
+        (out / "chunks" / f"sf4.{ss[0]}-{ss[-1]}.json").write_text(json.dumps(doc))
+    assert p.main([str(cache), "--seeds", "7-9", "--chunk", "2", "--out", str(out), "--", "--odometry"]) == 0
+    merged = json.loads((out / "sf4.json").read_text())[0]
+    assert [r["seed"] for r in merged["rows"]] == [7, 8, 9]
+    assert merged["summary"] == {"floor2": [0.5, 0.0]}
+    with pytest.raises(SystemExit) as e:
+        p.main([str(tmp_path / "nowhere"), "--seeds", "1", "--out", str(out)])
+    assert e.value.code == 2
