@@ -5,7 +5,8 @@
 
 Each (scene, chunk of ``--chunk`` consecutive seeds) is one ``city_va.py`` process writing
 ``DIR/chunks/<scene>.<first>-<last>.json``; a chunk whose file exists is not run again (a stopped run resumes). The
-chunks run in the order of the caches given, then of the seeds, ``--jobs`` at a time. Once every chunk of a scene is
+chunks run in the order of the caches given, then of the seeds, ``--jobs`` at a time; a chunk whose file appears
+while the pool runs (copied from another machine running the same seeds) is skipped. Once every chunk of a scene is
 there, ``DIR/<scene>.json`` holds its rows in seed order, in ``city_va.py --save``'s format (the summary: the
 seed-independent entries, ``floor2`` and the path statistics; the paired statistics are for the reader of the rows).
 One run per seed is independent of the others (each seed's draws come from its own generator), so the rows do not
@@ -88,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     def run(job: tuple[str, list[int]]) -> str:
         cache, ss = job
         dest = target(cache, ss)
+        if dest.exists():  # another machine's pool finished it meanwhile (its chunk copied here)
+            return f"{dest.name}: there already"
         seeds = ",".join(str(x) for x in ss)
         log = dest.with_suffix(".log")
         with open(log, "w") as fh:
