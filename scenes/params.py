@@ -126,6 +126,14 @@ def check_value(f: dataclasses.Field, v: Any) -> Any:
     return _check_scalar(f.name, v, spec, kind)
 
 
+def did_you_mean(name: str, known: list[str] | set[str]) -> str | None:
+    """The known name closest to a mistyped ``name`` (``difflib``, similarity at least 0.75), or None."""
+    import difflib
+
+    close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.75)
+    return close[0] if close else None
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """``"section.key=value"`` -> ``("section.key", value)``; the value is read as TOML
     (``4``, ``0.5``, ``true``, ``[1, 2]``, ``"all"``); a bare word is taken as a string."""

@@ -27,7 +27,7 @@ import numpy as np
 from mmslam.errors import ConfigError
 from mmslam.limits import COORD_MAX, MAX_PARTICLES, MAX_SEED, MAX_STEPS
 from mmslam.model import landmark_type_names, unknown_type_row
-from mmslam.scenes.params import ParamSpec, check_value, iter_params, param, param_rows, parse_override
+from mmslam.scenes.params import ParamSpec, check_value, did_you_mean, iter_params, param, param_rows, parse_override
 
 WAYPOINT_MOTION = "pure-pursuit-ct-2"
 """How a ``motion = "waypoints"`` vehicle drives its route (:func:`mmslam.scenes.driving.drive_route`),
@@ -634,7 +634,9 @@ def _err(src: str, key: str, expected: str) -> ConfigError:
 def _check_keys(src: str, where: str, table: dict, allowed: set[str]) -> None:
     for k in table:
         if k not in allowed:
-            raise _err(src, f"{where}{k}", f"unknown key; expected one of {sorted(allowed)}")
+            near = did_you_mean(k, allowed)
+            raise _err(src, f"{where}{k}", f"unknown key; did you mean '{near}'?" if near is not None
+                       else f"unknown key; expected one of {sorted(allowed)}")
 
 
 def _num(src: str, key: str, v: Any, *, lo: float | None = None, hi: float | None = None,
@@ -1023,15 +1025,21 @@ def with_overrides(scn: Scenario, sets: list[str] | tuple[str, ...]) -> Scenario
         if section == "filter" and name.startswith("types."):
             _, t, k = (name.split(".", 2) + ["", ""])[:3]
             if not t or k not in {f.name for f, _ in iter_params(TypeParams)}:
-                keys = ", ".join(f.name for f, _ in iter_params(TypeParams))
-                raise ConfigError(f"--set {key}: expected filter.types.<TYPE>.<key> with key one of {keys} "
-                                  "(see docs/scenario.md)")
+                names = [f.name for f, _ in iter_params(TypeParams)]
+                near = did_you_mean(k, names) if t else None
+                if near is not None:
+                    raise ConfigError(f"--set {key}: unknown parameter; did you mean filter.types.{t}.{near}?")
+                raise ConfigError(f"--set {key}: expected filter.types.<TYPE>.<key> with key one of "
+                                  f"{', '.join(names)} (see docs/scenario.md)")
             d.setdefault("filter", {}).setdefault("types", {}).setdefault(t, {})[k] = value
             continue
         cls = PARAM_SECTIONS.get(section)
         names = [f.name for f, _ in iter_params(cls)] if cls is not None else []
         if name not in names:
             known = [f"{s}.{f.name}" for s, c in PARAM_SECTIONS.items() for f, _ in iter_params(c)]
+            near = did_you_mean(key, known + [f"filter.{a}" for a in TYPE_PARAM_ALIASES])
+            if near is not None:
+                raise ConfigError(f"--set {key}: unknown parameter; did you mean {near}? (all: docs/scenario.md)")
             raise ConfigError(f"--set {key}: unknown parameter; expected section.key with one of "
                               f"{', '.join(known)} (see docs/scenario.md)")
         d.setdefault(section, {})[name] = value

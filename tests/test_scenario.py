@@ -170,6 +170,8 @@ initial_state = [0, 0, 1.6, 0, 5, 0, 0]
      "vehicles[0].initial_state", "starts inside building 'b1'"),
     (lambda t: t + '\n[sensor]\np_detect = 1.5\n', "sensor.p_detect", "probability in [0, 1]"),
     (lambda t: t + '\n[sensor]\nnoise = 1\n', "sensor.noise", "unknown key"),
+    (lambda t: t + '\n[sensor]\ntoa_stdd = 1\n', "sensor.toa_stdd", "did you mean 'toa_std'?"),
+    (lambda t: "stepps = 3\n" + t, "stepps", "did you mean 'steps'?"),
     (lambda t: t.replace('max = [20, 5, 10]', 'max = [20, 5, 10]\nmaterial = "medium_dry_ground"'),
      "buildings[0].material", "expected one of"),
     (lambda t: t.replace('max = [20, 5, 10]', 'max = [5, 5, 10]'), "buildings[0].max", "max > min"),
@@ -252,6 +254,9 @@ def test_every_filter_section_parameter_is_declared_with_doc_and_bounds():
     (["filter.vs_dither=[1, 2]"], "filter.vs_dither"),
     (["filter.nonsense=1"], "unknown parameter"),
     (["filter.merge"], "section.key=value"),
+    (["filter.merg=4"], "did you mean filter.merge?"),
+    (["fusion.gama_detect=0.5"], "did you mean fusion.gamma_detect?"),
+    (["filter.types.VA.birth_existance=0.9"], "did you mean filter.types.VA.birth_existence?"),
 ])
 def test_overrides_are_validated_like_the_file(sets, needle):
     from mmslam.scenes.scenario import load_preset, with_overrides
@@ -346,3 +351,18 @@ def test_the_held_out_scenes_are_all_there():
                                           "munich3", "munich4", "munich5", "munich6", "munich7",
                                           "sanfrancisco", "sf3", "sf4",
                                           "sf5", "sf6", "sfhills", "sfhills2"]
+
+
+def test_a_typo_gets_one_suggestion_not_the_whole_list():
+    """A close key names only itself (the full list, ~80 keys, only when nothing is close); a file's unknown key too."""
+    from mmslam.scenes.params import did_you_mean
+    from mmslam.scenes.scenario import load_preset, with_overrides
+
+    assert did_you_mean("merg", ["merge", "prune"]) == "merge" and did_you_mean("xyz", ["merge", "prune"]) is None
+    with pytest.raises(ConfigError) as e:
+        with_overrides(load_preset("paper"), ["filter.p_detect_vaa=0.2"])
+    assert str(e.value).count(",") == 0 and "filter.p_detect_va?" in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        with_overrides(load_preset("paper"), ["filter.xyz=1"])
+    assert "sensor.toa_std" in str(e.value)  # nothing close: the list
+
