@@ -239,6 +239,16 @@ class PathCache:
     settings_known: bool = True
     settings_changed: tuple[str, ...] = ()
 
+    def partial_notice(self) -> str | None:
+        """One line when the cache holds fewer steps than its trace was asked for (``steps_requested``: a trace that
+        stopped early), else None."""
+        done, want = int(self.states.shape[0]), self.manifest.get("steps_requested")
+        if not isinstance(want, int) or done >= want:
+            return None
+        return (f"note: {self.path.name} holds {done} of the {want} steps its trace was asked for (it stopped "
+                f"early): the run covers those {done}; run mmslam trace on its scenario with the same --out to "
+                "complete it")
+
     def settings_notice(self) -> str | None:
         """One line for the user when the settings differ from those stored at trace time, or when the
         cache cannot tell and its stored settings differ from this mmslam's defaults; else None."""

@@ -99,10 +99,12 @@ def test_resume_after_crash_equals_uninterrupted_run(tmp_path, paper):
     d = cache_dir_for(tmp_path / "run", paper, bad)
     m = json.loads((d / MANIFEST).read_text())
     assert m["steps_completed"] == 6 and len(m["chunks"]) == 2  # chunk [6, 9) was lost
+    assert "holds 6 of the 12 steps its trace was asked for" in load_cache(d).partial_notice()
     again = FailingSource(paper, fail_at=-1)
     trace_scenario(paper, again, tmp_path / "run", steps=12, chunk_steps=3, progress=False)
     assert again.calls == list(range(6, 12))  # only the missing steps are traced
     got = load_cache(d)
+    assert got.partial_notice() is None and ref.partial_notice() is None  # asked for 12 steps of paper's 40: whole
     _assert_same_tables(got, ref)
     # chunk files byte-identical too
     assert [c["sha256"] for c in got.manifest["chunks"]] == [c["sha256"] for c in ref.manifest["chunks"]]

@@ -421,9 +421,9 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = DEFAULT_VARIANT
     The variant's numba kernels are compiled (in parallel processes, if not cached yet: a fresh
     install; ``compile_notice`` gets a one-line message first) and loaded before the run starts, so
     ``meta['wall_time_s']`` never includes compilation (:func:`mmslam.slam.filter.precompile.ensure_compiled`).
-    ``compile_notice`` also gets the cache's one-line settings notice (:meth:`PathCache.settings_notice`:
-    parameters its scenario left open follow this mmslam's defaults; ``meta['settings_from_defaults']``
-    lists them).
+    ``compile_notice`` also gets the cache's one-line notices: a trace that stopped early
+    (:meth:`PathCache.partial_notice`), and its settings (:meth:`PathCache.settings_notice`: parameters its scenario
+    left open follow this mmslam's defaults; ``meta['settings_from_defaults']`` lists them).
 
     ``overrides``: ``section.key=value`` strings (e.g. ``"fusion.vs_reduction=gate"``) applied to
     the cached scenario's [sensor], [filter], [fusion] and [evaluation] parameters
@@ -448,9 +448,9 @@ def run_slam(cache_dir: str | Path, variant: str | VariantSpec = DEFAULT_VARIANT
     meta = {"cache": cache.manifest.get("config_hash"), "source": cache.manifest.get("source"),
             "cache_path": str(cache.path), "overrides": list(overrides),
             "settings_from_defaults": list(cache.settings_changed)}
-    note = cache.settings_notice()
-    if note and compile_notice is not None:
-        compile_notice(note)
+    for note in (cache.partial_notice(), cache.settings_notice()):
+        if note and compile_notice is not None:
+            compile_notice(note)
     from .precompile import ensure_compiled
 
     ensure_compiled([get_variant(variant).name], notice=compile_notice)
