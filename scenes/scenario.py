@@ -271,7 +271,8 @@ class TypeParams:
                                    "the car that bore it or matched at the BS with another car's "
                                    "(mmslam.slam.filter.confirmation); the BS map holds it from the start. 0: every "
                                    "birth at filter.birth_weight (the paper). Meant for a static type (a VS is born "
-                                   "in the car band, which the second condition rules out); docs/city-slam.md", "",
+                                   "in the car band, which the second condition rules out). The VA default is 0.9, "
+                                   "by a declared run on twenty city scenes (docs/city-slam.md, session 32)", "",
                                    lo=0.0,
                                    hi=1.0)
     merge: float | None = param(None, "merge gate U of the type's maps (local reduction, averaged map, fused map); "
@@ -289,7 +290,7 @@ class TypeParams:
 DEFAULT_TYPE_PARAMS: dict[str, TypeParams] = {
     "BS": TypeParams(),
     "VA": TypeParams(p_detect=0.1, threshold=0.5, missed="bernoulli", association="exclusive", tail_weight=0.2,
-                     weight_std=0.6, weight_share=0.2, keep_tentative=True, merge=6.0),
+                     weight_std=0.6, weight_share=0.2, keep_tentative=True, birth_existence=0.9, merge=6.0),
     "SP": TypeParams(), "VS": TypeParams(p_detect_source="link")}
 """The built-in rows of ``[filter.types]`` (TWC2020 values, but VA: p_detect 0.1, the mean of a new VA's Beta
 prior, threshold 0.5, the Bernoulli missed-detection rule, the exclusive association, the heavy tail 0.2, the weight

@@ -63,7 +63,9 @@ print(json.dumps(out))
 @pytest.mark.parametrize("sets", ["", "filter.vs_body_model=ellipsoid",
                                   "filter.types.VA.tail_weight=0.2;filter.types.VA.association=\"exclusive\";"
                                   "filter.types.VA.weight_std=0.6;filter.types.VA.weight_share=0.2",
-                                  "filter.adaptive_birth=true"])
+                                  "filter.adaptive_birth=true",
+                                  "filter.adaptive_birth=true;filter.types.VA.birth_existence=0.9;"
+                                  "fusion.average_by_label=true;filter.pd_model=\"beta\""])
 def test_run_slam_neither_compiles_nor_loads_kernels_while_its_clock_runs(cache, sets):
     """``meta['wall_time_s']`` (the per-run time of ``mmslam slam`` and of every ablation job) covers
     the filter only: every kernel a variant calls is compiled / loaded before the run starts, also those of

@@ -1,5 +1,6 @@
 """Record :mod:`mmslam.slam.filter.kernel_signatures`: which numba kernels each variant calls from Python,
-with which argument types (``python -m mmslam.slam.filter.record_kernels CACHE [CACHE ...] [--steps N]``; run it
+with which argument types (``python -m mmslam.slam.filter.record_kernels CACHE [CACHE ...] [--steps N] [--with
+"KEY=VALUE;..."]``, the last for an option that calls other kernels); run it
 after changing a kernel's arguments, on an analytic and a traced cache (``filter.vs_body_model = "auto"`` calls
 the body kernels only on the latter): ``tests/test_precompile.py`` fails when the table misses one)."""
 from __future__ import annotations
@@ -15,17 +16,19 @@ from typing import Any
 
 
 # ---------------------------------------------------------------------------- recording the table
-def record(caches: Sequence[str], variants: Sequence[str], steps: int, path: str) -> None:
-    """Run each variant on each of ``caches`` in a fresh process with an empty kernel cache, collect each kernel
+def record(caches: Sequence[str], variants: Sequence[str], steps: int, path: str,
+           settings: Sequence[Sequence[str]] = ((),)) -> None:
+    """Run each variant on each of ``caches`` under each group of ``settings`` (``section.key=value`` overrides; the
+    empty group: the cache's own) in a fresh process with an empty kernel cache, collect each kernel
     called from Python (a compile not nested in another) with its argument types and the CPU seconds
     of its compile (callees included), and write the table module ``path``."""
     import tempfile
 
     table: dict[tuple[str, str], list[Any]] = {}
-    for cache, v in ((c, v) for c in caches for v in variants):
+    for cache, v, sets in ((c, v, s) for c in caches for v in variants for s in settings):
         with tempfile.TemporaryDirectory() as tmp:
             code = ("import json; from mmslam.slam.filter.record_kernels import _top_level_compiles;"
-                    f"print(json.dumps(_top_level_compiles({cache!r}, {v!r}, {steps})))")
+                    f"print(json.dumps(_top_level_compiles({cache!r}, {v!r}, {steps}, {list(sets)!r})))")
             env = {**os.environ, "NUMBA_CACHE_DIR": tmp}
             rows = json.loads(subprocess.run([sys.executable, "-c", code], env=env, check=True,
                                              capture_output=True, text=True).stdout.splitlines()[-1])
@@ -46,9 +49,10 @@ def record(caches: Sequence[str], variants: Sequence[str], steps: int, path: str
         f.write("\n".join(lines) + "\n")
 
 
-def _top_level_compiles(cache: str, variant: str, steps: int) -> list[tuple[str, str, float]]:
+def _top_level_compiles(cache: str, variant: str, steps: int, overrides: Sequence[str] = ()
+                        ) -> list[tuple[str, str, float]]:
     """(subprocess of :func:`record`) ``(kernel, repr of its argument types, CPU seconds)`` of each
-    compile started from Python while running ``variant`` on ``cache`` for ``steps`` steps."""
+    compile started from Python while running ``variant`` on ``cache`` for ``steps`` steps (with ``overrides``)."""
     from numba.core import event
 
     from mmslam.raytrace.cache import load_cache
@@ -72,9 +76,11 @@ def _top_level_compiles(cache: str, variant: str, steps: int) -> list[tuple[str,
                 name = f"{d.py_func.__module__.rsplit('.', 1)[-1]}.{d.py_func.__qualname__}"
                 out.append((name, repr(tuple(ev.data["args"])), t))
 
+    from mmslam.scenes.scenario import with_overrides
+
     c = load_cache(cache)
     event.register("numba:compile", _L())
-    run_filter(c.scenario, c.states, c.paths, variant=variant, steps=steps,
+    run_filter(with_overrides(c.scenario, list(overrides)), c.states, c.paths, variant=variant, steps=steps,
                source=c.manifest.get("source"))  # not run_slam: no precompile
     return out
 
@@ -83,10 +89,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mmslam.slam.filter.record_kernels", description=__doc__)
     ap.add_argument("cache", nargs="+", help="path caches to run every variant on (an analytic and a traced one)")
     ap.add_argument("--steps", type=int, default=12)
+    ap.add_argument("--with", dest="groups", action="append", default=[], metavar="KEY=VALUE;KEY=VALUE",
+                    help="also record under these overrides (';'-separated), for an option off by default that calls "
+                         "other kernels (e.g. filter.types.VA.birth_existence=0.9); repeatable")
     a = ap.parse_args(argv)
     from ..specs.variants import variant_names
 
-    record(a.cache, variant_names(), a.steps, os.path.join(os.path.dirname(__file__), "kernel_signatures.py"))
+    groups = [()] + [tuple(x for x in g.split(";") if x) for g in a.groups]
+    record(a.cache, variant_names(), a.steps, os.path.join(os.path.dirname(__file__), "kernel_signatures.py"), groups)
     return 0
 
 
