@@ -11,7 +11,8 @@ there, ``DIR/<scene>.json`` holds its rows in seed order, in ``city_va.py --save
 seed-independent entries, ``floor2`` and the path statistics; the paired statistics are for the reader of the rows).
 One run per seed is independent of the others (each seed's draws come from its own generator), so the rows do not
 depend on the chunking. Before the pool, one short run (one seed, 12 steps) fills numba's cache, so the processes load
-the compiled kernels instead of compiling them each. Prints one line per chunk done.
+the compiled kernels instead of compiling them each. Prints one line per chunk done; exit status 1 if a chunk failed
+(its log says why; the same command retries it). Two caches of one scene (traced and analytic) need two --out folders.
 """
 from __future__ import annotations
 
@@ -70,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     for c in a.cache:
         if not Path(c).is_dir():
             ap.error(f"{c}: no such cache folder (trace it first: mmslam trace SCENARIO --out DIR)")
+    names = [scene_of(c) for c in a.cache]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # their chunk and merged files would share names
+        ap.error(f"two caches of scene {twice[0]!r} (e.g. traced and analytic): run them with separate --out folders")
     out = Path(a.out)
     (out / "chunks").mkdir(parents=True, exist_ok=True)
     py = sys.executable
@@ -98,14 +103,19 @@ def main(argv: list[str] | None = None) -> int:
                                 stdout=fh, stderr=subprocess.STDOUT).returncode
         return f"{dest.name}: rc {rc}, {time.perf_counter() - t0:.0f} s"
 
+    failed = 0
     with ThreadPoolExecutor(a.jobs) as ex:
         for line in ex.map(run, pending):
+            failed += " rc 0," not in line and not line.endswith("there already")
             print(line, flush=True)
     for cache in dict.fromkeys(a.cache):
         files = [target(cache, s) for s in chunks(a.seeds, a.chunk)]
         if all(f.exists() for f in files):
             merge(scene_of(cache), files, out / f"{scene_of(cache)}.json")
-    return 0
+    if failed:
+        print(f"{failed} chunk(s) failed: see their .log files under {out / 'chunks'}; re-run the same command to "
+              "retry them", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -177,3 +177,8 @@ def test_the_pool_resumes_from_its_chunks_and_merges_them_in_seed_order(tmp_path
     with pytest.raises(SystemExit) as e:
         p.main([str(tmp_path / "nowhere"), "--seeds", "1", "--out", str(out)])
     assert e.value.code == 2
+    twin = tmp_path / "sf4-analytic-0123456789abcdef"
+    twin.mkdir()
+    with pytest.raises(SystemExit) as e:  # two caches of one scene would share their chunk files
+        p.main([str(cache), str(twin), "--seeds", "7-9", "--out", str(out)])
+    assert e.value.code == 2
