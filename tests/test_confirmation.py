@@ -116,3 +116,25 @@ def test_a_local_filter_confirms_a_wall_at_its_second_detection(seen_again):
         assert not (born & out[2])  # detected at step 2: confirmed
     else:
         assert born <= out[3]  # never seen again: still unconfirmed
+
+
+def test_a_held_landmark_that_the_fused_reduction_merges_another_into_is_confirmed():
+    """Vehicle 1's landmark M (0.6, x = 10.2) is shared; vehicle 0 uploads its copy of M (x = 10.0) and a new L (0.9,
+    x = 10.55, 0.35 m from M: apart in vehicle 0's own map, whose gate of 6 at 0.04 I m^2 is 0.49 m). At the BS M's pair
+    is merged first (x ~ 10.1), then the gate merges it into the heavier L, whose label the result keeps: L took M in,
+    so L is confirmed and every car still gets the landmark (it used to vanish from vehicles 1's and 2's downlinks)."""
+    scn = load_preset("canyon")
+    fc = FusionCenter(scn, "proposed")
+    far = np.array([[0.0, 0.0, 1.6]])
+    nothing = empty((), 0, 3, with_pd_beta=True, with_label=True)
+    u0, u1, u2 = Unconfirmed(fc.types), Unconfirmed(fc.types), Unconfirmed(fc.types)
+    fc.fuse({VA: _gm([0.6], [[10.2, 40.0, 25.0]], [L1])}, far, np.zeros(7), np.eye(7), vehicle=1, unconfirmed=u1)
+    u0.born(VA, np.array([L0]))
+    fc.fuse({VA: _gm([0.6, 0.9], [[10.0, 40.0, 25.0], [10.55, 40.0, 25.0]], [L1, L0])}, far, np.zeros(7), np.eye(7),
+            vehicle=0, unconfirmed=u0)
+    g = fc.maps[VA]
+    assert g.label[g.mask].tolist() == [L0]  # one landmark, L's label
+    assert not fc.confirmation.held[VA] and L0 in fc.confirmation.confirmed[VA]
+    for v, u in ((1, u1), (2, u2)):
+        down = fc.fuse({VA: nothing}, far, np.zeros(7), np.eye(7), vehicle=v, unconfirmed=u)
+        assert down[VA].mask.sum() == 1

@@ -6,10 +6,14 @@ fused map at the BS holds it too (the map a user reads). Another car gets it thr
 confirmed, that is detected at a second step:
 
 - by the car that bore it: the Beta detection count of its averaged copy (``GM.pd_beta``, ``filter.pd_model =
-  "beta"``) rose by at least a half above the type's prior ``s0`` (:func:`detected_since_birth`; one detection adds
-  1 to ``s``, ``filter.pd_beta_forget`` aside);
+  "beta"``) rose by at least a half above the type's prior ``s0`` (:func:`detected_since_birth`). A detection adds 1
+  to ``s`` of the detection term; the averaged copy pools it with the missed term by weight, so one clean detection
+  adds ``w_d / (w_d + w_m)``: about 0.53 for a landmark of weight 0.9 under the Bernoulli missed rule at ``p_D`` 0.1
+  (missed weight 0.89). A detection that another explanation shares (clutter, another landmark) may add less, and
+  then waits for the next;
 - or by another car (or by the same car under another label): at the BS the fusion matched it with a landmark of
-  another label (:meth:`Confirmation.fuse_pairs`).
+  another label (:meth:`Confirmation.fuse_pairs`), or the fused map's reduction merged one into it
+  (:meth:`Confirmation.reduced`).
 
 Book-keeping by label (``fusion.average_by_label``; a birth's label is the same in every particle and names the car
 that bore it, ``label >> LABEL_BITS``); without labels or without a Beta detection model nothing is withheld.
@@ -88,6 +92,27 @@ class Confirmation:
             both = {int(x) for x in np.concatenate([a[two], b[two]])}
             self.confirmed[t].update(both & self.held[t])
             self.held[t].difference_update(both)
+
+    def reduced(self, t: int, union: GM, out: GM, gate: float) -> None:
+        """After the fused map's reduction ``union -> out`` (batch ``()``, merge gate ``gate``, squared Mahalanobis in
+        position): a held landmark of ``out`` whose gate holds a union component of another label (>= 0) took that
+        landmark in (the merged Gaussian keeps the heavier member's label), so it is confirmed: otherwise a landmark
+        already shared would vanish from the other cars' downlinks inside a held one."""
+        held = self.held[t]
+        if not held or union.label is None or out.label is None or not out.capacity or not union.capacity:
+            return
+        mine = np.flatnonzero(out.mask & np.isin(out.label, np.fromiter(held, np.int64, len(held))))
+        other = union.mask & (union.label >= 0)
+        for i in mine:
+            cand = other & (union.label != out.label[i])
+            if not cand.any():
+                continue
+            d = union.m[cand][:, 0:3] - out.m[i, 0:3]
+            q = np.einsum("ni,ij,nj->n", d, np.linalg.inv(out.P[i, 0:3, 0:3]), d)
+            if (q <= gate).any():
+                lab = int(out.label[i])
+                held.discard(lab)
+                self.confirmed[t].add(lab)
 
     def for_vehicle(self, t: int, g: GM, vehicle: int) -> GM:
         """The fused map ``g`` (batch ``()``) without the held landmarks another car bore: the downlink to ``vehicle``."""

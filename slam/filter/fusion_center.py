@@ -90,6 +90,7 @@ class FusionCenter:
             fused, pairs = self.operators[t](bs_map, ue, inside, ctx)
             self.confirmation.fuse_pairs(t, fused, pairs)
             self.maps[t] = spec.reduce_fused(fused, pairs, self.scn, spec)
+            self.confirmation.reduced(t, fused, self.maps[t], spec.merge_gate(self.scn))
         if vehicle is None:
             return dict(self.maps)
         return {t: self.confirmation.for_vehicle(t, g, vehicle) for t, g in self.maps.items()}

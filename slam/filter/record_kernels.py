@@ -90,8 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("cache", nargs="+", help="path caches to run every variant on (an analytic and a traced one)")
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--with", dest="groups", action="append", default=[], metavar="KEY=VALUE;KEY=VALUE",
-                    help="also record under these overrides (';'-separated), for an option off by default that calls "
-                         "other kernels (e.g. filter.types.VA.birth_existence=0.9); repeatable")
+                    help="also record under these overrides (';'-separated), for a setting the caches do not take that "
+                         "calls other kernels (e.g. the first-detection birth on paper: "
+                         "filter.types.VA.birth_existence=0.9 with labels and a Beta p_D); repeatable")
     a = ap.parse_args(argv)
     from ..specs.variants import variant_names
 
