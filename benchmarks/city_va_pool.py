@@ -27,7 +27,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from city_va import seeds_of  # noqa: E402
+from city_va import is_city_va_save, seeds_of  # noqa: E402
 
 SEED_INDEPENDENT = ("floor2", "va_paths_per_step", "nlos_with_va")
 
@@ -76,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     if twice:  # their chunk and merged files would share names
         ap.error(f"two caches of scene {twice[0]!r} (e.g. traced and analytic): run them with separate --out folders")
     out = Path(a.out)
+    for n in names:  # the merged files replace only what an earlier pool (or city_va --save) wrote
+        f = out / f"{n}.json"
+        if f.exists() and not is_city_va_save(f):
+            ap.error(f"{f} exists and is not a city_va result: choose another --out (nothing was run)")
     (out / "chunks").mkdir(parents=True, exist_ok=True)
     py = sys.executable
     script = str(HERE / "city_va.py")
@@ -87,8 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     pending = [(c, s) for c, s in todo if not target(c, s).exists()]
     print(f"{len(todo)} chunks, {len(todo) - len(pending)} done before, {a.jobs} at a time", flush=True)
     if pending:  # fill numba's cache once
-        subprocess.run([py, script, pending[0][0], "--seeds", str(pending[0][1][0]), "--steps", "12"] + extra,
-                       stdout=subprocess.DEVNULL, check=True)
+        warm = subprocess.run([py, script, pending[0][0], "--seeds", str(pending[0][1][0]), "--steps", "12"] + extra,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if warm.returncode:  # e.g. a city_va option mistyped after --: its own one-line error
+            last = (warm.stderr.strip().splitlines() or ["(no message)"])[-1]
+            print(f"city_va_pool: the first run failed, nothing else was run: {last}", file=sys.stderr)
+            return 2
     t0 = time.perf_counter()
 
     def run(job: tuple[str, list[int]]) -> str:

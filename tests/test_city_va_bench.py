@@ -177,6 +177,13 @@ def test_the_pool_resumes_from_its_chunks_and_merges_them_in_seed_order(tmp_path
     with pytest.raises(SystemExit) as e:
         p.main([str(tmp_path / "nowhere"), "--seeds", "1", "--out", str(out)])
     assert e.value.code == 2
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "sf4.json").write_text("my notes")
+    with pytest.raises(SystemExit) as e:  # a file of the user's where the merged result would go: refused
+        p.main([str(cache), "--seeds", "7-9", "--out", str(mine)])
+    assert e.value.code == 2 and (mine / "sf4.json").read_text() == "my notes"
+    assert p.main([str(cache), "--seeds", "7-9", "--out", str(tmp_path / "fresh"), "--", "--nonsense"]) == 2
     twin = tmp_path / "sf4-analytic-0123456789abcdef"
     twin.mkdir()
     with pytest.raises(SystemExit) as e:  # two caches of one scene would share their chunk files
