@@ -305,9 +305,37 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
     check_scene(scn, n_steps)  # before anything is written
     check_cache_root(out_root, force)
     cache_dir = cache_dir_for(out_root, scn, source)
-    cache_dir.parent.mkdir(parents=True, exist_ok=True)
-    if output_kind(cache_dir.parent) != CACHE_ROOT_KIND:
-        write_marker(cache_dir.parent, CACHE_ROOT_KIND)
+    root = cache_dir.parent
+    root_created = not os.path.lexists(root)
+    root.mkdir(parents=True, exist_ok=True)
+    marked = output_kind(root) != CACHE_ROOT_KIND
+    if marked:
+        write_marker(root, CACHE_ROOT_KIND)
+    try:
+        return _trace_locked(scn, source, cache_dir, n_steps, chunk_steps, force, progress, executor, notice)
+    except BaseException:
+        if marked:  # a first trace that left no cache: its marker goes, and the root too if this trace made it
+            _unmark_if_empty(root, root_created)
+        raise
+
+
+def _unmark_if_empty(root: Path, remove: bool) -> None:
+    """Delete the output marker of ``root`` if it is all the folder holds (a trace marked it and traced nothing), and
+    then the folder itself if ``remove``."""
+    from mmslam.outputs import MARKER
+
+    try:
+        if root.is_dir() and not root.is_symlink() and [p.name for p in root.iterdir()] == [MARKER]:
+            (root / MARKER).unlink()
+            if remove:
+                root.rmdir()
+    except OSError:  # cleaning up after a failure must not hide it
+        pass
+
+
+def _trace_locked(scn: Scenario, source: PathSource, cache_dir: Path, n_steps: int, chunk_steps: int, force: bool,
+                  progress: bool, executor: "DaskExecutor | None", notice: Callable[[str], None] | None) -> Path:
+    """:func:`trace_scenario`'s work under the cache's writer lock (arguments as there)."""
     lock = acquire_lock(cache_dir, "trace", CacheError)
     try:
         if os.path.lexists(cache_dir) and (cache_dir.is_symlink() or not cache_dir.is_dir()

@@ -119,6 +119,21 @@ def test_a_trace_that_stops_before_its_first_chunk_leaves_no_empty_cache(tmp_pat
         trace_scenario(paper, bad, tmp_path / "run", steps=6, chunk_steps=3, progress=False)
     d = cache_dir_for(tmp_path / "run", paper, bad)
     assert not d.exists()
+    assert not (tmp_path / "run").exists()  # nor the cache root it made (it held only its marker)
+    # a folder the user made stays, as empty as it was; a root of caches keeps its marker and its caches
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, FailingSource(paper, fail_at=1), tmp_path / "mine", steps=6, chunk_steps=3,
+                       progress=False)
+    assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())
+    root = tmp_path / "kept"
+    moved = dataclasses.replace(paper, bs=(1.0, 0.0, 40.0))
+    other = trace_scenario(moved, AnalyticSource(moved), root, steps=3,
+                           chunk_steps=3, progress=False)
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, FailingSource(paper, fail_at=1), root, steps=6, chunk_steps=3, progress=False)
+    assert load_cache(other).steps == 3 and (root / ".mmslam-output.json").is_file()
+    assert not cache_dir_for(root, paper, bad).exists()
     # a cache of 0 steps an earlier version left behind: refused in one line naming it and the fix
     d = trace_scenario(paper, AnalyticSource(paper), tmp_path / "old", steps=3, chunk_steps=3, progress=False)
     m = json.loads((d / MANIFEST).read_text())
