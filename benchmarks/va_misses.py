@@ -8,7 +8,8 @@ of the fused map's truth (first seen at or before ``k`` by some vehicle inside i
 :func:`mmslam.slam.eval.evaluation.first_seen`) is put in one class by the live Gaussians of the BS's fused VA map
 (:func:`classify`), and in one of two groups by the number of distinct steps ``<= k`` some vehicle could detect it:
 ``seen1`` (one step: no two-detection filter can have it, docs/city-slam.md "The two-detection floor") or
-``seen2+``. Printed: the mean number of truths per step in each group and class. Positions in the global frame, m.
+``seen2+``. Printed: the mean number of truths per step in each group and class, and of the extracted estimates in each
+class of :data:`EST_CLASSES`. Positions in the global frame, m.
 """
 from __future__ import annotations
 
@@ -52,6 +53,29 @@ def classify(truth: np.ndarray, est_m: np.ndarray, est_w: np.ndarray, threshold:
     neighbour = ~has_close & (d.min(axis=1) < far)
     shared = neighbour & (to_truths.min(axis=1) < near)
     cls = np.select([found, has_close, shared, neighbour], ["found", "low", "shared", "off"], "none")
+    return cls.tolist()
+
+
+EST_CLASSES: tuple[str, ...] = ("true", "near", "later", "far")
+"""An extracted estimate's class: ``true``, within ``near`` of a truth of the step; ``near``, within ``far`` of one;
+``later``, within ``near`` of a VA first seen after the step (not yet in the truth: a false estimate now); ``far``,
+none of these (clutter, or a VA no car could detect)."""
+
+
+def estimate_classes(est: np.ndarray, truth: np.ndarray, later: np.ndarray, near: float = 1.5, far: float = 5.0
+                     ) -> list[str]:
+    """The class (:data:`EST_CLASSES`) of each estimate ``est (q, 3)`` (m) against the step's truths ``(n, 3)`` and
+    the VAs first seen later ``(n', 3)``."""
+    est = np.asarray(est, float).reshape(-1, 3)
+
+    def dmin(pts: np.ndarray) -> np.ndarray:
+        pts = np.asarray(pts, float).reshape(-1, 3)
+        if pts.shape[0] == 0:
+            return np.full(est.shape[0], np.inf)
+        return np.linalg.norm(est[:, None, :] - pts[None, :, :], axis=-1).min(axis=1)
+
+    d_now, d_later = dmin(truth), dmin(later)
+    cls = np.select([d_now < near, d_now < far, d_later < near], ["true", "near", "later"], "far")
     return cls.tolist()
 
 
@@ -101,6 +125,9 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
             for j, cls in zip(now, classify(kpos[now], g.m[live][:, :3], g.w[live], thr)):
                 n = sum(1 for t in seen_at.get(str(keys[j]), ()) if t <= k)
                 tot[("seen1" if n < 2 else "seen2+", cls)] += 1
+            est = g.m[live][g.w[live] >= thr, :3]
+            for cls in estimate_classes(est, kpos[now], kpos[kfirst > k]):
+                tot[("estimates", cls)] += 1
             tot["steps"] += 1
     return tot
 
@@ -123,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"truth VAs per step, fused map, k >= {a.kmin}, {len(a.seeds)} seeds:")
     for grp in ("seen1", "seen2+"):
         print(f"  {grp:7s} " + "  ".join(f"{c} {tot[(grp, c)] / n:.2f}" for c in CLASSES))
+    print("estimates per step (weight >= threshold):")
+    print("          " + "  ".join(f"{c} {tot[('estimates', c)] / n:.2f}" for c in EST_CLASSES))
     return 0
 
 
