@@ -31,6 +31,17 @@ def test_classify_by_hand(vm):
     assert vm.classify(np.zeros((0, 3)), est, w, 0.5) == []
 
 
+def test_estimate_classes_by_hand(vm):
+    """Estimates at 0.5 m (within 1.5 m of the truth at 0), 4 m (1.5-5 m of it), 30.2 m (0.2 m from a VA first seen
+    later) and 60 m (nothing near): true, near, later, far; with no truth of the step, the first two are far."""
+    truth = np.array([[0.0, 0, 0], [10, 0, 0]])
+    later = np.array([[30.0, 0, 0]])
+    est = np.array([[0.5, 0, 0], [4, 0, 0], [30.2, 0, 0], [60, 0, 0]])
+    assert vm.estimate_classes(est, truth, later) == ["true", "near", "later", "far"]
+    assert vm.estimate_classes(est, np.zeros((0, 3)), np.zeros((0, 3))) == ["far"] * 4
+    assert vm.estimate_classes(np.zeros((0, 3)), truth, later) == []
+
+
 def test_seed_ranges_and_bad_input(vm, tmp_path, capsys):
     """Seed ranges parse; a bad --seeds and a missing cache end in one line and exit 2."""
     assert vm.parse_seeds("5000-5002,7") == [5000, 5001, 5002, 7]
