@@ -334,6 +334,10 @@ def check_npz_target(path: str | Path, kind: str, force: bool = False, option: s
     p = Path(path)
     if p.suffix != ".npz":
         raise MmslamError(f"{option} {p}: expected a file name ending in .npz")
+    other = npz_kind(p) if p.is_file() else None
+    if other is not None and other != kind:  # mmslam's, but another command's output: say which
+        raise MmslamError(f"{option} {p}: exists and is an mmslam {other} file, not a {kind} file; choose another "
+                          "path (mmslam replaces a file only with the same kind of output)")
     return check_file_target(p, kind, lambda q: npz_kind(q) == kind, option=option, protect=protect)
 
 

@@ -126,7 +126,7 @@ def test_trace_force_touches_only_its_own_cache(tmp_path, capsys, cache):
 
 
 # ============================================================ 2. scene streets overwrote --out and --data unchecked
-def test_scene_streets_refuses_user_files_and_replaces_its_own(tmp_path, capsys):
+def test_scene_streets_refuses_user_files_and_replaces_its_own(tmp_path, capsys, cache):
     # before: `scene streets ... --out user.png --data user.npz` overwrote both (no check, no --force)
     import numpy as np
 
@@ -146,6 +146,18 @@ def test_scene_streets_refuses_user_files_and_replaces_its_own(tmp_path, capsys)
     assert main(args + ["--out", str(mine_png), "--data", str(mine_npz)]) == 0
     assert main(args + ["--out", str(mine_png), "--data", str(mine_npz), "--res", "4"]) == 0  # its own: replaced
     assert float(np.load(mine_npz)["res"]) == 4.0
+    # an .npz of another mmslam command is refused with the right reason (it used to say "mmslam did not write")
+    from mmslam.outputs import NPZ_TAG, check_npz_target
+
+    before = tree(tmp_path)
+    with pytest.raises(Exception, match="is an mmslam streets file, not a channel file") as e:
+        check_npz_target(mine_npz, "channel")
+    assert "\n" not in str(e.value) and "did not write" not in str(e.value) and tree(tmp_path) == before
+    assert str(np.load(mine_npz)[NPZ_TAG]) == "streets"
+    capsys.readouterr()
+    assert main(["export", str(cache), "--cfr", "--subcarriers", "8", "--out", str(mine_npz)]) == 2
+    one_line(capsys, str(mine_npz), "is an mmslam streets file, not a channel file")
+    assert tree(tmp_path) == before
 
 
 # ============================================================ 3. ablate --force --report replaced a user's summary/report/figure
