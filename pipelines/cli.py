@@ -84,6 +84,8 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", help="Ablation directory (cache, jobs, summary); an existing one "
                                  "must be empty or a previous ablation. One writer at a time (lock file)."),
         steps: Optional[int] = typer.Option(None, "--steps", help="Time steps (default: the scenario's)." + span(1, MAX_STEPS)),
+        cache_root: Optional[Path] = typer.Option(None, "--cache", help="Folder of caches to trace into or reuse "
+                                                  "(e.g. the --out of mmslam trace; default: OUT/cache)."),
         executor: str = typer.Option("local", "--executor", help="local (process pool) or dask."),
         scheduler: Optional[str] = typer.Option(None, "--scheduler",
                                                 help="Dask scheduler address, e.g. tcp://host:8786 "
@@ -126,14 +128,18 @@ def register(app: typer.Typer) -> None:
         scn = resolve_scenario(scenario)
         check_overrides(scn, sets_c, arms)  # values too: before the lock, the trace and any write
         particles = particles_for(scn, sets_c, particles)
+        if cache_root is not None:  # a user's folder as --cache: refused before the ablation folder is made
+            from mmslam.raytrace.trace import check_cache_root
+
+            check_cache_root(cache_root, option="--cache")
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
             precheck_ablation(out, scn.name, source, steps, particles, sets_c, scn.to_dict())
             start_ablation_dir(out, force)
             cache = prepare_cache(scn, source, out, steps=steps, progress=not quiet, max_depth=max_depth,
-                                  samples=samples)
+                                  samples=samples, cache_root=cache_root)
             cmd = default_command(scenario, vs, mc, particles, source, out, steps, executor, seed0=seed0,
                                   sets=sets_c, grid=grid, scheduler=scheduler, max_depth=max_depth, samples=samples,
-                                  truth=truth)
+                                  truth=truth, cache_root=cache_root)
             run = run_ablation(cache, out, vs, mc=mc, particles=particles, steps=steps, executor=executor,
                                scheduler=scheduler, workers=workers, progress=not quiet, command=cmd,
                                seed0=seed0, sets=sets_c, grid=grid, truth=truth,

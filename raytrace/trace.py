@@ -186,8 +186,9 @@ def _holds_only_caches(root: Path) -> bool:
     return all((p / MANIFEST).is_file() or p.name.endswith((".lock", ".tmp")) for p in root.iterdir())
 
 
-def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
-    """Raise a one-line error unless ``out_root`` may hold caches (missing, empty, or a cache root).
+def check_cache_root(out_root: str | Path, force: bool = False, option: str = "--out") -> Path:
+    """Raise a one-line error (naming ``option``) unless ``out_root`` may hold caches (missing, empty, or a cache
+    root).
 
     Any other folder is refused whatever ``force`` (:mod:`mmslam.outputs`: mmslam never writes
     into a folder it did not make).
@@ -196,8 +197,8 @@ def check_cache_root(out_root: str | Path, force: bool = False) -> Path:
 
     p = Path(out_root)
     if p.exists() and not p.is_dir():
-        raise ConfigError(f"--out {p}: is a file, not a folder; choose a writable path for the cache root")
-    return check_target(p, CACHE_ROOT_KIND, force, accept=_holds_only_caches)
+        raise ConfigError(f"{option} {p}: is a file, not a folder; choose a writable path for the cache root")
+    return check_target(p, CACHE_ROOT_KIND, force, option=option, accept=_holds_only_caches)
 
 
 def _is_own_files(d: Path, suffixes: tuple[str, ...]) -> bool:

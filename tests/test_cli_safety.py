@@ -238,6 +238,28 @@ def test_trace_then_longer_cache_does_not_break_resuming_an_ablation(tmp_path, c
     assert json.loads((out / "ablation.json").read_text())["steps"] == 4
 
 
+def test_ablate_runs_on_a_cache_root_of_mmslam_trace(tmp_path, capsys):
+    """--cache: the ablation runs on the cache `mmslam trace` wrote (traces nothing, makes no OUT/cache) and says so in
+    its command; a user's folder as --cache is refused in one line with nothing written."""
+    root, out = tmp_path / "caches", tmp_path / "abl"
+    assert main(["trace", "paper", "--source", "analytic", "--steps", "4", "--quiet", "--out", str(root)]) == 0
+    (cache,) = [p for p in root.iterdir() if p.is_dir()]
+    manifest = (cache / "manifest.json").read_bytes()
+    argv = ["ablate", "paper", "--source", "analytic", "--variants", "baseline", "--particles", "3", "--quiet",
+            "--steps", "4", "--mc", "1", "--cache", str(root), "--out", str(out)]
+    assert main(argv) == 0
+    assert not (out / "cache").exists() and (cache / "manifest.json").read_bytes() == manifest  # reused as it was
+    meta = json.loads((out / "ablation.json").read_text())
+    assert "--cache" in meta["command"] and Path(meta["cache_dir"]) == cache.resolve()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(argv[:-4] + ["--cache", str(mine), "--out", str(tmp_path / "abl2")]) == 2
+    _one_error_line(capsys, "--cache", str(mine))
+    assert not (tmp_path / "abl2").exists() and [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
 # ============================================================ 2. Ctrl-C: exit 130, one line, nothing dropped
 def _wait_for(pred, proc: subprocess.Popen, timeout: float) -> None:
     deadline = time.monotonic() + timeout

@@ -25,8 +25,8 @@ from mmslam.pipelines.ablate.aggregation import Summary, aggregate, check_result
 
 def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | None = None,
                   progress: bool = True, max_depth: int = 1, samples: int = 1_000_000,
-                  seed: int = 0) -> Path:
-    """Trace ``scenario`` with ``source`` into ``out_dir/cache`` (reused / resumed if present).
+                  seed: int = 0, cache_root: str | Path | None = None) -> Path:
+    """Trace ``scenario`` with ``source`` into ``out_dir/cache``, or ``cache_root``, (reused / resumed if present).
 
     ``out_dir`` must be missing, empty or an ablation (:func:`start_ablation_dir`, which marks it).
 
@@ -38,6 +38,9 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
         progress: show the trace progress bar.
         max_depth, samples, seed: Sionna solver settings (ignored by ``analytic``); the defaults
             are those of ``mmslam trace``, so a cache traced by it under ``out_dir/cache`` is reused.
+        cache_root: a folder of caches to trace into or reuse instead of ``out_dir/cache`` (e.g. the ``--out`` of
+            ``mmslam trace``: the ablation then runs on the cache it wrote, and several ablations share one trace);
+            a folder that is not a cache root is refused (:func:`~mmslam.raytrace.trace.check_cache_root`).
 
     Returns:
         The cache directory.
@@ -46,10 +49,15 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
     from mmslam.scenes.scenario import resolve_scenario
 
     scn = resolve_scenario(scenario)
+    root = Path(out_dir) / "cache" if cache_root is None else Path(cache_root)
+    if cache_root is not None:
+        from mmslam.raytrace.trace import check_cache_root
+
+        check_cache_root(root, option="--cache")  # before the ablation folder is made: a user's folder is refused with nothing written
     start_ablation_dir(out_dir)  # out_dir is (or becomes) an ablation: never a user's folder (mmslam.outputs)
     with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
         src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
-    return Path(trace_scenario(scn, src, Path(out_dir) / "cache", steps=steps, progress=progress))
+    return Path(trace_scenario(scn, src, root, steps=steps, progress=progress))
 
 
 def run_job(cache_dir: str, variant: str, seed: int, particles: int, steps: int | None,

@@ -200,9 +200,10 @@ def is_finished(out_dir: str | Path, job: Job) -> bool:
 def default_command(scenario: str, variants: Sequence[str], mc: int, particles: int, source: str | None,
                     out: Path, steps: int | None, executor: str = "local", seed0: int = 0,
                     sets: Sequence[str] = (), grid: Sequence[str] = (), scheduler: str | None = None,
-                    max_depth: int = 1, samples: int = 1_000_000, truth: str = "per-run") -> str:
+                    max_depth: int = 1, samples: int = 1_000_000, truth: str = "per-run",
+                    cache_root: Path | None = None) -> str:
     """The ``mmslam ablate`` command line that reproduces an ablation (with its ``--scheduler``, and the trace's
-    ``--max-depth`` / ``--samples`` and ``--truth`` where they are not the defaults)."""
+    ``--max-depth`` / ``--samples``, ``--truth`` and ``--cache`` where they are not the defaults)."""
     import shlex
 
     argv = ["mmslam", "ablate", scenario, "--variants", ",".join(variants), "--mc", str(mc),
@@ -221,6 +222,8 @@ def default_command(scenario: str, variants: Sequence[str], mc: int, particles: 
         argv += ["--samples", str(int(samples))]
     if truth != "per-run":
         argv += ["--truth", str(truth)]
+    if cache_root is not None:
+        argv += ["--cache", str(cache_root)]
     if executor != "local":
         argv += ["--executor", executor]
     if executor != "local" and scheduler:
