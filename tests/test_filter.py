@@ -430,22 +430,31 @@ def test_unconfirmed_counts_are_the_truths_seen_at_one_step_so_far():
 def test_va_truths_closer_than_the_resolution_are_one():
     """evaluation.va_resolution (1 m): the images of two parallel facades 0.4 m apart (0.8 m apart) are one
     VA for the truth, those of facades 0.765 m apart (canyon's, images 1.53 m apart) stay two; a chain
-    of images each within the resolution of the next is one; the keys of one cluster are the first's."""
+    of images each within the resolution of the next is one only as far as the resolution from its first (40 and
+    40.9 one, 41.8 another: single linkage made facets 3.4 m end to end one truth); the keys of one cluster are the
+    first's."""
     from mmslam.slam.eval.evaluation import first_seen as _first_seen, resolve_points, truth_keys
     from mmslam.slam.models.measurement import VA
 
-    y = [20.0, 20.8, 22.33, 40.0, 40.9, 41.8]  # 20 / 20.8 one; 22.33 apart; 40 - 40.9 - 41.8 a chain
+    y = [20.0, 20.8, 22.33, 40.0, 40.9, 41.8]  # 20 / 20.8 one; 22.33 apart; 40 - 40.9 one, 41.8 1.8 m from 40
     n = len(y)
     paths = {"step": np.arange(n), "rx": np.zeros(n, int), "type": np.full(n, VA),
              "landmark_id": np.array([f"f{i}" for i in range(n)]), "lm_x": np.zeros(n), "lm_y": np.array(y),
              "lm_z": np.full(n, 40.0)}
     k = truth_keys(paths, 1.0)
-    assert k[0] == k[1] != k[2] and k[3] == k[4] == k[5] != k[0]
+    assert k[0] == k[1] != k[2] and k[3] == k[4] != k[5] and len({k[0], k[2], k[3], k[5]}) == 4
     assert len(set(truth_keys(paths))) == n  # the default key resolution (1 mm): all distinct
     seen = _first_seen(paths, 1, n, np.zeros((n, 1, 3)), load_preset("paper").sensor, 1.0)[VA][0]
-    assert len(seen) == 3 and sorted(s for s, _ in seen.values()) == [0, 2, 3]
+    assert len(seen) == 4 and sorted(s for s, _ in seen.values()) == [0, 2, 3, 5]
     np.testing.assert_array_equal(resolve_points(np.array([[0, 0, 0], [0, 0, 0.99], [0, 0, 3.0]]), 1.0),
                                   [0, 0, 2])
+    # a chain of ten facets 0.6 m apart (5.4 m end to end): clusters of two, each member within 1 m of its first
+    chain = np.stack([np.zeros(10), 0.6 * np.arange(10), np.zeros(10)], -1)
+    c = resolve_points(chain, 1.0)
+    np.testing.assert_array_equal(c, [0, 0, 2, 2, 4, 4, 6, 6, 8, 8])
+    assert (np.linalg.norm(chain - chain[c], axis=-1) < 1.0).all()
+    # the first cluster within the resolution wins (0.9 from 0, 0.5 from 1.4's own): order of appearance decides
+    np.testing.assert_array_equal(resolve_points(np.array([[0, 0, 0], [0, 1.4, 0], [0, 0.9, 0]]), 1.0), [0, 1, 0])
 
 
 def test_power_aware_sensor_gives_the_filter_each_measurements_covariance(paper, monkeypatch):

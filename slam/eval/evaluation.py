@@ -70,24 +70,26 @@ def evaluated_types() -> tuple[LandmarkSpec, ...]:
 
 
 def resolve_points(xyz: np.ndarray, resolution: float) -> np.ndarray:
-    """Cluster index of each point ``(n, 3)`` (m): points linked by a chain of distances ``< resolution``
-    share one (single linkage), numbered by their first member; ``(n,)`` int."""
-    n = xyz.shape[0]
-    parent = np.arange(n)
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    if n and resolution > 0:
-        d2 = np.sum((xyz[:, None, :] - xyz[None, :, :]) ** 2, axis=-1)
-        for i, j in zip(*np.nonzero(np.triu(d2 < resolution * resolution, 1))):
-            a, b = root(int(i)), root(int(j))
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    return np.array([root(i) for i in range(n)], int)
+    """Cluster index of each point ``(n, 3)`` (m), in order: a point within ``resolution`` (strictly) of an earlier
+    cluster's first member joins the first such cluster, any other starts one (leader clustering); ``(n,)`` int, a
+    cluster numbered by its first member. Every member lies within ``resolution`` of its cluster's first one, so a
+    chain of points each close to the next (facets of one facade) is not made one beyond the resolution."""
+    pts = np.asarray(xyz, float).reshape(-1, 3)
+    n = pts.shape[0]
+    out = np.arange(n)
+    if n == 0 or resolution <= 0:
+        return out
+    leaders: list[int] = []
+    r2 = resolution * resolution
+    for i in range(n):
+        if leaders:
+            d2 = np.sum((pts[leaders] - pts[i]) ** 2, axis=-1)
+            near = np.nonzero(d2 < r2)[0]
+            if near.size:
+                out[i] = leaders[int(near[0])]
+                continue
+        leaders.append(i)
+    return out
 
 
 def truth_keys(paths: dict[str, np.ndarray], resolution: float = VA_KEY_RESOLUTION) -> np.ndarray:
@@ -96,8 +98,8 @@ def truth_keys(paths: dict[str, np.ndarray], resolution: float = VA_KEY_RESOLUTI
     A VA is its image source (the BS mirrored in a plane), so two facades of different buildings
     on one plane are one VA: rows of MIRROR-geometry types are keyed by the image position rounded
     to :data:`VA_KEY_RESOLUTION`; every other type by its ``landmark_id``. ``resolution`` (m,
-    ``evaluation.va_resolution``): image sources closer than it (chains of them, :func:`resolve_points`)
-    are one VA, keyed by the first one's position: the sensor cannot tell them apart.
+    ``evaluation.va_resolution``): image sources within it of an earlier one are one VA with it, keyed by the first
+    one's position (:func:`resolve_points`): the sensor cannot tell them apart.
     """
     ids = np.asarray(paths["landmark_id"]).astype(str)
     typ = np.asarray(paths["type"])
