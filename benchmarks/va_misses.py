@@ -57,9 +57,9 @@ def classify(truth: np.ndarray, est_m: np.ndarray, est_w: np.ndarray, threshold:
 
 
 EST_CLASSES: tuple[str, ...] = ("true", "near", "later", "far")
-"""An extracted estimate's class: ``true``, within ``near`` of a truth of the step; ``near``, within ``far`` of one;
-``later``, within ``near`` of a VA first seen after the step (not yet in the truth: a false estimate now); ``far``,
-none of these (clutter, or a VA no car could detect)."""
+"""An extracted estimate's class, the first that applies: ``true``, within ``near`` of a truth of the step; ``near``,
+within ``far`` of one; ``later``, within ``near`` of a VA first seen after the step (not yet in the truth: a false
+estimate now); ``far``, none of these (clutter, or a VA no car could detect)."""
 
 
 def estimate_classes(est: np.ndarray, truth: np.ndarray, later: np.ndarray, near: float = 1.5, far: float = 5.0
@@ -98,7 +98,7 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
     """``(group, class) -> truths summed over the steps >= kmin of every seed``, and ``"steps"`` -> their number."""
     from mmslam.raytrace.cache import load_cache
     from mmslam.scenes.scenario import with_overrides
-    from mmslam.slam.eval.evaluation import first_seen, merge_seen, sightings
+    from mmslam.slam.eval.evaluation import estimates_of, first_seen, merge_seen, sightings
     from mmslam.slam.filter import CooperativeRun
     from mmslam.slam.specs.landmarks import VA_SPEC
 
@@ -125,7 +125,7 @@ def run(cache: str, seeds: list[int], kmin: int, overrides: list[str]) -> Counte
             for j, cls in zip(now, classify(kpos[now], g.m[live][:, :3], g.w[live], thr)):
                 n = sum(1 for t in seen_at.get(str(keys[j]), ()) if t <= k)
                 tot[("seen1" if n < 2 else "seen2+", cls)] += 1
-            est = g.m[live][g.w[live] >= thr, :3]
+            est, _ = estimates_of(g, thr, scn.filter.extraction)  # what GOSPA scores (w > threshold)
             for cls in estimate_classes(est, kpos[now], kpos[kfirst > k]):
                 tot[("estimates", cls)] += 1
             tot["steps"] += 1
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"truth VAs per step, fused map, k >= {a.kmin}, {len(a.seeds)} seeds:")
     for grp in ("seen1", "seen2+"):
         print(f"  {grp:7s} " + "  ".join(f"{c} {tot[(grp, c)] / n:.2f}" for c in CLASSES))
-    print("estimates per step (weight >= threshold):")
+    print("estimates per step (those the map's GOSPA scores):")
     print("          " + "  ".join(f"{c} {tot[('estimates', c)] / n:.2f}" for c in EST_CLASSES))
     return 0
 

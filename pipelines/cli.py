@@ -128,10 +128,14 @@ def register(app: typer.Typer) -> None:
         scn = resolve_scenario(scenario)
         check_overrides(scn, sets_c, arms)  # values too: before the lock, the trace and any write
         particles = particles_for(scn, sets_c, particles)
-        if cache_root is not None:  # a user's folder as --cache: refused before the ablation folder is made
+        if cache_root is not None:  # refused before the ablation folder is made: nothing written
             from mmslam.raytrace.trace import check_cache_root
 
-            check_cache_root(cache_root, option="--cache")
+            c, o = Path(cache_root).resolve(), Path(out).resolve()
+            if c != o / "cache" and (c == o or c in o.parents or o in c.parents):
+                raise ConfigError(f"--cache {cache_root}: overlaps --out {out}; give a folder of caches apart from "
+                                  "the ablation folder (or leave --cache out: the ablation's own is OUT/cache)")
+            check_cache_root(cache_root, option="--cache")  # a user's folder
         with locked(out, "ablation"):  # everything checked before the trace; nothing written if refused
             precheck_ablation(out, scn.name, source, steps, particles, sets_c, scn.to_dict())
             start_ablation_dir(out, force)

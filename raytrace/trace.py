@@ -307,7 +307,7 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
     check_cache_root(out_root, force)
     cache_dir = cache_dir_for(out_root, scn, source)
     root = cache_dir.parent
-    root_created = not os.path.lexists(root)
+    made = [p for p in (root, *root.parents) if not os.path.lexists(p)]  # the folders this trace creates, deepest first
     root.mkdir(parents=True, exist_ok=True)
     marked = output_kind(root) != CACHE_ROOT_KIND
     if marked:
@@ -315,21 +315,23 @@ def trace_scenario(scn: Scenario, source: PathSource, out_root: str | Path, step
     try:
         return _trace_locked(scn, source, cache_dir, n_steps, chunk_steps, force, progress, executor, notice)
     except BaseException:
-        if marked:  # a first trace that left no cache: its marker goes, and the root too if this trace made it
-            _unmark_if_empty(root, root_created)
+        if marked:  # a first trace that left no cache: its marker goes, and the folders it made
+            _unmark_if_empty(root, made)
         raise
 
 
-def _unmark_if_empty(root: Path, remove: bool) -> None:
-    """Delete the output marker of ``root`` if it is all the folder holds (a trace marked it and traced nothing), and
-    then the folder itself if ``remove``."""
+def _unmark_if_empty(root: Path, made: list[Path]) -> None:
+    """Delete the output marker of ``root`` if it is all the folder (or the folder a link ``root`` points to) holds:
+    a trace marked it and traced nothing; then the folders of ``made`` (deepest first) that are empty."""
     from mmslam.outputs import MARKER
 
     try:
-        if root.is_dir() and not root.is_symlink() and [p.name for p in root.iterdir()] == [MARKER]:
+        if root.is_dir() and [p.name for p in root.iterdir()] == [MARKER]:
             (root / MARKER).unlink()
-            if remove:
-                root.rmdir()
+            for d in made:
+                if d.is_symlink() or any(d.iterdir()):
+                    break
+                d.rmdir()
     except OSError:  # cleaning up after a failure must not hide it
         pass
 

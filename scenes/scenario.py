@@ -493,8 +493,8 @@ class EvalParams:
                              "the first upload on) or uploads (only the steps with an upload: the TWC2020 code's "
                              "mean over k = 10:2:40, its fusion steps)", choices=("all", "uploads"))
     va_resolution: float = param(1.0, "VA truths (image sources) within this of an earlier one count as one "
-                                 "landmark with it, scored at the first one's position (leader clustering: every "
-                                 "member within it of that position): two parallel facades less than half of it "
+                                 "landmark with it (leader clustering: every member within it of the first), placed "
+                                 "where a vehicle first could detect it: two parallel facades less than half of it "
                                  "apart, which the sensor cannot tell apart (docs/city-slam.md)", "m", lo=0.0,
                                  hi=100.0)
 

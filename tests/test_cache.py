@@ -120,6 +120,15 @@ def test_a_trace_that_stops_before_its_first_chunk_leaves_no_empty_cache(tmp_pat
     d = cache_dir_for(tmp_path / "run", paper, bad)
     assert not d.exists()
     assert not (tmp_path / "run").exists()  # nor the cache root it made (it held only its marker)
+    # nested folders it made go too; a link to a user's empty folder stays, and so does the folder, empty
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, bad, tmp_path / "a" / "b", steps=6, chunk_steps=3, progress=False)
+    assert not (tmp_path / "a").exists()
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "empty")
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, bad, tmp_path / "link", steps=6, chunk_steps=3, progress=False)
+    assert (tmp_path / "link").is_symlink() and not any((tmp_path / "empty").iterdir())
     # a folder the user made stays, as empty as it was; a root of caches keeps its marker and its caches
     (tmp_path / "mine").mkdir()
     with pytest.raises(RuntimeError, match="boom"):
@@ -134,6 +143,12 @@ def test_a_trace_that_stops_before_its_first_chunk_leaves_no_empty_cache(tmp_pat
         trace_scenario(paper, FailingSource(paper, fail_at=1), root, steps=6, chunk_steps=3, progress=False)
     assert load_cache(other).steps == 3 and (root / ".mmslam-output.json").is_file()
     assert not cache_dir_for(root, paper, bad).exists()
+    # a root of caches an older mmslam wrote (no marker): the failing trace marks it and leaves its caches whole
+    (root / ".mmslam-output.json").unlink()
+    with pytest.raises(RuntimeError, match="boom"):
+        trace_scenario(paper, FailingSource(paper, fail_at=1), root, steps=6, chunk_steps=3, progress=False)
+    assert load_cache(other).steps == 3 and sorted(p.name for p in root.iterdir()) == sorted(
+        [".mmslam-output.json", other.name])
     # a cache of 0 steps an earlier version left behind: refused in one line naming it and the fix
     d = trace_scenario(paper, AnalyticSource(paper), tmp_path / "old", steps=3, chunk_steps=3, progress=False)
     m = json.loads((d / MANIFEST).read_text())

@@ -258,6 +258,12 @@ def test_ablate_runs_on_a_cache_root_of_mmslam_trace(tmp_path, capsys):
     assert main(argv[:-4] + ["--cache", str(mine), "--out", str(tmp_path / "abl2")]) == 2
     _one_error_line(capsys, "--cache", str(mine))
     assert not (tmp_path / "abl2").exists() and [p.name for p in mine.iterdir()] == ["notes.txt"]
+    # --cache the ablation folder itself, or a folder above it: one line, nothing made (both missing before)
+    for c, o in ((tmp_path / "x", tmp_path / "x"), (tmp_path / "y", tmp_path / "y" / "abl")):
+        capsys.readouterr()
+        assert main(argv[:-4] + ["--cache", str(c), "--out", str(o)]) == 2
+        _one_error_line(capsys, "--cache", "overlaps --out")
+        assert not c.exists() and not o.exists()
 
 
 # ============================================================ 2. Ctrl-C: exit 130, one line, nothing dropped

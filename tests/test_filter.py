@@ -448,6 +448,13 @@ def test_va_truths_closer_than_the_resolution_are_one():
     assert len(seen) == 4 and sorted(s for s, _ in seen.values()) == [0, 2, 3, 5]
     np.testing.assert_array_equal(resolve_points(np.array([[0, 0, 0], [0, 0, 0.99], [0, 0, 3.0]]), 1.0),
                                   [0, 0, 2])
+    # rows out of sorted order: clusters follow the order of appearance (41.8 first, so 40.9 joins it, not 40.0)
+    yo = [41.8, 40.0, 40.9, 41.8]
+    po = dict(paths, step=np.arange(4), rx=np.zeros(4, int), type=np.full(4, VA),
+              landmark_id=np.array([f"g{i}" for i in range(4)]), lm_x=np.zeros(4), lm_y=np.array(yo),
+              lm_z=np.full(4, 40.0))
+    ko = truth_keys(po, 1.0)
+    assert ko[0] == ko[2] == ko[3] != ko[1] and ko[0].endswith(",41800,40000")
     # a chain of ten facets 0.6 m apart (5.4 m end to end): clusters of two, each member within 1 m of its first
     chain = np.stack([np.zeros(10), 0.6 * np.arange(10), np.zeros(10)], -1)
     c = resolve_points(chain, 1.0)

@@ -40,6 +40,8 @@ def test_estimate_classes_by_hand(vm):
     assert vm.estimate_classes(est, truth, later) == ["true", "near", "later", "far"]
     assert vm.estimate_classes(est, np.zeros((0, 3)), np.zeros((0, 3))) == ["far"] * 4
     assert vm.estimate_classes(np.zeros((0, 3)), truth, later) == []
+    # the first class that applies: 3 m from a truth of the step and 0.2 m from a VA seen later is "near"
+    assert vm.estimate_classes(np.array([[13, 0, 0]]), truth, np.array([[13.2, 0, 0]])) == ["near"]
 
 
 def test_seed_ranges_and_bad_input(vm, tmp_path, capsys):

@@ -53,7 +53,8 @@ def prepare_cache(scenario: Any, source: str, out_dir: str | Path, steps: int | 
     if cache_root is not None:
         from mmslam.raytrace.trace import check_cache_root
 
-        check_cache_root(root, option="--cache")  # a user's folder: refused before the ablation folder is made
+        check_cache_root(root, option="--cache")  # a user's folder: refused before the ablation folder is made (the
+        # CLI also refuses a --cache that overlaps --out before it makes that folder)
     start_ablation_dir(out_dir)  # out_dir is (or becomes) an ablation: never a user's folder (mmslam.outputs)
     with deferred_sigint():  # the Sionna scene load is C++: Ctrl-C is raised after it
         src = make_source(source, scn, max_depth=max_depth, samples=samples, seed=seed)
