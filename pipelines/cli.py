@@ -128,6 +128,14 @@ def register(app: typer.Typer) -> None:
         scn = resolve_scenario(scenario)
         check_overrides(scn, sets_c, arms)  # values too: before the lock, the trace and any write
         particles = particles_for(scn, sets_c, particles)
+        notes: list[str] = []
+        if cache_root is None and (Path(out) / "ablation.json").is_file():  # resumed without the --cache it ran on
+            from mmslam.pipelines.ablate.store import read_ablation
+
+            rec = Path(str(read_ablation(out).get("cache_dir") or ""))
+            if rec.name and rec.is_dir() and rec.parent.resolve() != (Path(out) / "cache").resolve():
+                cache_root = rec.parent
+                notes.append(f"cache: {rec} (this ablation's --cache, recorded in {Path(out) / 'ablation.json'})")
         if cache_root is not None:  # refused before the ablation folder is made: nothing written
             from mmslam.raytrace.trace import check_cache_root
 
@@ -151,6 +159,7 @@ def register(app: typer.Typer) -> None:
             extra = [f"jobs: {len(run.ran)} run, {len(run.skipped)} reused ({run.executor}); wall time "
                      f"{run.wall_time_s:.1f} s",
                      f"summary: {Path(out) / 'summary.parquet'}"]
+            extra[:0] = notes
             from mmslam.pipelines.ablate.sensor_models import link_pd_notice
 
             note = link_pd_notice((run.summary.sensor or {}).get("measurements") or [])

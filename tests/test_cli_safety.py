@@ -251,6 +251,11 @@ def test_ablate_runs_on_a_cache_root_of_mmslam_trace(tmp_path, capsys):
     assert not (out / "cache").exists() and (cache / "manifest.json").read_bytes() == manifest  # reused as it was
     meta = json.loads((out / "ablation.json").read_text())
     assert "--cache" in meta["command"] and Path(meta["cache_dir"]) == cache.resolve()
+    # resumed without --cache: it runs on the recorded one again (no trace into OUT/cache) and says so
+    capsys.readouterr()
+    assert main(argv[:-6] + ["--mc", "2", "--out", str(out)]) == 0
+    assert not (out / "cache").exists() and (out / "jobs" / "baseline-seed1" / "meta.json").is_file()
+    assert f"cache: {cache.resolve()} (this ablation's --cache" in capsys.readouterr().out
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("mine")
