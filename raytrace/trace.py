@@ -198,6 +198,9 @@ def check_cache_root(out_root: str | Path, force: bool = False, option: str = "-
     p = Path(out_root)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {p}: is a file, not a folder; choose a writable path for the cache root")
+    if (p / MANIFEST).is_file():  # a cache itself, where its folder is meant
+        raise ConfigError(f"{option} {p}: is a cache, not a folder of caches; give the folder that holds it "
+                          f"({p.parent})")
     return check_target(p, CACHE_ROOT_KIND, force, option=option, accept=_holds_only_caches)
 
 

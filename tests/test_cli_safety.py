@@ -263,6 +263,11 @@ def test_ablate_runs_on_a_cache_root_of_mmslam_trace(tmp_path, capsys):
     assert main(argv[:-4] + ["--cache", str(mine), "--out", str(tmp_path / "abl2")]) == 2
     _one_error_line(capsys, "--cache", str(mine))
     assert not (tmp_path / "abl2").exists() and [p.name for p in mine.iterdir()] == ["notes.txt"]
+    # --cache a cache itself rather than its folder: one line naming the folder to give
+    capsys.readouterr()
+    assert main(argv[:-4] + ["--cache", str(cache), "--out", str(tmp_path / "abl3")]) == 2
+    _one_error_line(capsys, "is a cache, not a folder of caches", str(root))
+    assert not (tmp_path / "abl3").exists()
     # --cache the ablation folder itself, or a folder above it: one line, nothing made (both missing before)
     for c, o in ((tmp_path / "x", tmp_path / "x"), (tmp_path / "y", tmp_path / "y" / "abl")):
         capsys.readouterr()
