@@ -409,6 +409,13 @@ class FilterParams:
         "between the BS and the street (a specular point a VS would follow along the wall); docs/city-slam.md; "
         "the paper has no such gate (its presets set 1e4)", "m", lo=0.0, lo_open=True,
         hi=1e4)
+    vs_keep_cars: bool = param(True, "the VS Gaussians that are other cars' own estimates (their ego labels in the "
+                               "downlinked fused VS map, eq. (11); fusion.average_by_label) stay in a car's VS map "
+                               "wherever they stand; filter.vs_birth_height's road band removes only the others. On "
+                               "a hill a car up the street sits more than that band above the antenna; removed, the "
+                               "paths off its body birth false VAs (sf5's map 0.606 -> 0.447 of the empty map on "
+                               "development seeds). False: every VS Gaussian off the band goes (before session 34); "
+                               "docs/city-slam.md, \"Cars up the hill\"")
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
                                  "unobserved) or all (every VS Gaussian at every step, the paper read "

@@ -219,3 +219,29 @@ def test_vs_on_road_removes_only_nearby_gaussians_off_the_road_band():
     np.testing.assert_array_equal(out.w[out.mask], w[out.mask])
     high = with_overrides(scn, ["filter.vs_birth_height=10000"])
     assert vs_on_road(g, states, high) is g  # no gate: the same map
+
+
+def test_vs_on_road_keeps_another_cars_own_estimate_off_the_band():
+    """Another car's own estimate (its :func:`ego_label`, downlinked from the fused VS map) is a car wherever it
+    stands: 8 m above the particle on a hill, 20 m away, it stays, while a Gaussian the car bore there (a birth label)
+    and one without a label go; labels of vehicles 0 and 5 both count, a birth label of vehicle 5 does not."""
+    from mmslam.slam.core.gm import GM, LABEL_BITS, NO_LABEL, ego_label, is_ego_label
+    from mmslam.slam.specs.vehicle_body import vs_on_road
+
+    assert is_ego_label(np.array([ego_label(0), ego_label(5), 5 << LABEL_BITS, (5 << LABEL_BITS) + 7, NO_LABEL, 0])
+                        ).tolist() == [True, True, False, False, False, False]
+    scn = load_preset("street")
+    states = np.zeros((1, 7))
+    states[0, 2] = 1.6
+    m = np.zeros((1, 4, 7))
+    m[0, :, 0:3] = [[20.0, 0.0, 9.6], [0.0, 20.0, 9.6], [-20.0, 0.0, 9.6], [14.0, 14.0, 9.6]]
+    label = np.array([[ego_label(5), (5 << LABEL_BITS) + 3, NO_LABEL, ego_label(0)]], np.int64)
+    g = GM(np.full((1, 4), 0.9), m, np.broadcast_to(np.eye(7), (1, 4, 7, 7)).copy(), np.ones((1, 4), bool),
+           label=label)
+    out = vs_on_road(g, states, scn)
+    np.testing.assert_array_equal(out.mask, [[True, False, False, True]])
+    np.testing.assert_array_equal(out.m[0, [0, 3]], m[0, [0, 3]])
+    # without labels (fusion.average_by_label off) no Gaussian is known as a car's own, and with
+    # filter.vs_keep_cars off none is kept as one: all four go
+    assert not vs_on_road(GM(g.w, g.m, g.P, g.mask), states, scn).mask.any()
+    assert not vs_on_road(g, states, with_overrides(scn, ["filter.vs_keep_cars=false"])).mask.any()

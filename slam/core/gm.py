@@ -93,6 +93,14 @@ def ego_label(vehicle: int) -> int:
     return ((int(vehicle) + 1) << LABEL_BITS) - 1
 
 
+def is_ego_label(label: np.ndarray) -> np.ndarray:
+    """Whether each label (any shape, int64) is some vehicle's :func:`ego_label`: the last of its range (its low
+    :data:`LABEL_BITS` all set), which no birth takes. In a VS map: another car's own estimate, downlinked."""
+    label = np.asarray(label, np.int64)
+    low = (1 << LABEL_BITS) - 1
+    return (label >= 0) & ((label & low) == low)
+
+
 def empty(batch: tuple[int, ...], capacity: int, dim: int, with_pd_beta: bool = False,
           with_label: bool = False) -> GM:
     """An all-masked mixture batch (``with_pd_beta``: with a ``pd_beta`` array of (1, 1) slots;

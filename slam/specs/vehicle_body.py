@@ -6,7 +6,8 @@ may stay.
   the VS likelihood (:func:`mmslam.slam.phd.ckf.ckf_update`);
 - :func:`vs_birth_moments`: a VS birth from a bounce point within ``filter.vs_birth_height`` of the receiving
   antenna, placed at the antenna behind the bounce;
-- :func:`vs_on_road`: the VS Gaussians a prediction keeps (on the road band near the vehicle).
+- :func:`vs_on_road`: the VS Gaussians a prediction keeps (on the road band near the vehicle, and the other cars'
+  own estimates wherever they stand).
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.gm import GM
+from ..core.gm import GM, is_ego_label
 from ..models.vs import body_antennas
 
 if TYPE_CHECKING:
@@ -61,14 +62,19 @@ def vs_on_road(g: GM, states: np.ndarray, scn: "Scenario") -> GM:
     """The predicted VS map of each particle without the Gaussians that cannot be a car: those within the sensor's
     range (``sensor.fov_range``, horizontally) whose antenna height differs from the particle's by more than
     ``filter.vs_birth_height`` (m): a VS born at a low wall reflection follows the specular point up the wall
-    as the vehicle moves. ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked (weight 0, mean 0,
-    covariance I)."""
+    as the vehicle moves. Another car's own estimate (a Gaussian with its :func:`~mmslam.slam.core.gm.ego_label`,
+    which the fused map downlinks, eq. (11)) is a car wherever it stands and stays (``filter.vs_keep_cars``): on a hill a car 30 m up the
+    street sits 3-6 m above the antenna, and without it the paths off its body birth false VAs
+    (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked
+    (weight 0, mean 0, covariance I)."""
     if not g.capacity:
         return g
     s = np.asarray(states, float)[:, None, :]
     dz = np.abs(g.m[..., 2] - s[..., 2])
     near = np.hypot(g.m[..., 0] - s[..., 0], g.m[..., 1] - s[..., 1]) <= scn.sensor.fov_range
     off = g.mask & near & (dz > scn.filter.vs_birth_height)
+    if g.label is not None and scn.filter.vs_keep_cars:
+        off &= ~is_ego_label(g.label)
     if not off.any():
         return g
     out = g.copy()
