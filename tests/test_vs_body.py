@@ -241,6 +241,8 @@ def test_vs_on_road_keeps_another_cars_own_estimate_off_the_band():
     out = vs_on_road(g, states, scn)
     np.testing.assert_array_equal(out.mask, [[True, False, False, True]])
     np.testing.assert_array_equal(out.m[0, [0, 3]], m[0, [0, 3]])
+    np.testing.assert_array_equal(out.label, [[ego_label(5), NO_LABEL, NO_LABEL, ego_label(0)]])  # removed: no identity
+    np.testing.assert_array_equal(g.label, label)  # the input is not written
     # without labels (fusion.average_by_label off) no Gaussian is known as a car's own, and with
     # filter.vs_keep_cars off none is kept as one: all four go
     assert not vs_on_road(GM(g.w, g.m, g.P, g.mask), states, scn).mask.any()

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..core.gm import GM, is_ego_label
+from ..core.gm import NO_LABEL, GM, is_ego_label
 from ..models.vs import body_antennas
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ def vs_on_road(g: GM, states: np.ndarray, scn: "Scenario") -> GM:
     which the fused map downlinks, eq. (11)) is a car wherever it stands and stays (``filter.vs_keep_cars``): on a hill a car 30 m up the
     street sits 3-6 m above the antenna, and without it the paths off its body birth false VAs
     (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked
-    (weight 0, mean 0, covariance I)."""
+    (weight 0, mean 0, covariance I, label :data:`~mmslam.slam.core.gm.NO_LABEL`)."""
     if not g.capacity:
         return g
     s = np.asarray(states, float)[:, None, :]
@@ -82,4 +82,6 @@ def vs_on_road(g: GM, states: np.ndarray, scn: "Scenario") -> GM:
     out.w[off] = 0.0
     out.m[off] = 0.0
     out.P[off] = np.eye(g.dim)
+    if out.label is not None:  # a masked slot has no identity
+        out.label[off] = NO_LABEL
     return out
