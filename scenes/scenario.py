@@ -413,8 +413,8 @@ class FilterParams:
                                "downlinked fused VS map, eq. (11); fusion.average_by_label) stay in a car's VS map "
                                "wherever they stand; filter.vs_birth_height's road band removes only the others. On "
                                "a hill a car up the street sits more than that band above the antenna; removed, the "
-                               "paths off its body birth false VAs (sf5's map 0.606 -> 0.447 of the empty map on "
-                               "development seeds). False: every VS Gaussian off the band goes (before session 34); "
+                               "paths off its body birth false VAs (sf5's map 0.618 -> 0.459 of the empty map in a "
+                               "declared run). False: every VS Gaussian off the band goes (before session 34); "
                                "docs/city-slam.md, \"Cars up the hill\"")
     vs_dither_scope: str = param("newborn", "which VS Gaussians get the dithering T_d at a local prediction: "
                                  "newborn (only this step's births, whose velocity and turn rate are "
