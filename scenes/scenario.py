@@ -404,14 +404,17 @@ class FilterParams:
         hi=100.0, length=4)
     vs_birth_height: float = param(
         3.0, "a VS is born only where the path bounced at most this far above or below the receiving antenna, and "
-        "a VS Gaussian within sensor.fov_range whose height leaves that band is removed: a car is on the road (its "
+        "a VS Gaussian within sensor.fov_range whose height leaves that band is removed (but a car's own estimate, "
+        "filter.vs_keep_cars): a car is on the road (its "
         "body spans the 1.6 m below its antenna), while a wall reflection off a roof-top BS bounces 3-15 m up, "
         "between the BS and the street (a specular point a VS would follow along the wall); docs/city-slam.md; "
         "the paper has no such gate (its presets set 1e4)", "m", lo=0.0, lo_open=True,
         hi=1e4)
-    vs_keep_cars: bool = param(True, "the VS Gaussians that are other cars' own estimates (their ego labels in the "
-                               "downlinked fused VS map, eq. (11); fusion.average_by_label) stay in a car's VS map "
-                               "wherever they stand; filter.vs_birth_height's road band removes only the others. On "
+    vs_keep_cars: bool = param(True, "the VS Gaussians that are cars' own estimates (their ego labels in the "
+                               "downlinked fused VS map, eq. (11); needs fusion.average_by_label, without labels "
+                               "none is known as one) stay in a car's VS map wherever they stand; "
+                               "filter.vs_birth_height's road band removes only the others (no effect where that band "
+                               "is 1e4, as in the paper preset). On "
                                "a hill a car up the street sits more than that band above the antenna; removed, the "
                                "paths off its body birth false VAs (sf5's map 0.618 -> 0.459 of the empty map in a "
                                "declared run). False: every VS Gaussian off the band goes (before session 34); "

@@ -95,7 +95,8 @@ def ego_label(vehicle: int) -> int:
 
 def is_ego_label(label: np.ndarray) -> np.ndarray:
     """Whether each label (any shape, int64) is some vehicle's :func:`ego_label`: the last of its range (its low
-    :data:`LABEL_BITS` all set), which no birth takes. In a VS map: another car's own estimate, downlinked."""
+    :data:`LABEL_BITS` all set), which no birth takes; :data:`NO_LABEL` is not. In a VS map: a car's own estimate
+    (another car's, downlinked). Returns a bool array of the labels' shape."""
     label = np.asarray(label, np.int64)
     low = (1 << LABEL_BITS) - 1
     return (label >= 0) & ((label & low) == low)

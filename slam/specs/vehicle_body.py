@@ -62,10 +62,11 @@ def vs_on_road(g: GM, states: np.ndarray, scn: "Scenario") -> GM:
     """The predicted VS map of each particle without the Gaussians that cannot be a car: those within the sensor's
     range (``sensor.fov_range``, horizontally) whose antenna height differs from the particle's by more than
     ``filter.vs_birth_height`` (m): a VS born at a low wall reflection follows the specular point up the wall
-    as the vehicle moves. Another car's own estimate (a Gaussian with its :func:`~mmslam.slam.core.gm.ego_label`,
-    which the fused map downlinks, eq. (11)) is a car wherever it stands and stays (``filter.vs_keep_cars``): on a hill a car 30 m up the
-    street sits 3-6 m above the antenna, and without it the paths off its body birth false VAs
-    (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked
+    as the vehicle moves. A car's own estimate (a Gaussian with its :func:`~mmslam.slam.core.gm.ego_label`: another
+    car's, which the fused map downlinks, eq. (11); the receiver's own, where it is kept, stands at its antenna) is a
+    car wherever it stands and stays (``filter.vs_keep_cars``; without labels no Gaussian is known as one): on sf5's
+    hills another car within 50 m stands up to 4.7 m above or below the antenna, and without it the paths off its
+    body birth false VAs (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked
     (weight 0, mean 0, covariance I, label :data:`~mmslam.slam.core.gm.NO_LABEL`)."""
     if not g.capacity:
         return g
