@@ -138,3 +138,30 @@ def test_a_local_filter_runs_with_birth_existence_on_any_type(row):
     va = f.maps[1]
     near_bs = np.linalg.norm(va.m[..., 0:3] - bs, axis=-1) < 5.0
     assert not (va.mask & near_bs & (va.w > 1e-3)).any()  # the line of sight births no VA of weight at the BS
+
+
+def test_a_bounce_in_the_car_band_with_no_car_near_is_a_walls():
+    """``filter.band_cars``: the car-side path of :func:`test_which_births_are_new_landmarks` bounces at the antenna's
+    height, at p = u + t (image - u) with t = 17.75 / 6000 (where |p - BS| = |p - image|, by hand). With a car
+    Gaussian 1 m from p (within half a car, 2.25 m) it stays a possible car path; with the only car 30 m away
+    (sigma 0.5 m) it is new; a car 30 m away whose sigma is 10 m (3 sigma + 2.25 > 30) could still be there; a dead
+    slot is no car."""
+    from mmslam.slam.phd.first_detection import off_every_car
+
+    car_image = np.array([60.0, 30.0, 1.5])
+    Z = measure(STATE[0], car_image, MIR, BS)[None]
+    p = STATE[0, 0:3] + 17.75 / 6000.0 * (car_image - STATE[0, 0:3])
+
+    def cars(offset: float, var: float, live: bool = True) -> GM:
+        m = np.zeros((1, 1, 7))
+        m[0, 0, 0:3] = p + [offset, 0.0, 0.0]
+        return GM(np.array([[1.0]]), m, np.eye(7)[None, None] * var, np.array([[live]]))
+
+    assert off_every_car(STATE, Z, BS, cars(1.0, 0.01), 2.25).tolist() == [[False]]
+    assert off_every_car(STATE, Z, BS, cars(30.0, 0.25), 2.25).tolist() == [[True]]
+    assert off_every_car(STATE, Z, BS, cars(30.0, 100.0), 2.25).tolist() == [[False]]
+    assert off_every_car(STATE, Z, BS, cars(1.0, 0.01, live=False), 2.25).tolist() == [[True]]
+    mom = _moments(Z)
+    assert not new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None)[0, 0]  # the band alone
+    assert not new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(1.0, 0.01), 2.25)[0, 0]
+    assert new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(30.0, 0.25), 2.25)[0, 0]

@@ -152,6 +152,8 @@ class LocalFilter:
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
         self._labels = bool(scn.fusion.average_by_label)
+        self._downlinked = False
+        """whether a fused map has reached the vehicle (``filter.band_cars``)"""
         self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim, with_label=self._labels)
                                     for t, s in self.specs.items()}
         self._prev_Z: np.ndarray | None = None
@@ -192,7 +194,8 @@ class LocalFilter:
                 geo = int(sp.geometry)
                 # the births that are new landmarks by their own measurement (filter.types.<T>.birth_existence)
                 new = (new_landmark_births(self.s, self._prev_Z, self.R, moments[geo], geo, self.bs,
-                                           self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t])
+                                           self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t],
+                                           self._cars(), 0.5 * float(self.fp.vs_body[0]))
                        if sp.type_params(self.scn).birth_existence > 0 else None)
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[geo], sp, self.scn, self.pd_fn,
@@ -211,6 +214,14 @@ class LocalFilter:
             self.maps[t] = sp.predict(g, births.get(t), self.scn)
             if sp.survive is not None:
                 self.maps[t] = sp.survive(self.maps[t], self.s, self.scn)
+
+    def _cars(self) -> GM | None:
+        """The particles' VS map (the first moving type's), to which ``filter.band_cars`` puts the question whether
+        a bounce in the car band could be a car's; None without that option or before the first downlink, which
+        brings the fleet's cars."""
+        if not (self.fp.band_cars and self._downlinked):
+            return None
+        return next((self.maps[t] for t, sp in self.specs.items() if sp.moving), None)
 
     def correct(self, Z: np.ndarray, R_z: np.ndarray | None = None) -> None:
         """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
@@ -316,6 +327,7 @@ class LocalFilter:
         A type with ``filter.types.<TYPE>.keep_tentative`` keeps each particle's own Gaussians lighter than
         ``fusion.average_prune`` (the tentative ones, which the fused map prunes) after the fused ones.
         """
+        self._downlinked = True
         for t, g in fused.items():
             if t not in self.maps:
                 continue

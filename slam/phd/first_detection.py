@@ -82,6 +82,20 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
     return np.where(valid, x[..., 2] - states[:, None, 2], np.nan)
 
 
+def off_every_car(states: np.ndarray, Z: np.ndarray, bs: np.ndarray, cars: GM, reach: float) -> np.ndarray:
+    """``(P, J)`` bool: whether the single-scatter point of each measurement (:func:`bounce_offset`'s point) lies
+    horizontally farther than ``reach + 3 sigma`` (m) from the mean of every live Gaussian of particle ``p``'s car
+    map ``cars`` (batch ``(P,)``, the VS map; ``sigma``: the square root of the larger of its x and y variances),
+    i.e. that no car the particle knows of could have made it. False where the measurement has no such point."""
+    x, valid = invert_sp(states[:, None, :], Z[None, :, :], bs)  # (P, J, 3)
+    if not cars.capacity:
+        return valid.copy()
+    d = np.linalg.norm(x[:, :, None, 0:2] - cars.m[:, None, :, 0:2], axis=-1)  # (P, J, Q)
+    sig = np.sqrt(np.maximum(cars.P[..., 0, 0], cars.P[..., 1, 1]))  # (P, Q)
+    near = cars.mask[:, None, :] & (d <= reach + 3.0 * sig[:, None, :])
+    return valid & ~near.any(-1)
+
+
 def los_fit(states: np.ndarray, Z: np.ndarray, R: np.ndarray, bs: np.ndarray) -> np.ndarray:
     """``(P, J)``: ``r^T R^-1 r`` of each measurement's residual ``r`` against the line of sight ``h(s_p, b)``
     (:func:`~mmslam.slam.models.measurement.measure`, DIRECT; azimuths wrapped; ``R (5, 5)`` or ``(J, 5, 5)``)."""
@@ -106,12 +120,15 @@ def within_merge_gate(mean: np.ndarray, cov: np.ndarray, m: np.ndarray, live: np
 
 def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                         moments: tuple[np.ndarray, np.ndarray, np.ndarray], geometry: int, bs: np.ndarray,
-                        band: float, gate: float, g: GM | None) -> np.ndarray:
+                        band: float, gate: float, g: GM | None, cars: GM | None = None,
+                        reach: float = 0.0) -> np.ndarray:
     """``(P, J)`` bool: the births of ``Z (J, 5)`` (``moments = (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of
     :func:`~mmslam.slam.phd.birth.birth_moments_by_kind` for ``geometry``) that are new landmarks by their own
     measurement: the module's three stages (AOD fit within :data:`FIT_GATE`, bounce more than ``band`` m off the
     antenna height, no Gaussian of the particle's map ``g`` (batch ``(P,)``; None: none) nor another birth of the
-    scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it)."""
+    scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it). With ``cars`` (the
+    particles' VS map, batch ``(P,)``) a bounce in the band passes stage 2 too where no car of it is near
+    (:func:`off_every_car` with ``reach``, m; ``filter.band_cars``)."""
     mean, cov, ok = (np.asarray(a) for a in moments)
     states, Z = np.asarray(states, float), np.asarray(Z, float)
     out = ok.copy()
@@ -123,7 +140,10 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     cov = np.where(ok[..., None, None], cov, np.eye(3))
     out &= aod_fit(states, Z, R, mean, cov, geometry, bs) <= FIT_GATE  # 1.
     with np.errstate(invalid="ignore"):
-        out &= np.abs(bounce_height(states, Z, bs)) > band  # 2. (NaN: False)
+        off_band = np.abs(bounce_height(states, Z, bs)) > band  # 2. (NaN: False)
+    if cars is not None:  # in the band, but no car the particle knows of is there: a wall's
+        off_band |= off_every_car(states, Z, bs, cars, reach)
+    out &= off_band
     # 3. the other births of the scan (birth j against every live j' != j, under j's covariance), the line of sight
     # and the particle's map
     others = ok[:, None, :] & ~np.eye(Z.shape[0], dtype=bool)  # (P, J, J')
