@@ -83,7 +83,7 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
 
 
 def off_every_car(states: np.ndarray, Z: np.ndarray, bs: np.ndarray, cars: GM, reach: float) -> np.ndarray:
-    """``(P, J)`` bool: whether the single-scatter point of each measurement (:func:`bounce_offset`'s point) lies
+    """``(P, J)`` bool: whether the single-scatter point of each measurement (the point of :func:`bounce_height`) lies
     horizontally farther than ``reach + 3 sigma`` (m) from the mean of every live Gaussian of particle ``p``'s car
     map ``cars`` (batch ``(P,)``, the VS map; ``sigma``: the square root of the larger of its x and y variances),
     i.e. that no car the particle knows of could have made it. False where the measurement has no such point."""
