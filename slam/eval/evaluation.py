@@ -349,17 +349,16 @@ class MapScorer:
 
     def record_others(self, k: int, maps: dict[int, GM]) -> None:
         """Rows of map ``"fused_others"`` for the moving types (VS): the fused map's Gaussians that are not a
-        vehicle's own upload (label outside every :func:`~mmslam.slam.gm.ego_label`), scored against
+        vehicle's own upload (no :func:`~mmslam.slam.core.gm.ego_label`: :func:`~mmslam.slam.core.gm.is_ego_label`), scored against
         :meth:`others_truth`: VS mapping of other vehicles, apart from the ego Gaussians of eq. (11).
         Needs labels (``fusion.average_by_label``); nothing is recorded without them."""
-        from ..core.gm import ego_label
+        from ..core.gm import is_ego_label
 
-        egos = np.array([ego_label(n) for n in range(self.n_veh)], np.int64)
         for spec in self.types:
             g = maps.get(spec.code)
             if not spec.moving or g is None or g.label is None:
                 continue
-            keep = g.mask & ~np.isin(g.label, egos)
+            keep = g.mask & ~is_ego_label(g.label)
             self._score(k, "fused_others", spec, GM(g.w, g.m, g.P, keep, g.pd_beta, g.label),
                         self.others_truth(k, spec), self.n_veh)
 

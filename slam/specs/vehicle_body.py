@@ -66,8 +66,8 @@ def vs_on_road(g: GM, states: np.ndarray, scn: "Scenario") -> GM:
     car's, which the fused map downlinks, eq. (11); the receiver's own, where it is kept, stands at its antenna) is a
     car wherever it stands and stays (``filter.vs_keep_cars``; without labels no Gaussian is known as one): on sf5's
     hills another car within 50 m stands up to 4.7 m above or below the antenna, and without it the paths off its
-    body birth false VAs (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed slots are masked
-    (weight 0, mean 0, covariance I, label :data:`~mmslam.slam.core.gm.NO_LABEL`)."""
+    body birth false VAs (docs/city-slam.md, "Cars up the hill"). ``g`` batch ``(P,)``, ``states (P, 7)``; removed
+    slots are masked (weight 0, mean 0, covariance I, label :data:`~mmslam.slam.core.gm.NO_LABEL`)."""
     if not g.capacity:
         return g
     s = np.asarray(states, float)[:, None, :]
