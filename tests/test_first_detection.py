@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmslam.model import Bounce
+from mmslam.model import Bounce, LandmarkType
 from mmslam.scenes.scenario import load_preset, with_overrides
 from mmslam.slam.core.gm import GM
 from mmslam.slam.models.measurement import measure
@@ -14,6 +14,7 @@ from mmslam.slam.phd.first_detection import (FIT_GATE, aod_fit, bounce_height, n
                                              within_merge_gate)
 
 MIR = int(Bounce.MIRROR)
+SCAT = int(Bounce.SCATTER)
 BS = np.array([0.0, 0.0, 40.0])
 STATE = np.array([[20.0, 10.0, 1.5, 0.2, 8.0, 0.0, 0.0]])
 R = np.diag([0.1, 0.01, 0.01, 0.01, 0.01]) ** 2
@@ -141,27 +142,83 @@ def test_a_local_filter_runs_with_birth_existence_on_any_type(row):
 
 
 def test_a_bounce_in_the_car_band_with_no_car_near_is_a_walls():
-    """``filter.band_cars``: the car-side path of :func:`test_which_births_are_new_landmarks` bounces at the antenna's
-    height, at p = u + t (image - u) with t = 17.75 / 6000 (where |p - BS| = |p - image|, by hand). With a car
-    Gaussian 1 m from p (within half a car, 2.25 m) it stays a possible car path; with the only car 30 m away
-    (sigma 0.5 m) it is new; a car 30 m away whose sigma is 10 m (3 sigma + 2.25 > 30) could still be there; a dead
-    slot is no car."""
+    """``filter.band_cars``: a path off a point q 22.4 m from the antenna and 0.5 m above it (a car body's height)
+    fits a wall's AOD (the mirror hypothesis's specular point is q itself) and bounces in the 3 m band. Its SCATTER
+    point spreads across the ray by r x 0.01 rad = 0.224 m and along it by the TOA's 0.1 m / (1 + d . (q - BS) /
+    |q - BS|) = 0.057 m (the path length grows by 1 + d . (q - BS) / |q - BS| per metre along the ray d): in y,
+    sqrt((0.894 x 0.224)^2 + (0.447 x 0.057)^2) = 0.202 m. With a car Gaussian 1 m from q (within half a car, 2.25
+    m) it stays a possible car path; with the only car 30 m away (sigma 0.5 m) it is new; a car 30 m away whose sigma
+    is 10 m (3 sigma + 2.25 > 30) could still be there; a dead slot is no car. A point 4 m from a car (sigma 0.1 m)
+    is off it when the point is sharp (2.25 + 3 sqrt(0.01 + 0.01) = 2.67 m) and near it when the point spreads by
+    1 m (2.25 + 3 sqrt(0.01 + 1) = 5.26 m): a far bounce's angle noise."""
     from mmslam.slam.phd.first_detection import off_every_car
 
-    car_image = np.array([60.0, 30.0, 1.5])
-    Z = measure(STATE[0], car_image, MIR, BS)[None]
-    p = STATE[0, 0:3] + 17.75 / 6000.0 * (car_image - STATE[0, 0:3])
+    q = np.array([40.0, 20.0, 2.0])
+    Z = measure(STATE[0], q, SCAT, BS)[None]
+    scatter = birth_moments_by_kind(STATE, Z, R, (SCAT,), BS)[SCAT]
+    np.testing.assert_allclose(scatter[0][0, 0], q, atol=0.01)
+    d = (q - STATE[0, 0:3]) / np.linalg.norm(q - STATE[0, 0:3])
+    along = 0.1 / (1.0 + d @ (q - BS) / np.linalg.norm(q - BS))
+    across = np.linalg.norm(q - STATE[0, 0:3]) * 0.01
+    np.testing.assert_allclose(np.sqrt(scatter[1][0, 0, 1, 1]), np.hypot(d[0] * across, d[1] * along), rtol=0.05)
 
     def cars(offset: float, var: float, live: bool = True) -> GM:
         m = np.zeros((1, 1, 7))
-        m[0, 0, 0:3] = p + [offset, 0.0, 0.0]
+        m[0, 0, 0:3] = q + [offset, 0.0, 0.0]
         return GM(np.array([[1.0]]), m, np.eye(7)[None, None] * var, np.array([[live]]))
 
-    assert off_every_car(STATE, Z, BS, cars(1.0, 0.01), 2.25).tolist() == [[False]]
-    assert off_every_car(STATE, Z, BS, cars(30.0, 0.25), 2.25).tolist() == [[True]]
-    assert off_every_car(STATE, Z, BS, cars(30.0, 100.0), 2.25).tolist() == [[False]]
-    assert off_every_car(STATE, Z, BS, cars(1.0, 0.01, live=False), 2.25).tolist() == [[True]]
+    assert off_every_car(scatter, cars(1.0, 0.01), 2.25).tolist() == [[False]]
+    assert off_every_car(scatter, cars(30.0, 0.25), 2.25).tolist() == [[True]]
+    assert off_every_car(scatter, cars(30.0, 100.0), 2.25).tolist() == [[False]]
+    assert off_every_car(scatter, cars(1.0, 0.01, live=False), 2.25).tolist() == [[True]]
+    sharp = (q[None, None], np.eye(3)[None, None] * 0.01, np.array([[True]]))
+    spread = (q[None, None], np.eye(3)[None, None] * 1.0, np.array([[True]]))
+    assert off_every_car(sharp, cars(4.0, 0.01), 2.25).tolist() == [[True]]
+    assert off_every_car(spread, cars(4.0, 0.01), 2.25).tolist() == [[False]]
+    no_point = (q[None, None], np.eye(3)[None, None], np.array([[False]]))
+    assert off_every_car(no_point, cars(30.0, 0.01), 2.25).tolist() == [[False]]  # no single-scatter point: no test
     mom = _moments(Z)
+    assert aod_fit(STATE, Z, R, mom[0], mom[1], MIR, BS)[0, 0] <= FIT_GATE  # a wall's AOD
+    np.testing.assert_allclose(bounce_height(STATE, Z, BS), [[0.5]], atol=1e-9)
     assert not new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None)[0, 0]  # the band alone
-    assert not new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(1.0, 0.01), 2.25)[0, 0]
-    assert new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(30.0, 0.25), 2.25)[0, 0]
+    assert not new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(1.0, 0.01), 2.25, scatter)[0, 0]
+    assert new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(30.0, 0.25), 2.25, scatter)[0, 0]
+    with pytest.raises(ValueError, match="SCATTER moments"):
+        new_landmark_births(STATE, Z, R, mom, MIR, BS, 3.0, 6.0, None, cars(30.0, 0.25), 2.25)
+
+
+def test_band_cars_asks_the_fleet_the_downlinks_brought():
+    """``filter.band_cars`` asks the fleet as the downlinks told it (:meth:`LocalFilter._roster`): each other car's
+    ego-labelled Gaussian of the fused VS map (not this car's own, not a birth's), kept when a later fused map has lost
+    it (the BS's fusion can halve a car another upload missed) and predicted with the VS motion (5 m/s along x for
+    0.5 s: 2.5 m); the test acts only once every other car of the scenario (canyon: three cars) is known."""
+    from mmslam.slam.core.gm import LABEL_BITS, ego_label
+    from mmslam.slam.filter.local_filter import LocalFilter
+
+    scn = with_overrides(load_preset("canyon"), ["filter.band_cars=true"])
+    vs = int(LandmarkType.VS)
+    s0 = np.array([0.0, 0.0, 1.6, 0.0, 5.0, 0.0, 0.0])
+    pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.9)  # noqa: E731
+    f = LocalFilter(scn, "proposed", 4, s0, R, 1e-3, pd, np.random.default_rng(0), vehicle=0)
+
+    def fused(*cars: tuple[int, float]) -> dict[int, GM]:
+        n = len(cars)
+        m = np.zeros((n, 7))
+        m[:, 0] = [x for _, x in cars]
+        m[:, 2], m[:, 3] = 1.6, 5.0  # on the road, 5 m/s along x
+        return {vs: GM(np.ones(n), m, np.tile(np.eye(7) * 0.04, (n, 1, 1)), np.ones(n, bool),
+                       label=np.array([lab for lab, _ in cars], np.int64))}
+
+    assert f._cars() is None  # no downlink yet
+    f.downlink(fused((ego_label(1), 10.0)))
+    assert f._cars() is None  # car 2 unknown: it could be anywhere
+    f.downlink(fused((ego_label(1), 10.0), (ego_label(2), 50.0), (ego_label(0), 0.0), ((1 << LABEL_BITS) + 4, 30.0)))
+    assert sorted(f._fleet.label[f._fleet.mask].tolist()) == [ego_label(1), ego_label(2)]  # not its own, no birth
+    cars = f._cars()
+    assert cars is not None and cars.batch_shape == (4,)
+    f.predict(5.0, 0.0)
+    f.downlink(fused((ego_label(1), 20.0)))  # the fused map has lost car 2
+    fleet = {int(lab): x for lab, x in zip(f._fleet.label[f._fleet.mask], f._fleet.m[f._fleet.mask, 0])}
+    assert fleet[ego_label(1)] == 20.0
+    assert fleet[ego_label(2)] == pytest.approx(52.5, abs=1e-9)
+    assert f._cars() is not None

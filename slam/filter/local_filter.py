@@ -33,12 +33,14 @@ from typing import Callable
 import numpy as np
 
 from mmslam.errors import MmslamError
+from mmslam.model import Bounce
 from mmslam.scenes.scenario import Scenario
 
 from ..phd.birth import birth_moments_by_kind
 from ..phd.first_detection import new_landmark_births
 from ..models.dynamics import wrap_angle
-from ..core.gm import LABEL_BITS, GM, compact, concat, drop_dead_slots, ego_label, empty, random_walk, with_labels
+from ..core.gm import (LABEL_BITS, GM, compact, concat, drop_dead_slots, ego_label, empty, is_ego_label, random_walk,
+                       with_labels)
 from ..phd.gmphd import correct
 from ..specs.landmarks import LandmarkSpec, check_type_rows, trace_cap
 from ..models.measurement import BS
@@ -152,8 +154,9 @@ class LocalFilter:
         self.s[:, 3] = wrap_angle(self.s[:, 3])
         self.logw = np.full(self.P, -np.log(self.P))
         self._labels = bool(scn.fusion.average_by_label)
-        self._downlinked = False
-        """whether a fused map has reached the vehicle (``filter.band_cars``)"""
+        self._fleet: GM | None = None
+        """the other cars as the downlinks told them (``filter.band_cars``, :meth:`_roster`), batch ``()``, predicted
+        with the VS motion since; None before the first downlink"""
         self.maps: dict[int, GM] = {t: empty((self.P,), 0, s.state_dim, with_label=self._labels)
                                     for t, s in self.specs.items()}
         self._prev_Z: np.ndarray | None = None
@@ -188,14 +191,17 @@ class LocalFilter:
         births: dict[int, GM] = {}
         if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
             # one inversion per path geometry (SP and VS share SCATTER), the types' births from it
-            kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}))
+            cars = self._cars()  # filter.band_cars: asks the single-scatter point of each path
+            kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}
+                                 | ({int(Bounce.SCATTER)} if cars is not None else set())))
             moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t, sp in self.specs.items():
                 geo = int(sp.geometry)
                 # the births that are new landmarks by their own measurement (filter.types.<T>.birth_existence)
                 new = (new_landmark_births(self.s, self._prev_Z, self.R, moments[geo], geo, self.bs,
                                            self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t],
-                                           self._cars(), 0.5 * float(self.fp.vs_body[0]))
+                                           cars, 0.5 * float(self.fp.vs_body[0]),
+                                           moments.get(int(Bounce.SCATTER)))
                        if sp.type_params(self.scn).birth_existence > 0 else None)
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[geo], sp, self.scn, self.pd_fn,
@@ -209,6 +215,8 @@ class LocalFilter:
         self.s = propagate(self.s, speed, turn_rate, self.dt, self.process_std, self.rng)
         if not self.update:
             return
+        if self._fleet is not None:
+            self._fleet = next(sp for sp in self.specs.values() if sp.moving).predict(self._fleet, None, self.scn)
         for t, sp in self.specs.items():
             g = self.maps[t] if self._walk[t] == 0 else random_walk(self.maps[t], self._walk[t])
             self.maps[t] = sp.predict(g, births.get(t), self.scn)
@@ -216,12 +224,35 @@ class LocalFilter:
                 self.maps[t] = sp.survive(self.maps[t], self.s, self.scn)
 
     def _cars(self) -> GM | None:
-        """The particles' VS map (the first moving type's), to which ``filter.band_cars`` puts the question whether
-        a bounce in the car band could be a car's; None without that option or before the first downlink, which
-        brings the fleet's cars."""
-        if not (self.fp.band_cars and self._downlinked):
+        """The cars ``filter.band_cars`` asks whether a bounce in the car band could be a car's, batch ``(P,)``: each
+        particle's VS map (the first moving type's) and the fleet as the downlinks told it (:attr:`_fleet`: a car
+        the VS map has lost to its missed detections since, 95 % a step, is still on the road). None without that
+        option, or until the downlinks have brought every other car of the scenario (a car that has not yet
+        uploaded could be anywhere; without labels none is known)."""
+        if not self.fp.band_cars or self._fleet is None:
             return None
-        return next((self.maps[t] for t, sp in self.specs.items() if sp.moving), None)
+        if np.unique(self._fleet.label[self._fleet.mask]).size < len(self.scn.vehicles) - 1:
+            return None
+        vs = next(self.maps[t] for t, sp in self.specs.items() if sp.moving)
+        fleet = _broadcast_gm(self._fleet, self.P)
+        return GM(np.concatenate([vs.w, fleet.w], -1), np.concatenate([vs.m, fleet.m], -2),
+                  np.concatenate([vs.P, fleet.P], -3), np.concatenate([vs.mask, fleet.mask], -1))
+
+    def _roster(self, fused_vs: GM) -> GM:
+        """The fleet after a downlink of ``fused_vs`` (batch ``()``): each other car's own estimate (its ego-labelled
+        Gaussian, eq. (11)) as this map holds it, or as the last downlink that held it did, predicted since. The BS's
+        fused VS map can lose a car between two of its uploads (another car's upload that misses it halves it, the
+        paper's ``beta`` inside the FOV), but the car is still on the road. Without labels no car is known as one."""
+        g = fused_vs
+        if g.label is None:
+            return GM(np.zeros(0), np.zeros((0, g.dim)), np.zeros((0, g.dim, g.dim)), np.zeros(0, bool))
+        new = g.mask & is_ego_label(g.label) & (g.label != self._ego_label)
+        parts = [(g.w[new], g.m[new], g.P[new], g.label[new])]
+        if self._fleet is not None:
+            old = self._fleet.mask & ~np.isin(self._fleet.label, g.label[new])
+            parts.append((self._fleet.w[old], self._fleet.m[old], self._fleet.P[old], self._fleet.label[old]))
+        w, m, P, lab = (np.concatenate(a) for a in zip(*parts))
+        return GM(w, m, P, np.ones(w.shape, bool), label=lab)
 
     def correct(self, Z: np.ndarray, R_z: np.ndarray | None = None) -> None:
         """PHD correction of every map with ``Z (J, 5)`` and the particle weight update.
@@ -327,13 +358,14 @@ class LocalFilter:
         A type with ``filter.types.<TYPE>.keep_tentative`` keeps each particle's own Gaussians lighter than
         ``fusion.average_prune`` (the tentative ones, which the fused map prunes) after the fused ones.
         """
-        self._downlinked = True
         for t, g in fused.items():
             if t not in self.maps:
                 continue
             sp = self.specs[t]
             if sp.remove_ego is not None and ego is not None and self.variant.downlink_ego_removal and g.capacity:
                 g = sp.remove_ego(g, ego, self.scn)
+            if sp.moving and self.fp.band_cars:
+                self._fleet = self._roster(g)
             if g.pd_beta is not None and self.fp.pd_beta_downlink == "prior":
                 g = g.copy()
                 g.pd_beta[...] = sp.pd_beta_prior(self.scn)

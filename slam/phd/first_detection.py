@@ -82,17 +82,25 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
     return np.where(valid, x[..., 2] - states[:, None, 2], np.nan)
 
 
-def off_every_car(states: np.ndarray, Z: np.ndarray, bs: np.ndarray, cars: GM, reach: float) -> np.ndarray:
-    """``(P, J)`` bool: whether the single-scatter point of each measurement (the point of :func:`bounce_height`) lies
-    horizontally farther than ``reach + 3 sigma`` (m) from the mean of every live Gaussian of particle ``p``'s car
-    map ``cars`` (batch ``(P,)``, the VS map; ``sigma``: the square root of the larger of its x and y variances),
-    i.e. that no car the particle knows of could have made it. False where the measurement has no such point."""
-    x, valid = invert_sp(states[:, None, :], Z[None, :, :], bs)  # (P, J, 3)
+def off_every_car(scatter: tuple[np.ndarray, np.ndarray, np.ndarray], cars: GM, reach: float) -> np.ndarray:
+    """``(P, J)`` bool: whether the single-scatter point of each measurement lies horizontally farther than
+    ``reach + 3 sqrt(sigma_q^2 + sigma_j^2)`` (m) from the mean of every live Gaussian ``q`` of particle ``p``'s car
+    map ``cars`` (batch ``(P,)``, the VS map), i.e. that no car the particle knows of could have made it.
+
+    ``scatter = (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))``: the point's moments by the cubature inversion of
+    ``N(z_j, R)`` with SCATTER (:func:`~mmslam.slam.phd.birth.birth_moments_by_kind`; the bounce point of a
+    single-bounce path, a specular one included, m, global frame). ``sigma_q``, ``sigma_j``: the square root of the
+    larger of the x and y variances of the car Gaussian and of the point (the measurement's angle noise spreads the
+    point across the ray by its range times the angle std: about 1 m at 100 m with 0.01 rad). ``reach``: how far a
+    body's surface lies from its centre (half a car's length). False where the measurement has no such point."""
+    mean, cov, valid = (np.asarray(a) for a in scatter)
     if not cars.capacity:
         return valid.copy()
-    d = np.linalg.norm(x[:, :, None, 0:2] - cars.m[:, None, :, 0:2], axis=-1)  # (P, J, Q)
-    sig = np.sqrt(np.maximum(cars.P[..., 0, 0], cars.P[..., 1, 1]))  # (P, Q)
-    near = cars.mask[:, None, :] & (d <= reach + 3.0 * sig[:, None, :])
+    d = np.linalg.norm(mean[:, :, None, 0:2] - cars.m[:, None, :, 0:2], axis=-1)  # (P, J, Q)
+    var_q = np.maximum(cars.P[..., 0, 0], cars.P[..., 1, 1])[:, None, :]  # (P, 1, Q)
+    with np.errstate(invalid="ignore"):
+        var_j = np.where(valid, np.maximum(cov[..., 0, 0], cov[..., 1, 1]), 0.0)[:, :, None]  # (P, J, 1)
+        near = cars.mask[:, None, :] & (d <= reach + 3.0 * np.sqrt(var_q + var_j))
     return valid & ~near.any(-1)
 
 
@@ -121,14 +129,16 @@ def within_merge_gate(mean: np.ndarray, cov: np.ndarray, m: np.ndarray, live: np
 def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
                         moments: tuple[np.ndarray, np.ndarray, np.ndarray], geometry: int, bs: np.ndarray,
                         band: float, gate: float, g: GM | None, cars: GM | None = None,
-                        reach: float = 0.0) -> np.ndarray:
+                        reach: float = 0.0,
+                        scatter: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``(P, J)`` bool: the births of ``Z (J, 5)`` (``moments = (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))`` of
     :func:`~mmslam.slam.phd.birth.birth_moments_by_kind` for ``geometry``) that are new landmarks by their own
     measurement: the module's three stages (AOD fit within :data:`FIT_GATE`, bounce more than ``band`` m off the
     antenna height, no Gaussian of the particle's map ``g`` (batch ``(P,)``; None: none) nor another birth of the
     scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it). With ``cars`` (the
     particles' VS map, batch ``(P,)``) a bounce in the band passes stage 2 too where no car of it is near
-    (:func:`off_every_car` with ``reach``, m; ``filter.band_cars``)."""
+    (:func:`off_every_car` with ``reach``, m, and ``scatter``, the measurements' SCATTER moments, needed then;
+    ``filter.band_cars``)."""
     mean, cov, ok = (np.asarray(a) for a in moments)
     states, Z = np.asarray(states, float), np.asarray(Z, float)
     out = ok.copy()
@@ -142,7 +152,9 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     with np.errstate(invalid="ignore"):
         off_band = np.abs(bounce_height(states, Z, bs)) > band  # 2. (NaN: False)
     if cars is not None:  # in the band, but no car the particle knows of is there: a wall's
-        off_band |= off_every_car(states, Z, bs, cars, reach)
+        if scatter is None:
+            raise ValueError("new_landmark_births: cars given without the measurements' SCATTER moments")
+        off_band |= off_every_car(scatter, cars, reach)
     out &= off_band
     # 3. the other births of the scan (birth j against every live j' != j, under j's covariance), the line of sight
     # and the particle's map
