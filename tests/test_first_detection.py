@@ -222,3 +222,9 @@ def test_band_cars_asks_the_fleet_the_downlinks_brought():
     assert fleet[ego_label(1)] == 20.0
     assert fleet[ego_label(2)] == pytest.approx(52.5, abs=1e-9)
     assert f._cars() is not None
+    # without labels no car is known as one: the test never acts
+    scn = with_overrides(scn, ["fusion.average_by_label=false"])
+    f = LocalFilter(scn, "proposed", 4, s0, R, 1e-3, pd, np.random.default_rng(0), vehicle=0)
+    g = fused((ego_label(1), 10.0), (ego_label(2), 50.0))[vs]
+    f.downlink({vs: GM(g.w, g.m, g.P, g.mask)})
+    assert f._cars() is None

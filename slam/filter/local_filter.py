@@ -245,7 +245,8 @@ class LocalFilter:
         paper's ``beta`` inside the FOV), but the car is still on the road. Without labels no car is known as one."""
         g = fused_vs
         if g.label is None:
-            return GM(np.zeros(0), np.zeros((0, g.dim)), np.zeros((0, g.dim, g.dim)), np.zeros(0, bool))
+            return GM(np.zeros(0), np.zeros((0, g.dim)), np.zeros((0, g.dim, g.dim)), np.zeros(0, bool),
+                      label=np.zeros(0, np.int64))
         new = g.mask & is_ego_label(g.label) & (g.label != self._ego_label)
         parts = [(g.w[new], g.m[new], g.P[new], g.label[new])]
         if self._fleet is not None:
