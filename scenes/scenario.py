@@ -417,8 +417,9 @@ class FilterParams:
                             "farther horizontally than half a car's length (filter.vs_body) plus 3 standard "
                             "deviations (the car's and the bounce point's, whose angle noise grows with its range) "
                             "from every such car and every VS Gaussian of the particle's map is a wall's, not a "
-                            "car's (mmslam.slam.phd.first_detection; needs fusion.average_by_label, which tells the "
-                            "cars' own estimates). False: every bounce in the band may be a car's "
+                            "car's (mmslam.slam.phd.first_detection; the cars' own estimates are known by their ego "
+                            "labels: fusion.average_by_label and the proposed variant's uploads, else the option does "
+                            "not act). False: every bounce in the band may be a car's "
                             "(docs/city-slam.md, \"Walls at a car's height\")")
     vs_keep_cars: bool = param(True, "the VS Gaussians that are cars' own estimates (their ego labels in the "
                                "downlinked fused VS map, eq. (11); needs fusion.average_by_label, without labels "

@@ -146,7 +146,8 @@ def test_a_bounce_in_the_car_band_with_no_car_near_is_a_walls():
     fits a wall's AOD (the mirror hypothesis's specular point is q itself) and bounces in the 3 m band. Its SCATTER
     point spreads across the ray by r x 0.01 rad = 0.224 m and along it by the TOA's 0.1 m / (1 + d . (q - BS) /
     |q - BS|) = 0.057 m (the path length grows by 1 + d . (q - BS) / |q - BS| per metre along the ray d): in y,
-    sqrt((0.894 x 0.224)^2 + (0.447 x 0.057)^2) = 0.202 m. With a car Gaussian 1 m from q (within half a car, 2.25
+    sqrt((0.894 x 0.224)^2 + (0.447 x 0.057)^2) = 0.202 m (the horizontal ray d = (0.894, 0.447); the across-ray
+    direction (-0.447, 0.894) has y part d_x). With a car Gaussian 1 m from q (within half a car, 2.25
     m) it stays a possible car path; with the only car 30 m away (sigma 0.5 m) it is new; a car 30 m away whose sigma
     is 10 m (3 sigma + 2.25 > 30) could still be there; a dead slot is no car. A point 4 m from a car (sigma 0.1 m)
     is off it when the point is sharp (2.25 + 3 sqrt(0.01 + 0.01) = 2.67 m) and near it when the point spreads by
@@ -194,8 +195,10 @@ def test_band_cars_asks_the_fleet_the_downlinks_brought():
     0.5 s: 2.5 m); the test acts only once every other car of the scenario (canyon: three cars) is known."""
     from mmslam.slam.core.gm import LABEL_BITS, ego_label
     from mmslam.slam.filter.local_filter import LocalFilter
+    from mmslam.slam.phd.first_detection import off_every_car
 
-    scn = with_overrides(load_preset("canyon"), ["filter.band_cars=true"])
+    scn = load_preset("canyon")  # filter.band_cars: true by default
+    assert scn.filter.band_cars
     vs = int(LandmarkType.VS)
     s0 = np.array([0.0, 0.0, 1.6, 0.0, 5.0, 0.0, 0.0])
     pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.9)  # noqa: E731
@@ -221,7 +224,19 @@ def test_band_cars_asks_the_fleet_the_downlinks_brought():
     fleet = {int(lab): x for lab, x in zip(f._fleet.label[f._fleet.mask], f._fleet.m[f._fleet.mask, 0])}
     assert fleet[ego_label(1)] == 20.0
     assert fleet[ego_label(2)] == pytest.approx(52.5, abs=1e-9)
-    assert f._cars() is not None
+    cars = f._cars()
+    assert np.isclose(cars.m[..., 0], 52.5).any(-1).all()  # every particle asks car 2 where the roster has it
+    # a bounce 0.5 m above the antenna, 1 m from car 2's roster entry (the particles near x = 2.5, no VS map near):
+    # a possible car path, not a wall's
+    Z = measure(f.s[0], np.array([53.5, 0.0, 2.1]), SCAT, np.asarray(scn.bs, float))[None]
+    scatter = birth_moments_by_kind(f.s, Z, R, (SCAT,), np.asarray(scn.bs, float))[SCAT]
+    assert scatter[2].all() and not off_every_car(scatter, cars, 2.25).any()
+    assert off_every_car(scatter, GM(cars.w[:, :-2], cars.m[:, :-2], cars.P[:, :-2], cars.mask[:, :-2]), 2.25).all()
+    # without the option no roster is kept
+    f = LocalFilter(with_overrides(scn, ["filter.band_cars=false"]), "proposed", 4, s0, R, 1e-3, pd,
+                    np.random.default_rng(0), vehicle=0)
+    f.downlink(fused((ego_label(1), 10.0), (ego_label(2), 50.0)))
+    assert f._fleet is None and f._cars() is None
     # without labels no car is known as one: the test never acts
     scn = with_overrides(scn, ["fusion.average_by_label=false"])
     f = LocalFilter(scn, "proposed", 4, s0, R, 1e-3, pd, np.random.default_rng(0), vehicle=0)

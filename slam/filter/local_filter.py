@@ -191,9 +191,12 @@ class LocalFilter:
         births: dict[int, GM] = {}
         if self.update and self._prev_Z is not None and self._prev_Z.shape[0]:
             # one inversion per path geometry (SP and VS share SCATTER), the types' births from it
-            cars = self._cars()  # filter.band_cars: asks the single-scatter point of each path
-            kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()}
-                                 | ({int(Bounce.SCATTER)} if cars is not None else set())))
+            # filter.band_cars asks the single-scatter point of each path where some type has first-detection births
+            scat = int(Bounce.SCATTER)
+            first = any(sp.type_params(self.scn).birth_existence > 0 for sp in self.specs.values())
+            cars = self._cars() if first else None
+            kinds = tuple(sorted({int(sp.geometry) for sp in self.specs.values()} | ({scat} if cars is not None
+                                                                                      else set())))
             moments = birth_moments_by_kind(self.s, self._prev_Z, self.R, kinds, self.bs)
             for t, sp in self.specs.items():
                 geo = int(sp.geometry)
@@ -201,7 +204,7 @@ class LocalFilter:
                 new = (new_landmark_births(self.s, self._prev_Z, self.R, moments[geo], geo, self.bs,
                                            self.fp.vs_birth_height, sp.merge_gate(self.scn), self.maps[t],
                                            cars, 0.5 * float(self.fp.vs_body[0]),
-                                           moments.get(int(Bounce.SCATTER)))
+                                           moments[scat] if cars is not None else None)
                        if sp.type_params(self.scn).birth_existence > 0 else None)
                 # a birth column dead in every particle (e.g. outside the FOV) is no slot of the map
                 births[t] = drop_dead_slots(sp.birth(self.s, moments[geo], sp, self.scn, self.pd_fn,
@@ -228,7 +231,9 @@ class LocalFilter:
         particle's VS map (the first moving type's) and the fleet as the downlinks told it (:attr:`_fleet`: a car
         the VS map has lost to its missed detections since, 95 % a step, is still on the road). None without that
         option, or until the downlinks have brought every other car of the scenario (a car that has not yet
-        uploaded could be anywhere; without labels none is known)."""
+        uploaded could be anywhere). The cars are known by their ego labels, which the fused VS map carries with
+        ``fusion.average_by_label`` in a variant whose upload places its own car (``proposed``'s ``F'_AA``, eq. (11));
+        otherwise no other car is ever known and the option does not act (with one car it acts at once)."""
         if not self.fp.band_cars or self._fleet is None:
             return None
         if np.unique(self._fleet.label[self._fleet.mask]).size < len(self.scn.vehicles) - 1:
@@ -242,7 +247,8 @@ class LocalFilter:
         """The fleet after a downlink of ``fused_vs`` (batch ``()``): each other car's own estimate (its ego-labelled
         Gaussian, eq. (11)) as this map holds it, or as the last downlink that held it did, predicted since. The BS's
         fused VS map can lose a car between two of its uploads (another car's upload that misses it halves it, the
-        paper's ``beta`` inside the FOV), but the car is still on the road. Without labels no car is known as one."""
+        paper's ``beta`` inside the FOV), but the car is still on the road. Without labels no car is known as one.
+        A car no later downlink brings again stays, its spread growing with the VS process noise at each step."""
         g = fused_vs
         if g.label is None:
             return GM(np.zeros(0), np.zeros((0, g.dim)), np.zeros((0, g.dim, g.dim)), np.zeros(0, bool),

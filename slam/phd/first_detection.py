@@ -15,7 +15,8 @@ Three stages, each ``(P, J)`` over particles ``p`` and measurements ``z_j`` (:fu
    :data:`FIT_GATE` (the 99.9 % point of chi-square with 2 degrees of freedom);
 2. off the car band (:func:`bounce_height`): the path bounces (the single-scatter point of ``z_j``) more than
    ``band`` (``filter.vs_birth_height``) above or below the antenna; within it the path may come off a car body, a
-   VS the filter cannot tell from a wall at its first detection;
+   VS the filter cannot tell from a wall at its first detection, unless no car is near the point
+   (:func:`off_every_car`, ``filter.band_cars``: the cars the caller knows of);
 3. resolved (:func:`within_merge_gate`, :func:`los_fit`): no Gaussian of the particle's map and no other birth of the
    scan lies within the type's merge gate of the birth (the squared Mahalanobis distance under the birth's covariance,
    the candidate's covariance as in the reduction's test: the reduction would merge it into one of them), and the
@@ -85,14 +86,16 @@ def bounce_height(states: np.ndarray, Z: np.ndarray, bs: np.ndarray) -> np.ndarr
 def off_every_car(scatter: tuple[np.ndarray, np.ndarray, np.ndarray], cars: GM, reach: float) -> np.ndarray:
     """``(P, J)`` bool: whether the single-scatter point of each measurement lies horizontally farther than
     ``reach + 3 sqrt(sigma_q^2 + sigma_j^2)`` (m) from the mean of every live Gaussian ``q`` of particle ``p``'s car
-    map ``cars`` (batch ``(P,)``, the VS map), i.e. that no car the particle knows of could have made it.
+    map ``cars`` (batch ``(P,)``: the cars the caller knows of, e.g. the particle's VS map and the fleet as the
+    downlinks told it), i.e. that no car the particle knows of could have made it.
 
     ``scatter = (mean (P, J, 3), cov (P, J, 3, 3), ok (P, J))``: the point's moments by the cubature inversion of
     ``N(z_j, R)`` with SCATTER (:func:`~mmslam.slam.phd.birth.birth_moments_by_kind`; the bounce point of a
     single-bounce path, a specular one included, m, global frame). ``sigma_q``, ``sigma_j``: the square root of the
     larger of the x and y variances of the car Gaussian and of the point (the measurement's angle noise spreads the
     point across the ray by its range times the angle std: about 1 m at 100 m with 0.01 rad). ``reach``: how far a
-    body's surface lies from its centre (half a car's length). False where the measurement has no such point."""
+    body's surface lies from its centre (half a car's length). False where the measurement has no such point
+    (``ok`` False: the test does not act, and the band's own test, :func:`bounce_height`, decides)."""
     mean, cov, valid = (np.asarray(a) for a in scatter)
     if not cars.capacity:
         return valid.copy()
@@ -135,8 +138,8 @@ def new_landmark_births(states: np.ndarray, Z: np.ndarray, R: np.ndarray,
     :func:`~mmslam.slam.phd.birth.birth_moments_by_kind` for ``geometry``) that are new landmarks by their own
     measurement: the module's three stages (AOD fit within :data:`FIT_GATE`, bounce more than ``band`` m off the
     antenna height, no Gaussian of the particle's map ``g`` (batch ``(P,)``; None: none) nor another birth of the
-    scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it). With ``cars`` (the
-    particles' VS map, batch ``(P,)``) a bounce in the band passes stage 2 too where no car of it is near
+    scan within the merge ``gate``, the line of sight from ``bs (3,)`` not explaining it). With ``cars`` (batch
+    ``(P,)``: the cars each particle knows of) a bounce in the band passes stage 2 too where no car of it is near
     (:func:`off_every_car` with ``reach``, m, and ``scatter``, the measurements' SCATTER moments, needed then;
     ``filter.band_cars``)."""
     mean, cov, ok = (np.asarray(a) for a in moments)
