@@ -410,7 +410,7 @@ class FilterParams:
         "between the BS and the street (a specular point a VS would follow along the wall); docs/city-slam.md; "
         "the paper has no such gate (its presets set 1e4)", "m", lo=0.0, lo_open=True,
         hi=1e4)
-    band_cars: bool = param(True, "the car band of the first-detection birth (filter.vs_birth_height about the "
+    band_cars: bool = param(False, "the car band of the first-detection birth (filter.vs_birth_height about the "
                             "antenna: a path that bounces there may come off a car body) asks where the cars are: "
                             "once the downlinks have brought every other car's own estimate (each kept, predicted "
                             "with the VS motion, until a later downlink brings it again), a bounce in the band "
@@ -419,8 +419,10 @@ class FilterParams:
                             "from every such car and every VS Gaussian of the particle's map is a wall's, not a "
                             "car's (mmslam.slam.phd.first_detection; the cars' own estimates are known by their ego "
                             "labels: fusion.average_by_label and the proposed variant's uploads, else the option does "
-                            "not act). False: every bounce in the band may be a car's "
-                            "(docs/city-slam.md, \"Walls at a car's height\")")
+                            "not act). False: every bounce in the band may be a car's. An option, not the default: "
+                            "a static scatterer at a car's height (a pole, a sign: the street preset's) makes the same "
+                            "path, and the option takes it for a wall (docs/city-slam.md, \"Walls at a car's "
+                            "height\")")
     vs_keep_cars: bool = param(True, "the VS Gaussians that are cars' own estimates (their ego labels in the "
                                "downlinked fused VS map, eq. (11); needs fusion.average_by_label, without labels "
                                "none is known as one) stay in a car's VS map wherever they stand; "

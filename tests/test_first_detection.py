@@ -197,8 +197,7 @@ def test_band_cars_asks_the_fleet_the_downlinks_brought():
     from mmslam.slam.filter.local_filter import LocalFilter
     from mmslam.slam.phd.first_detection import off_every_car
 
-    scn = load_preset("canyon")  # filter.band_cars: true by default
-    assert scn.filter.band_cars
+    scn = with_overrides(load_preset("canyon"), ["filter.band_cars=true"])
     vs = int(LandmarkType.VS)
     s0 = np.array([0.0, 0.0, 1.6, 0.0, 5.0, 0.0, 0.0])
     pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.9)  # noqa: E731
