@@ -242,3 +242,40 @@ def test_band_cars_asks_the_fleet_the_downlinks_brought():
     g = fused((ego_label(1), 10.0), (ego_label(2), 50.0))[vs]
     f.downlink({vs: GM(g.w, g.m, g.P, g.mask)})
     assert f._cars() is None
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_a_local_filter_with_band_cars_maps_a_wall_at_a_cars_height_where_no_car_is(on):
+    """Through :meth:`LocalFilter.predict`: the fleet's two other cars 200-300 m away, a path off a point 0.5 m above
+    the antenna (in the 3 m band) 34 m from the car. With ``filter.band_cars`` its VA birth is a new landmark (weight
+    ``birth_existence`` 0.9, then one missed step); without it, the band holds it at ``filter.birth_weight`` order."""
+    from mmslam.slam.core.gm import ego_label
+    from mmslam.slam.filter.local_filter import LocalFilter
+
+    scn = with_overrides(load_preset("canyon"), [f"filter.band_cars={str(on).lower()}"])
+    vs, va = int(LandmarkType.VS), int(LandmarkType.VA)
+    s0 = np.array([0.0, 0.0, 1.6, 0.0, 5.0, 0.0, 0.0])
+    pd = lambda u, x, t: np.full(np.broadcast_shapes(np.shape(u)[:-1], np.shape(x)[:-1]), 0.9)  # noqa: E731
+    f = LocalFilter(scn, "proposed", 8, s0, R, 1e-3, pd, np.random.default_rng(0), vehicle=0)
+    m = np.zeros((2, 7))
+    m[:, 0], m[:, 2] = [-200.0, 300.0], 1.6
+    f.downlink({vs: GM(np.ones(2), m, np.tile(np.eye(7) * 0.04, (2, 1, 1)), np.ones(2, bool),
+                       label=np.array([ego_label(1), ego_label(2)], np.int64))})
+    f.step(measure(s0, np.array([30.0, 15.0, 2.1]), SCAT, np.asarray(scn.bs, float))[None])
+    f.step(np.zeros((0, 5)), 5.0, 0.0)
+    g = f.maps[va]
+    assert (f._cars() is not None) == on
+    assert (g.w[g.mask].max() > 0.5) if on else (g.w[g.mask].max() < 1e-3)
+
+
+def test_off_every_car_on_empty_shapes():
+    """``J = 0`` measurements: a ``(P, 0)`` answer; no car slot (``Q = 0``): every point with a single-scatter point
+    is off every car, one without is not."""
+    from mmslam.slam.phd.first_detection import off_every_car
+
+    car = GM(np.ones((1, 1)), np.zeros((1, 1, 7)), np.eye(7)[None, None] * 0.01, np.ones((1, 1), bool))
+    assert off_every_car((np.zeros((1, 0, 3)), np.zeros((1, 0, 3, 3)), np.zeros((1, 0), bool)), car, 2.25).shape \
+        == (1, 0)
+    none = GM(np.ones((1, 0)), np.zeros((1, 0, 7)), np.zeros((1, 0, 7, 7)), np.zeros((1, 0), bool))
+    pts = (np.zeros((1, 2, 3)), np.tile(np.eye(3), (1, 2, 1, 1)), np.array([[True, False]]))
+    assert off_every_car(pts, none, 2.25).tolist() == [[True, False]]
